@@ -1,0 +1,184 @@
+"""The whole pipeline for one config: mesh -> assemble -> modes -> reduce -> HDF5.
+
+:func:`run_pipeline` chains the stage functions and is what the CLI, the Makefile,
+batch runs and the benchmarks call. It logs what each stage does and how long it took.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from .config import Config, config_to_yaml
+from .h5tree import Dataset
+
+log = logging.getLogger(__name__)
+
+ProgressFactory = Callable[[str, int | None, str], Any]
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@contextlib.contextmanager
+def _stage(name: str, times: dict[str, float]):
+    t0 = time.perf_counter()
+    log.info("%s ...", name)
+    yield
+    times[name] = time.perf_counter() - t0
+    log.info("%s done in %.2f s (peak memory %.0f MB)", name, times[name], peak_memory_mb())
+
+
+@contextlib.contextmanager
+def _no_progress(desc: str, total: int | None, unit: str):
+    yield lambda n=1: None
+
+
+def restrict(A: sp.spmatrix, keep: np.ndarray) -> sp.csr_matrix:
+    """A[keep][:, keep] for sorted ``keep``, in one pass over the CSR structure."""
+    A = sp.csr_matrix(A)
+    if keep.size == A.shape[0]:
+        return A
+    sub = A[keep]
+    return sub[:, keep].tocsr()
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What one run produced (the HDF5 file holds all of it)."""
+
+    config: Config
+    output: Path
+    n_dofs: int
+    n_free: int
+    n_elements: int
+    frequencies_hz: np.ndarray
+    labels: list[str]
+    mass: float
+    times: dict[str, float]
+    peak_memory_mb: float
+    backend: str
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes",
+                 progress: ProgressFactory | None = None) -> RunResult:
+    """Run every stage for ``cfg`` and write the HDF5 file ``output``.
+
+    ``progress(desc, total, unit)``, if given, is a context manager yielding an
+    ``update(n)`` callable (the CLI passes tqdm bars).
+    """
+    from .assemble import assemble_stiffness_mass, block_pattern
+    from .body import body_properties, label_modes, node_volume_weights
+    from .fespace import build_space
+    from .mesh import generate_mesh, read_mesh
+    from .modes import solve_modes
+    from .regions import fixed_dofs, free_dofs, resolve_regions
+    from .resources import check_memory
+
+    progress = progress or _no_progress
+    times: dict[str, float] = {}
+    output = Path(output)
+    tree: dict[str, Dataset] = {}
+    group_attrs: dict[str, dict[str, Any]] = {}
+
+    with _stage("mesh", times):
+        mesh_path = generate_mesh(cfg.geometry, cfg.mesh, Path(mesh_dir) / f"{cfg.name}.msh")
+        body = read_mesh(mesh_path)
+        space = build_space(body, cfg.mesh.order)
+        regions = resolve_regions(space, cfg.regions)
+        log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
+                 space.n_nodes, space.n_dofs)
+    check_memory(space, cfg.modes.count)
+
+    with _stage("assemble", times):
+        pattern = block_pattern(space)
+        with progress("assemble", body.n_tetrahedra, "elem") as update:
+            K, M = assemble_stiffness_mass(space, cfg.material, pattern=pattern, progress=update)
+        del pattern
+        props = body_properties(M, space.node_points)
+        fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
+        free = free_dofs(space.n_dofs, fixed)
+        K = restrict(K, free)
+        M = restrict(M, free)
+        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+
+    with _stage("modes", times):
+        with progress("eigensolve", None, "solve") as update:
+            modes = solve_modes(K, M, cfg.modes.count, supported=bool(cfg.supports),
+                                backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
+                                progress=update)
+        shapes = np.zeros((space.n_dofs, modes.omega2.size))
+        shapes[free] = modes.shapes
+        shapes = shapes.reshape(space.n_nodes, 3, -1)
+        labels = label_modes(space.node_points, shapes, modes.n_rigid,
+                             node_volume_weights(space))
+        for f, lab in zip(modes.frequencies_hz, labels):
+            log.info("mode %-14s %12.4f Hz", lab, f)
+
+    extras: dict[str, Any] = {}
+    with _stage("reduce", times):
+        if cfg.reduction is not None or cfg.lumped is not None:
+            from .models import build_models
+
+            model_tree, model_attrs, extras = build_models(cfg, space, regions, K, M, free,
+                                                           modes, props)
+            tree.update(model_tree)
+            group_attrs.update(model_attrs)
+    del K, M
+
+    tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
+    group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
+                            "solver": modes.backend, "shift_rad2_s2": modes.shift}
+    group_attrs["mesh"] = {"cell_type": space.cell_type, "element_order": cfg.mesh.order,
+                           "source": str(mesh_path), "n_dofs": space.n_dofs,
+                           "n_free_dofs": int(free.size)}
+    with _stage("write", times):
+        group_attrs["run"] = {f"{k}_s": v for k, v in times.items()}
+        group_attrs["run"]["peak_memory_mb"] = peak_memory_mb()
+        group_attrs["run"]["solver"] = modes.backend
+        from .store import write_file
+
+        write_file(output, tree, group_attrs, {"name": cfg.name,
+                                               "config_yaml": config_to_yaml(cfg)})
+    return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
+                     modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
+                     modes.backend, extras)
+
+
+def _core_tree(space, regions, fixed, props, modes, shapes, labels) -> dict[str, Dataset]:
+    tree = {
+        "mesh/points": Dataset(space.node_points, "m", "node coordinates (vertices, then edge "
+                               "midpoints for quadratic elements)"),
+        f"mesh/cells/{space.cell_type}": Dataset(space.element_nodes.astype(np.int64), "1",
+                                                 "node indices per element, meshio order"),
+        "mesh/fixed_dofs": Dataset(fixed.astype(np.int64), "1",
+                                   "constrained DOFs; DOF 3*node+c is component c of node"),
+        "body/mass": Dataset(np.float64(props.mass), "kg", "total mass from the FE mass matrix"),
+        "body/center_of_mass": Dataset(props.center_of_mass, "m", "centre of mass"),
+        "body/inertia": Dataset(props.inertia, "kg m^2", "inertia tensor about the centre of mass"),
+        "body/rigid_mass_matrix": Dataset(props.rigid_mass, "mixed",
+                                          "R^T M R at the origin, twist order [v; omega]",
+                                          {"units_blocks": "kg | kg m ; kg m | kg m^2"}),
+        "modes/frequencies_hz": Dataset(modes.frequencies_hz, "Hz", "natural frequencies"),
+        "modes/omega2": Dataset(modes.omega2, "rad^2/s^2", "eigenvalues omega^2"),
+        "modes/labels": Dataset(list(labels), "1", "dominant motion of each mode"),
+        "modes/shapes": Dataset(shapes, "kg^-1/2", "M-orthonormal mode shapes, "
+                                "(n_points, 3, n_modes): displacement of every mesh point"),
+        "modes/residuals": Dataset(modes.residuals, "1",
+                                   "||K phi - omega^2 M phi|| / ||K phi|| per mode"),
+    }
+    for name, tris in regions.items():
+        tree[f"mesh/regions/{name}"] = Dataset(tris.astype(np.int64), "1",
+                                               "boundary triangles (vertex node indices)")
+    return tree
