@@ -176,3 +176,12 @@ def assemble_reference(space: FESpace, material: Material) -> tuple[sp.csr_matri
 
     basis = Basis(space.skfem_mesh, space.skfem_element())
     return stiffness.assemble(basis).tocsr(), mass.assemble(basis).tocsr()
+
+
+def restrict(A: sp.spmatrix, keep: np.ndarray) -> sp.csr_matrix:
+    """A[keep][:, keep] (condensation of the supports) for sorted ``keep`` indices."""
+    A = sp.csr_matrix(A)
+    if keep.size == A.shape[0]:
+        return A
+    sub = A[keep]
+    return sub[:, keep].tocsr()

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import scipy.sparse as sp
 
 from .config import Config, config_to_yaml
 from .h5tree import Dataset
@@ -44,15 +43,6 @@ def _no_progress(desc: str, total: int | None, unit: str):
     yield lambda n=1: None
 
 
-def restrict(A: sp.spmatrix, keep: np.ndarray) -> sp.csr_matrix:
-    """A[keep][:, keep] for sorted ``keep``, in one pass over the CSR structure."""
-    A = sp.csr_matrix(A)
-    if keep.size == A.shape[0]:
-        return A
-    sub = A[keep]
-    return sub[:, keep].tocsr()
-
-
 @dataclass(frozen=True)
 class RunResult:
     """What one run produced (the HDF5 file holds all of it)."""
@@ -78,7 +68,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
-    from .assemble import assemble_stiffness_mass, block_pattern
+    from .assemble import assemble_stiffness_mass, block_pattern, restrict
     from .body import body_properties, label_modes, node_volume_weights
     from .fespace import build_space
     from .mesh import generate_mesh, read_mesh
