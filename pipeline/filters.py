@@ -71,7 +71,8 @@ class FilterMatrices(NamedTuple):
 def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
     K = float(cutoff_rad_s)
     if not math.isfinite(K) or K <= 0:
-        raise ValueError(f"filter cutoff must be a positive finite rad/s value, got {cutoff_rad_s!r}")
+        raise ValueError(f"filter cutoff must be a positive finite rad/s value, "
+                         f"got {cutoff_rad_s!r}")
     return K
 
 
@@ -126,7 +127,8 @@ def _validate(kind: str, cutoff_hz) -> float | None:
         raise ConfigError(f"filter.kind: got {kind!r}, expected one of " + ", ".join(FILTER_KINDS))
     if kind == "none":
         return None
-    if isinstance(cutoff_hz, bool) or not isinstance(cutoff_hz, (int, float, np.integer, np.floating)) \
+    number = (int, float, np.integer, np.floating)
+    if isinstance(cutoff_hz, bool) or not isinstance(cutoff_hz, number) \
             or not math.isfinite(float(cutoff_hz)) or float(cutoff_hz) <= 0:
         raise ConfigError(f"filter.cutoff_hz: got {cutoff_hz!r}, expected a positive "
                           f"frequency in Hz for filter kind {kind}")

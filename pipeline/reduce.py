@@ -392,8 +392,10 @@ def modal_statespace(omega2, xi, Sigma, Theta, residual=None, input_names=None,
         if residual.shape != (n_y, n_u):
             raise ValueError(f"residual has shape {residual.shape}, expected {(n_y, n_u)}")
         D[:n_y] += residual
-    inputs = tuple(input_names) if input_names is not None else tuple(f"u{j + 1}" for j in range(n_u))
-    ports = tuple(output_names) if output_names is not None else tuple(f"y{i + 1}" for i in range(n_y))
+    inputs = (tuple(input_names) if input_names is not None
+              else tuple(f"u{j + 1}" for j in range(n_u)))
+    ports = (tuple(output_names) if output_names is not None
+             else tuple(f"y{i + 1}" for i in range(n_y)))
     if len(inputs) != n_u or len(ports) != n_y:
         raise ValueError(f"{len(inputs)} input names for {n_u} inputs or {len(ports)} output "
                          f"names for {n_y} outputs")
@@ -584,8 +586,10 @@ def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | Non
         f"{group}/C": Dataset(ss.C, "mixed", "output matrix C of y = C x + D u; rows: "
                               "positions, velocities, accelerations of every port", note),
         f"{group}/D": Dataset(ss.D, "mixed", "feedthrough matrix D of y = C x + D u", note),
-        f"{group}/input_names": Dataset(list(ss.input_names), "", "name of each input (columns of B, D)"),
-        f"{group}/output_names": Dataset(list(ss.output_names), "", "name of each output (rows of C, D)"),
+        f"{group}/input_names": Dataset(list(ss.input_names), "",
+                                        "name of each input (columns of B, D)"),
+        f"{group}/output_names": Dataset(list(ss.output_names), "",
+                                         "name of each output (rows of C, D)"),
         f"{group}/state_names": Dataset(list(ss.state_names), "", "name of each state (rows of A)"),
         f"{group}/damping_ratios": Dataset(ss.damping_ratios, "1",
                                            "modal damping ratio of every mode in the model"),
