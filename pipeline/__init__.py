@@ -20,7 +20,17 @@ from .errors import (  # noqa: E402
     SolverError,
 )
 
+
+
+def load_model(path):
+    """Load a reduced model from an HDF5 file (see :func:`pipeline.loader.load_model`)."""
+    from .loader import load_model as _load
+
+    return _load(path)
+
+
 __all__ = [
+    "load_model",
     "__version__",
     "ConfigError",
     "FileFormatError",

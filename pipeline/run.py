@@ -122,7 +122,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
             from .models import build_models
 
             model_tree, model_attrs, extras = build_models(cfg, space, regions, K, M, free,
-                                                           modes, props)
+                                                           modes, props, labels)
             tree.update(model_tree)
             group_attrs.update(model_attrs)
     del K, M

@@ -10,6 +10,13 @@ import numpy as np
 from .store import open_verified, read_strings
 
 
+def _names(group, key: str) -> list[str]:
+    """Port/state names stored as a string dataset or as an attribute of A."""
+    if key in group:
+        return read_strings(group[key])
+    return read_strings(group["A"].attrs.get(key, []))
+
+
 def summarize(path) -> str:
     lines = []
     with open_verified(path) as h5:
@@ -45,8 +52,8 @@ def summarize(path) -> str:
             if "filter_kind" in grp.attrs:
                 extra = f", filter {grp.attrs['filter_kind']} at {float(grp.attrs['cutoff_hz']):g} Hz"
             lines.append(f"  {g}: {grp['A'].shape[0]} states, inputs "
-                         f"{read_strings(grp['input_names'])}, outputs "
-                         f"{read_strings(grp['output_names'])}{extra}")
+                         f"{_names(grp, 'input_names')}, outputs "
+                         f"{_names(grp, 'output_names')}{extra}")
         if "run" in h5:
             r = h5["run"].attrs
             stages = ", ".join(f"{k[:-2]} {float(r[k]):.2f} s" for k in r if k.endswith("_s"))

@@ -1,0 +1,139 @@
+"""Reduced-model stage: the modal state space (with its filtered twin) and the lumped
+chain, from the FE matrices and modes. Called by :func:`pipeline.run.run_pipeline`.
+
+Returns HDF5 datasets (``statespace``, ``statespace_filtered``, ``lumped``) and a short
+text summary for the CLI.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from .config import Config
+from .h5tree import Dataset
+
+log = logging.getLogger(__name__)
+
+
+def _damping_spec(cfg: Config):
+    from .reduce import DampingSpec
+
+    d = cfg.damping
+    if d.kind == "uniform":
+        return DampingSpec("uniform", ratio=d.ratio)
+    if d.kind == "per_mode":
+        return DampingSpec("per_mode", ratios=tuple(d.ratios))
+    return DampingSpec("rayleigh", alpha=d.alpha, beta=d.beta)
+
+
+def _factorize(backend: str):
+    from .solvers import factorize
+
+    return lambda K: factorize(K, backend, positive_definite=True).solve
+
+
+def build_statespace(cfg: Config, space, regions, K, M, free, modes):
+    """The reduced model (pipeline.reduce.ReducedModel) and its filtered twin."""
+    from .filters import filtered_model
+    from .ports import port_matrices
+    from .reduce import reduce_model
+
+    ports = port_matrices(space, regions, cfg.ports)
+    F = ports.F[free].toarray()
+    T = ports.T[:, free]
+    reduced = reduce_model(K, M, modes.shapes, modes.omega2, F, T, cfg.reduction.modes,
+                           _damping_spec(cfg), cfg.reduction.static_correction,
+                           ports.input_names, ports.output_names,
+                           factorize=_factorize(cfg.modes.solver))
+    filtered = None
+    if cfg.filter.kind != "none":
+        filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)
+    return ports, reduced, filtered
+
+
+def _compliance_units(ports) -> str:
+    kinds = {(i, o) for i in ports.input_units for o in ports.output_units}
+    return f"{kinds.pop()[1]}/{next(iter(ports.input_units))}" if len(kinds) == 1 else "mixed"
+
+
+def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=None
+                 ) -> tuple[dict[str, Dataset], dict[str, dict[str, Any]], dict[str, Any]]:
+    """All configured reduced models: (datasets, group attributes, extras for the CLI)."""
+    tree: dict[str, Dataset] = {}
+    attrs: dict[str, dict[str, Any]] = {}
+    summary: list[str] = []
+    extras: dict[str, Any] = {"summary": summary}
+    fe_deflection = None
+    if cfg.reduction is not None:
+        from .filters import filter_datasets, filter_group_attrs
+        from .reduce import statespace_datasets
+
+        ports, reduced, filtered = build_statespace(cfg, space, regions, K, M, free, modes)
+        tree.update(statespace_datasets(reduced, "statespace", _compliance_units(ports)))
+        attrs["statespace"] = {"static_correction": reduced.static_correction,
+                               "n_modes": reduced.n_modes, "n_basis": reduced.n_basis,
+                               "input_units": list(ports.input_units),
+                               "output_units": list(ports.output_units)}
+        if filtered is not None:
+            tree.update(filter_datasets(filtered, cfg.filter.kind, cfg.filter.cutoff_hz))
+            attrs.update(filter_group_attrs(cfg.filter.kind, cfg.filter.cutoff_hz))
+        extras["reduced"] = reduced
+        extras["filtered"] = filtered
+        dc = reduced.dc_gain_position
+        exact = reduced.static_compliance
+        summary.append(f"reduced model: {reduced.n_modes} modes ({reduced.n_basis} basis "
+                       f"vectors), static correction {reduced.static_correction}, "
+                       f"{reduced.statespace.n_states} states"
+                       + (f"; filtered: {cfg.filter.kind} at {cfg.filter.cutoff_hz:g} Hz, "
+                          f"{filtered.n_states} states" if filtered is not None else ""))
+        for i, out in enumerate(ports.output_names):
+            for j, inp in enumerate(ports.input_names):
+                line = f"  DC gain {inp} -> {out}: {dc[i, j]:.6e}"
+                if exact is not None:
+                    line += f" (full FE {exact[i, j]:.6e}, {dc[i, j] / exact[i, j] - 1:+.2e})"
+                summary.append(line)
+        if exact is not None and cfg.ports.inputs[0].kind == "force" \
+                and cfg.ports.outputs[0].kind == "displacement":
+            d_in = np.asarray(cfg.ports.inputs[0].direction, float)
+            d_out = np.asarray(cfg.ports.outputs[0].direction, float)
+            cos = d_in @ d_out / np.linalg.norm(d_in) / np.linalg.norm(d_out)
+            if abs(abs(cos) - 1) < 1e-12:
+                fe_deflection = float(exact[0, 0] * cos)
+    if cfg.lumped is not None:
+        tree_l, attrs_l, lines = build_lumped(cfg, modes, labels, fe_deflection)
+        tree.update(tree_l)
+        attrs.update(attrs_l)
+        summary.extend(lines)
+    return tree, attrs, extras
+
+
+def build_lumped(cfg: Config, modes, labels, fe_deflection):
+    """The lumped chain of ``cfg.lumped`` and its comparison with FE and beam theory."""
+    from .lumped import (box_section, comparison_table, format_comparison, lumped_datasets,
+                         lumped_group_attrs, lumped_model)
+
+    g, mat = cfg.geometry, cfg.material
+    section = box_section(g.height, g.depth, centroid=(g.height / 2, g.depth / 2))
+    d_in, d_out = (0.0, -1.0, 0.0), (0.0, 1.0, 0.0)
+    if cfg.ports.inputs and cfg.ports.inputs[0].kind == "force":
+        d_in = cfg.ports.inputs[0].direction
+    if cfg.ports.outputs and cfg.ports.outputs[0].kind == "displacement":
+        d_out = cfg.ports.outputs[0].direction
+    ratio = cfg.damping.ratio if cfg.damping.kind == "uniform" else (
+        cfg.damping.ratios[0] if cfg.damping.kind == "per_mode" else 0.0)
+    model = lumped_model(section, mat.E, mat.nu, mat.rho, g.length, cfg.lumped.elements,
+                         cfg.lumped.constants, ratio, input_direction=d_in,
+                         output_direction=d_out)
+    fe_bending = [f for f, lab in zip(modes.frequencies_hz, labels or [])
+                  if lab.startswith("bending_z_")][:3]
+    ns = sorted({1, 2, 3, 5, 10, 20, cfg.lumped.elements})
+    rows = comparison_table(section, mat.E, mat.nu, mat.rho, g.length, ns=ns,
+                            fe_frequencies_hz=fe_bending or None,
+                            fe_tip_deflection=fe_deflection)
+    lines = [f"lumped chain: {cfg.lumped.elements} elements, {cfg.lumped.constants} constants; "
+             "x-y bending, 1 N tip force:"]
+    lines += ["  " + line for line in format_comparison(rows).splitlines()]
+    return lumped_datasets(model, rows), lumped_group_attrs(model), lines
