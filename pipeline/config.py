@@ -30,12 +30,26 @@ __all__ = [
 # --------------------------------------------------------------------------- records
 @dataclass(frozen=True)
 class Geometry:
-    """The body. ``box``: x in [0, length], y in [0, height], z in [0, depth] (m)."""
+    """The body.
+
+    ``box``: x in [0, length], y in [0, height], z in [0, depth] (m).
+    ``step`` (STEP/IGES file), ``geo`` (gmsh script), ``mesh`` (a mesh file meshio reads):
+    ``path`` to the file (relative paths are relative to the config file), ``scale``
+    multiplies its coordinates into metres (0.001 for CAD drawn in mm).
+    """
 
     kind: str = "box"
     length: float = 0.5
     height: float = 0.02
     depth: float = 0.05
+    path: str = ""
+    scale: float = 1.0
+
+    def largest_dimension(self) -> float | None:
+        """Largest box dimension (m), or None where only the file knows it."""
+        if self.kind != "box":
+            return None
+        return max(self.length, self.height, self.depth)
 
 
 @dataclass(frozen=True)
@@ -172,7 +186,7 @@ class Config:
 # --------------------------------------------------------------------------- helpers
 _MISSING = object()
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
-GEOMETRY_KINDS = ("box",)
+GEOMETRY_KINDS = ("box", "step", "geo", "mesh")
 SOLVERS = ("auto", "pardiso", "cholmod", "mumps", "superlu")
 BOX_FACES = ("root", "tip", "bottom", "top", "back", "front")
 
@@ -300,29 +314,52 @@ def _list(raw: Mapping, key: str, path: str) -> list:
 
 
 # --------------------------------------------------------------------------- sections
-def _geometry(raw: Any) -> Geometry:
-    raw = _mapping(raw, "geometry", ("kind", "length", "height", "depth"), ("kind",))
+def _geometry(raw: Any, base_dir: str = "") -> Geometry:
+    raw = _mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale"),
+                   ("kind",))
     kind = _choice(raw, "kind", "geometry", GEOMETRY_KINDS)
-    return Geometry(
-        kind=kind,
-        length=_number(raw, "length", "geometry", lo=0.0, lo_open=True, hi=1e3),
-        height=_number(raw, "height", "geometry", lo=0.0, lo_open=True, hi=1e3),
-        depth=_number(raw, "depth", "geometry", lo=0.0, lo_open=True, hi=1e3),
-    )
+    if kind == "box":
+        extra = sorted(set(raw) - {"kind", "length", "height", "depth"})
+        if extra:
+            raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to a box; "
+                              "expected kind, length, height, depth")
+        return Geometry(
+            kind=kind,
+            length=_number(raw, "length", "geometry", lo=0.0, lo_open=True, hi=1e3),
+            height=_number(raw, "height", "geometry", lo=0.0, lo_open=True, hi=1e3),
+            depth=_number(raw, "depth", "geometry", lo=0.0, lo_open=True, hi=1e3),
+        )
+    extra = sorted(set(raw) - {"kind", "path", "scale"})
+    if extra:
+        raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to kind '{kind}'; "
+                          "expected kind, path, scale")
+    path = raw.get("path", _MISSING)
+    if path is _MISSING:
+        raise ConfigError("config key 'geometry.path' is missing; it is required for kind "
+                          f"'{kind}'")
+    if not isinstance(path, str) or not path.strip():
+        raise _fail("geometry.path", path, "a file path")
+    resolved = Path(path) if Path(path).is_absolute() or not base_dir else Path(base_dir) / path
+    if not resolved.exists():
+        raise _fail("geometry.path", path, f"an existing file (looked for '{resolved}')")
+    return Geometry(kind=kind, length=0.0, height=0.0, depth=0.0, path=str(resolved),
+                    scale=_number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3))
 
 
 def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
     raw = _mapping(raw, "mesh", ("order", "size", "algorithm"), ("size",))
     order = _choice(raw, "order", "mesh", (1, 2), default=2)
     size = _number(raw, "size", "mesh", lo=0.0, lo_open=True)
-    largest = max(geometry.length, geometry.height, geometry.depth)
-    if size > largest:
-        raise _fail("mesh.size", size, f"a size no larger than the body's largest dimension "
-                    f"({largest:g} m)")
-    smallest = min(geometry.length, geometry.height, geometry.depth)
-    if size < smallest / 400.0 or largest / size > 5000:
-        raise _fail("mesh.size", size, f"a size of at least {max(smallest / 400, largest / 5000):g} m "
-                    "for this body (a finer mesh would not fit any machine)")
+    largest = geometry.largest_dimension()
+    if largest is not None:
+        if size > largest:
+            raise _fail("mesh.size", size, f"a size no larger than the body's largest dimension "
+                        f"({largest:g} m)")
+        smallest = min(geometry.length, geometry.height, geometry.depth)
+        if size < smallest / 400.0 or largest / size > 5000:
+            raise _fail("mesh.size", size, f"a size of at least "
+                        f"{max(smallest / 400, largest / 5000):g} m for this body (a finer mesh "
+                        "would not fit any machine)")
     algorithm = _choice(raw, "algorithm", "mesh", ("delaunay", "hxt", "frontal"), default="hxt")
     return MeshSpec(order=order, size=size, algorithm=algorithm)
 
@@ -475,7 +512,7 @@ TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
     raw = _mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
-    geometry = _geometry(raw["geometry"])
+    geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
     constraints = _mapping(raw.get("constraints") or {}, "constraints", ("in_plane",))
     modes_raw = _mapping(raw.get("modes") or {}, "modes", ("count", "solver", "tolerance"))
     modes = Modes(count=_integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
@@ -513,6 +550,9 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     if cfg.reduction is not None and not (cfg.ports.inputs and cfg.ports.outputs):
         raise _fail("reduction", raw.get("reduction"), "ports with at least one input and one "
                     "output (a reduced model needs both)")
+    if cfg.lumped is not None and geometry.kind != "box":
+        raise _fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
+                    f"straight beam; geometry.kind is '{geometry.kind}')")
     if cfg.damping.kind == "per_mode" and cfg.reduction is not None \
             and len(cfg.damping.ratios) < cfg.reduction.modes:
         raise _fail("damping.ratios", list(cfg.damping.ratios),
@@ -654,6 +694,10 @@ def config_to_dict(cfg: Config) -> dict:
         elif f.name == "supports":
             value = [{"region": s.region, "fix": "all" if s.fix == ("x", "y", "z") else list(s.fix)}
                      for s in value]
+        elif f.name == "geometry":
+            keep = ("kind", "length", "height", "depth") if value.kind == "box" else \
+                ("kind", "path", "scale")
+            value = {k: getattr(value, k) for k in keep}
         elif hasattr(value, "__dataclass_fields__"):
             value = asdict(value)
         out[f.name] = plain(value)

@@ -191,3 +191,19 @@ def read_mesh(path: str | Path) -> BodyMesh:
     log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
              tets.shape[0], ", ".join(sorted(regions)) or "none")
     return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path))
+
+
+def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path, name: str
+              ) -> tuple[BodyMesh, Path]:
+    """The mesh stage for any geometry kind: (mesh, path of the mesh file).
+
+    ``box`` is meshed here; ``step`` and ``geo`` are meshed by :mod:`pipeline.geometry`;
+    ``mesh`` files are read as they are (scaled by ``geometry.scale``).
+    """
+    out = Path(mesh_dir) / f"{name}.msh"
+    if geometry.kind == "box":
+        path = generate_mesh(geometry, spec, out)
+        return read_mesh(path), path
+    from . import geometry as geo_sources
+
+    return geo_sources.mesh_geometry(geometry, spec, out)

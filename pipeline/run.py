@@ -71,7 +71,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     from .assemble import assemble_stiffness_mass, block_pattern, restrict
     from .body import body_properties, label_modes, node_volume_weights
     from .fespace import build_space
-    from .mesh import generate_mesh, read_mesh
+    from .mesh import mesh_body
     from .modes import solve_modes
     from .regions import fixed_dofs, free_dofs, resolve_regions
     from .resources import check_memory
@@ -83,8 +83,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     group_attrs: dict[str, dict[str, Any]] = {}
 
     with _stage("mesh", times):
-        mesh_path = generate_mesh(cfg.geometry, cfg.mesh, Path(mesh_dir) / f"{cfg.name}.msh")
-        body = read_mesh(mesh_path)
+        body, mesh_path = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
