@@ -164,6 +164,17 @@ class Lumped:
 
 
 @dataclass(frozen=True)
+class Connection:
+    """A connection point: ``region`` tied to ``point`` (m) rigidly (RBE2) or by a
+    distributing coupling (RBE3). The first connection is the parent point P."""
+
+    name: str
+    region: str
+    point: tuple[float, float, float]
+    coupling: str = "rigid"
+
+
+@dataclass(frozen=True)
 class Config:
     """The fully resolved, validated configuration of one run."""
 
@@ -180,6 +191,8 @@ class Config:
     reduction: Reduction | None = None
     filter: Filter = field(default_factory=lambda: Filter(kind="none"))
     lumped: Lumped | None = None
+    connections: tuple[Connection, ...] = ()
+    craig_bampton_modes: int = 0
     source: str = ""  # the file the config came from (not part of the YAML contract)
 
 
@@ -505,8 +518,30 @@ def _lumped(raw: Any) -> Lumped | None:
                   constants=_choice(raw, "constants", "lumped", ("simple", "refined"), "refined"))
 
 
+def _connections(raw: Any) -> tuple[Connection, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise _fail("connections", raw, "a list of {name, region, point, coupling}")
+    out, seen = [], set()
+    for i, item in enumerate(raw):
+        path = f"connections[{i}]"
+        item = _mapping(item, path, ("name", "region", "point", "coupling"),
+                        ("name", "region", "point"))
+        name = _name(item, "name", path)
+        if name in seen:
+            raise _fail(f"{path}.name", name, "a name not used by another connection")
+        seen.add(name)
+        out.append(Connection(name=name, region=_name(item, "region", path),
+                              point=_vector(item, "point", path),
+                              coupling=_choice(item, "coupling", path, ("rigid", "distributing"),
+                                               "rigid")))
+    return tuple(out)
+
+
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
-            "ports", "damping", "reduction", "filter", "lumped")
+            "ports", "damping", "reduction", "filter", "lumped", "connections",
+            "craig_bampton")
 
 
 def config_from_dict(raw: Any, source: str = "") -> Config:
@@ -537,12 +572,17 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         reduction=_reduction(raw.get("reduction"), modes),
         filter=_filter(raw.get("filter")),
         lumped=_lumped(raw.get("lumped")),
+        connections=_connections(raw.get("connections")),
+        craig_bampton_modes=_integer(_mapping(raw.get("craig_bampton") or {}, "craig_bampton",
+                                              ("modes",)), "modes", "craig_bampton", 0,
+                                     lo=0, hi=500),
         source=source,
     )
     known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
     used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
     used += [(f"ports.inputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.inputs)]
     used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)]
+    used += [(f"connections[{i}].region", c.region) for i, c in enumerate(cfg.connections)]
     for path, region in used:
         if known and region not in known:
             raise _fail(path, region, "a region the geometry names or 'regions' defines: "
@@ -691,6 +731,12 @@ def config_to_dict(cfg: Config) -> dict:
         if f.name == "regions":
             value = {k: {kk: vv for kk, vv in asdict(v).items() if vv is not None}
                      for k, v in value.items()}
+        elif f.name == "craig_bampton_modes":
+            if value:
+                out["craig_bampton"] = {"modes": value}
+            continue
+        elif f.name == "connections":
+            value = [asdict(c) for c in value]
         elif f.name == "supports":
             value = [{"region": s.region, "fix": "all" if s.fix == ("x", "y", "z") else list(s.fix)}
                      for s in value]

@@ -160,8 +160,9 @@ def read_mesh(path: str | Path) -> BodyMesh:
         raise MeshError(f"mesh file '{path}': not found")
     try:
         mesh = meshio.read(path)
-    except Exception as exc:  # meshio raises a variety of types for bad files
-        raise MeshError(f"mesh file '{path}': meshio cannot read it ({exc})") from None
+    except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
+        detail = str(exc) if not isinstance(exc, SystemExit) else "unknown or corrupt format"
+        raise MeshError(f"mesh file '{path}': meshio cannot read it ({detail})") from None
     tet_blocks = [(i, b) for i, b in enumerate(mesh.cells) if b.type in ("tetra", "tetra10")]
     if not tet_blocks:
         kinds = sorted({b.type for b in mesh.cells}) or ["none"]

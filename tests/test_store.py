@@ -1,0 +1,135 @@
+"""HDF5 output: what we computed is what a plain h5py reader and `inspect` see; writes
+are atomic; the loader gives back the model bit for bit; foreign files are refused."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from pipeline import load_model
+from pipeline.config import load_config
+from pipeline.errors import FileFormatError
+from pipeline.h5tree import Dataset
+from pipeline.run import run_pipeline
+from pipeline.store import SCHEMA, open_verified, write_file
+from pipeline.summary import summarize
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("store")
+    cfg = load_config(ROOT / "configs/cantilever.yaml", ["mesh.size=0.02"])
+    return run_pipeline(cfg, tmp / "c.h5", mesh_dir=tmp)
+
+
+def test_file_holds_what_was_computed(result):
+    with h5py.File(result.output, "r") as h5:
+        assert h5.attrs["schema"] == SCHEMA and int(h5.attrs["schema_version"]) == 1
+        for key in ("pipeline_version", "created_utc", "config_yaml", "content_sha256"):
+            assert key in h5.attrs
+        np.testing.assert_array_equal(h5["modes/frequencies_hz"][()], result.frequencies_hz)
+        assert list(h5["modes/labels"].asstr()[()]) == result.labels
+        assert float(h5["body/mass"][()]) == result.mass
+        n_p = h5["mesh/points"].shape[0]
+        assert h5["modes/shapes"].shape == (n_p, 3, len(result.frequencies_hz))
+        assert h5["mesh/cells/tetra10"].shape[1] == 10
+        missing = []
+        h5.visititems(lambda n, o: missing.append(n) if isinstance(o, h5py.Dataset)
+                      and "units" not in o.attrs else None)
+        assert missing == [], f"datasets without units: {missing}"
+        assert "cantilever" in h5.attrs["config_yaml"]
+
+
+def test_mode_shapes_are_m_orthonormal_in_the_file(result):
+    """The stored shapes (per mesh point) are M-orthonormal with the FE mass matrix."""
+    from pipeline.assemble import assemble_stiffness_mass
+    from pipeline.fespace import build_space
+    from pipeline.mesh import read_mesh
+
+    with h5py.File(result.output, "r") as h5:
+        shapes = h5["modes/shapes"][()]
+        source = h5["mesh"].attrs["source"]
+        points = h5["mesh/points"][()]
+    space = build_space(read_mesh(source), 2)
+    np.testing.assert_array_equal(space.node_points, points)
+    _, M = assemble_stiffness_mass(space, result.config.material)
+    Phi = shapes.reshape(-1, shapes.shape[2])
+    np.testing.assert_allclose(Phi.T @ (M @ Phi), np.eye(Phi.shape[1]), atol=1e-8)
+
+
+def test_inspect_shows_the_same_numbers(result):
+    text = summarize(result.output)
+    for f, label in zip(result.frequencies_hz, result.labels):
+        assert f"{f:12.4f} Hz  {label}" in text
+    assert "mass 1.35 kg" in text and "statespace_filtered" in text
+
+
+def test_loader_gives_back_the_model_bit_for_bit(result):
+    import control as ct
+
+    reduced = result.extras["reduced"].statespace
+    filtered = result.extras["filtered"]
+    model = load_model(result.output)
+    for k in "ABCD":
+        np.testing.assert_array_equal(getattr(model.ss, k), getattr(reduced, k))
+        np.testing.assert_array_equal(getattr(model.ss_filtered, k), getattr(filtered, k))
+    assert model.input_names == ("tip_force_y",)
+    assert model.output_names == ("tip_y/position", "tip_y/velocity", "tip_y/acceleration")
+    np.testing.assert_allclose(ct.dcgain(model.ss)[0], model.static_compliance[0, 0], rtol=1e-9)
+    assert model.filter_kind == "third_order" and model.cutoff_hz == 5000.0
+
+
+def test_interrupted_write_leaves_nothing_under_the_final_name(tmp_path, monkeypatch):
+    import pipeline.store as store
+
+    target = tmp_path / "model.h5"
+    tree = {f"g/d{i}": Dataset(np.arange(10.0) * i, "m") for i in range(5)}
+    write_file(target, tree)
+    before = target.read_bytes()
+    calls = {"n": 0}
+    real = store._write_dataset
+
+    def crash_after_two(h5, path, ds):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise KeyboardInterrupt("simulated interruption")
+        real(h5, path, ds)
+
+    monkeypatch.setattr(store, "_write_dataset", crash_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        write_file(target, {k: Dataset(v.data + 1, "m") for k, v in tree.items()})
+    assert target.read_bytes() == before  # the old complete file is untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.h5"]  # no partial left
+    with pytest.raises(KeyboardInterrupt):
+        write_file(tmp_path / "new.h5", tree)
+    assert not (tmp_path / "new.h5").exists()
+
+
+def test_truncated_and_foreign_files_are_refused(result, tmp_path):
+    data = result.output.read_bytes()
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(FileFormatError, match="cut.h5"):
+        load_model(cut)
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as h5:
+        h5["x"] = 1
+    with pytest.raises(FileFormatError, match="schema attribute is None"):
+        open_verified(foreign)
+    newer = tmp_path / "newer.h5"
+    newer.write_bytes(data)
+    with h5py.File(newer, "r+") as h5:
+        h5.attrs["schema_version"] = 99
+    with pytest.raises(FileFormatError, match="schema_version 99 is not known.*version\\(s\\) 1"):
+        load_model(newer)
+
+
+def test_bit_flip_in_a_dataset_is_detected(result, tmp_path):
+    flipped = tmp_path / "flipped.h5"
+    flipped.write_bytes(result.output.read_bytes())
+    with h5py.File(flipped, "r+") as h5:
+        h5["modes/frequencies_hz"][0] += 1e-9
+    with pytest.raises(FileFormatError, match="checksum mismatch"):
+        load_model(flipped)
