@@ -10,6 +10,7 @@ Units are SI throughout (m, kg, s, N, Pa).
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 from dataclasses import asdict, dataclass, field, fields
@@ -198,15 +199,57 @@ class Config:
 
 # --------------------------------------------------------------------------- helpers
 _MISSING = object()
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")  # use with fullmatch (no "\n")
 GEOMETRY_KINDS = ("box", "step", "geo", "mesh")
 SOLVERS = ("auto", "pardiso", "cholmod", "mumps", "superlu")
 BOX_FACES = ("root", "tip", "bottom", "top", "back", "front")
 
 
+def _short_repr(value: Any, depth: int = 0) -> str:
+    """repr() bounded in depth, length and size: safe on hostile input (deep nesting,
+    shared sub-lists that would expand exponentially, ints of thousands of digits)."""
+    if isinstance(value, bool) or value is None or isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        if value.bit_length() <= 128:
+            return repr(value)
+        return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
+    if isinstance(value, (str, bytes)):
+        text = repr(value[:100])
+        return text if len(value) <= 100 else text[:-1] + "..." + text[-1]
+    if depth >= 3:
+        return "[...]" if isinstance(value, (list, tuple)) else "{...}" \
+            if isinstance(value, Mapping) else f"<{type(value).__name__}>"
+    if isinstance(value, (list, tuple)):
+        items = [_short_repr(v, depth + 1) for v in value[:6]]
+        if len(value) > 6:
+            items.append("...")
+        body = ", ".join(items)
+        if isinstance(value, list):
+            return f"[{body}]"
+        return f"({body},)" if len(value) == 1 else f"({body})"
+    if isinstance(value, Mapping):
+        items = [f"{_short_repr(k, depth + 1)}: {_short_repr(v, depth + 1)}"
+                 for k, v in itertools.islice(value.items(), 6)]
+        if len(value) > 6:
+            items.append("...")
+        return "{" + ", ".join(items) + "}"
+    try:
+        return repr(value)[:100]
+    except Exception:  # a hostile __repr__ must not hide the config error
+        return f"<{type(value).__name__}>"
+
+
 def _describe(value: Any) -> str:
-    text = repr(value)
+    text = _short_repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _key_text(key: Any) -> str:
+    """A config key as it appears in a message: itself if short and printable."""
+    if isinstance(key, str) and key.isprintable() and len(key) <= 64:
+        return key
+    return _describe(key)
 
 
 def _fail(path: str, value: Any, expected: str) -> ConfigError:
@@ -218,7 +261,7 @@ def _mapping(raw: Any, path: str, allowed: Sequence[str], required: Sequence[str
         raise _fail(path or "<root>", raw, "a mapping of keys to values")
     for key in raw:
         if not isinstance(key, str) or key not in allowed:
-            where = f"{path}.{key}" if path else str(key)
+            where = f"{path}.{_key_text(key)}" if path else _key_text(key)
             raise ConfigError(
                 f"config key '{where}' is not known; expected one of: {', '.join(allowed)}"
             )
@@ -237,7 +280,10 @@ def _number(raw: Mapping, key: str, path: str, default: Any = _MISSING, *, lo: f
         raise ConfigError(f"config key '{where}' is missing; it is required")
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _fail(where, value, "a number")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond the float range
+        raise _fail(where, value, "a finite number") from None
     if not math.isfinite(value):
         raise _fail(where, value, "a finite number")
     lo_ok = lo is None or (value > lo if lo_open else value >= lo)
@@ -276,7 +322,7 @@ def _choice(raw: Mapping, key: str, path: str, choices: Sequence[Any], default: 
         raise ConfigError(f"config key '{where}' is missing; it is required")
     if isinstance(value, bool) and not any(isinstance(c, bool) for c in choices):
         raise _fail(where, value, "one of " + " | ".join(map(str, choices)))
-    if value not in choices:
+    if not any(type(value) is type(c) and value == c for c in choices):
         raise _fail(where, value, "one of " + " | ".join(map(str, choices)))
     return value
 
@@ -293,7 +339,7 @@ def _name(raw: Mapping, key: str, path: str, default: Any = _MISSING) -> str:
     value = raw.get(key, default)
     if value is _MISSING:
         raise ConfigError(f"config key '{where}' is missing; it is required")
-    if not isinstance(value, str) or not _NAME_RE.match(value):
+    if not isinstance(value, str) or not _NAME_RE.fullmatch(value):
         raise _fail(where, value, "a name of 1-64 letters, digits, '_', '-' or '.', "
                     "starting with a letter or digit")
     return value
@@ -304,16 +350,25 @@ def _vector(raw: Mapping, key: str, path: str, default: Any = _MISSING, *, nonze
     value = raw.get(key, default)
     if value is _MISSING:
         raise ConfigError(f"config key '{where}' is missing; it is required")
-    if value is None:
+    if value is None and default is None:
         return None
-    ok = (isinstance(value, (list, tuple)) and len(value) == 3
-          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                  for v in value))
-    if not ok:
-        raise _fail(where, value, "a list of three finite numbers [x, y, z]")
-    vec = tuple(float(v) for v in value)
-    if nonzero and math.sqrt(sum(v * v for v in vec)) < 1e-12:
-        raise _fail(where, value, "a non-zero direction")
+    expected = "a list of three finite numbers [x, y, z]"
+    if not (isinstance(value, (list, tuple)) and len(value) == 3
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        raise _fail(where, value, expected)
+    try:
+        vec = tuple(float(v) for v in value)
+    except OverflowError:  # an int beyond the float range
+        raise _fail(where, value, expected) from None
+    if not all(math.isfinite(v) for v in vec):
+        raise _fail(where, value, expected)
+    if nonzero:
+        square = sum(v * v for v in vec)
+        if not math.isfinite(square):  # |d|^2 overflows: normalising it would give 0
+            raise _fail(where, value, "a direction whose squared length is a finite number "
+                        "(scale it down)")
+        if math.sqrt(square) < 1e-12:
+            raise _fail(where, value, "a non-zero direction")
     return vec
 
 
@@ -350,11 +405,16 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
     if path is _MISSING:
         raise ConfigError("config key 'geometry.path' is missing; it is required for kind "
                           f"'{kind}'")
-    if not isinstance(path, str) or not path.strip():
+    if not isinstance(path, str) or not path.strip() or "\0" in path:
         raise _fail("geometry.path", path, "a file path")
     resolved = Path(path) if Path(path).is_absolute() or not base_dir else Path(base_dir) / path
-    if not resolved.exists():
-        raise _fail("geometry.path", path, f"an existing file (looked for '{resolved}')")
+    try:
+        exists = resolved.is_file()
+    except (OSError, ValueError):  # a name too long for the file system, ...
+        exists = False
+    if not exists:
+        raise _fail("geometry.path", path, f"an existing file (looked for "
+                    f"'{_describe(str(resolved))[1:-1]}')")
     return Geometry(kind=kind, length=0.0, height=0.0, depth=0.0, path=str(resolved),
                     scale=_number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3))
 
@@ -416,7 +476,7 @@ def _regions(raw: Any) -> dict[str, RegionSelector]:
     out = {}
     for name, sel in raw.items():
         path = f"regions.{name}"
-        if not isinstance(name, str) or not _NAME_RE.match(name):
+        if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
             raise _fail("regions", name, "region names of letters, digits, '_', '-' or '.'")
         sel = _mapping(sel, path, ("kind", "point", "normal", "tolerance", "lower", "upper",
                                    "radius"), ("kind",))
@@ -544,12 +604,19 @@ TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "
             "craig_bampton")
 
 
+def _section(raw: Mapping, key: str) -> Any:
+    """An optional section: {} when absent or null, else the value (validated by the caller;
+    ``modes: false`` or ``modes: []`` is refused, not read as the defaults)."""
+    value = raw.get(key)
+    return {} if value is None else value
+
+
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
     raw = _mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
-    constraints = _mapping(raw.get("constraints") or {}, "constraints", ("in_plane",))
-    modes_raw = _mapping(raw.get("modes") or {}, "modes", ("count", "solver", "tolerance"))
+    constraints = _mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
+    modes_raw = _mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance"))
     modes = Modes(count=_integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
                   solver=_choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
                   tolerance=_number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2))
@@ -573,7 +640,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         filter=_filter(raw.get("filter")),
         lumped=_lumped(raw.get("lumped")),
         connections=_connections(raw.get("connections")),
-        craig_bampton_modes=_integer(_mapping(raw.get("craig_bampton") or {}, "craig_bampton",
+        craig_bampton_modes=_integer(_mapping(_section(raw, "craig_bampton"), "craig_bampton",
                                               ("modes",)), "modes", "craig_bampton", 0,
                                      lo=0, hi=500),
         source=source,
@@ -635,14 +702,24 @@ def _parse_yaml(text: str, where: str) -> Any:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         pos = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        problem = getattr(exc, "problem", None) or (str(exc).splitlines() or [type(exc).__name__])[0]
         raise ConfigError(f"{where}: not valid YAML{pos}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: not valid YAML: nested too deeply") from None
+    except (ValueError, OverflowError, TypeError) as exc:
+        # a scalar the safe constructors refuse: an int of more than 4300 digits, a date
+        # such as 2020-02-30, ...
+        problem = (str(exc).splitlines() or [type(exc).__name__])[0][:200]
+        if "integer string conversion" in problem:
+            problem = "an integer of more than 4300 digits"
+        raise ConfigError(f"{where}: not valid YAML: a value cannot be read ({problem})") from None
 
 
 def _split_path(path: str) -> list[str]:
     parts = [p for p in re.split(r"\.|\[(\d+)\]", path) if p]
-    if not parts or any(not re.match(r"^[A-Za-z0-9_\-]+$", p) for p in parts):
-        raise ConfigError(f"override '{path}': expected a dotted key path such as mesh.size")
+    if not parts or any(not re.fullmatch(r"[A-Za-z0-9_\-]+", p) for p in parts):
+        shown = path if len(path) <= 80 and path.isprintable() else _describe(path)[1:-1]
+        raise ConfigError(f"override '{shown}': expected a dotted key path such as mesh.size")
     return parts
 
 
@@ -655,27 +732,33 @@ def apply_overrides(raw: Any, overrides: Sequence[str]) -> dict:
     """
     import copy
 
-    data = copy.deepcopy(raw) if isinstance(raw, Mapping) else raw
+    try:
+        data = copy.deepcopy(raw) if isinstance(raw, Mapping) else raw
+    except RecursionError:
+        raise ConfigError("config: nested too deeply to be a config") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config: got {_describe(raw)}, expected a mapping at the top level")
     for item in overrides:
+        if not isinstance(item, str):
+            raise ConfigError(f"override {_describe(item)}: expected KEY=VALUE text")
+        shown = item if len(item) <= 80 and item.isprintable() else _describe(item)[1:-1]
         if "=" not in item:
-            raise ConfigError(f"override '{item}': expected KEY=VALUE, e.g. mesh.size=0.004")
+            raise ConfigError(f"override '{shown}': expected KEY=VALUE, e.g. mesh.size=0.004")
         key, text = item.split("=", 1)
         parts = _split_path(key.strip())
-        value = _parse_yaml(text, f"override '{item}'")
+        value = _parse_yaml(text, f"override '{shown}'")
         node: Any = data
         for depth, part in enumerate(parts[:-1]):
             nxt = parts[depth + 1]
             if isinstance(node, list):
                 idx = int(part) if part.isdigit() else -1
                 if not 0 <= idx < len(node):
-                    raise ConfigError(f"override '{item}': index {part} is out of range "
+                    raise ConfigError(f"override '{shown}': index {part} is out of range "
                                       f"(the list has {len(node)} items)")
                 node = node[idx]
                 continue
             if not isinstance(node, dict):
-                raise ConfigError(f"override '{item}': '{part}' is not inside a mapping")
+                raise ConfigError(f"override '{shown}': '{part}' is not inside a mapping")
             if part not in node or node[part] is None:
                 node[part] = [] if nxt.isdigit() else {}
             node = node[part]
@@ -683,12 +766,12 @@ def apply_overrides(raw: Any, overrides: Sequence[str]) -> dict:
         if isinstance(node, list):
             idx = int(last) if last.isdigit() else -1
             if not 0 <= idx < len(node):
-                raise ConfigError(f"override '{item}': index {last} is out of range")
+                raise ConfigError(f"override '{shown}': index {last} is out of range")
             node[idx] = value
         elif isinstance(node, dict):
             node[last] = value
         else:
-            raise ConfigError(f"override '{item}': '{last}' is not inside a mapping")
+            raise ConfigError(f"override '{shown}': '{last}' is not inside a mapping")
     return data
 
 
