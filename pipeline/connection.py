@@ -88,7 +88,11 @@ __all__ = [
     "Interface",
     "make_interface",
     "make_interfaces",
+    "check_interface",
     "check_interfaces",
+    "clamped_modes",
+    "connection_model_from_modes",
+    "check_residual_mass",
     "InterfaceTransformation",
     "interface_transformation",
     "ConnectionModel",
@@ -190,7 +194,7 @@ class Interface:
         return np.ones(self.nodes.size) if self.coupling == "rigid" else self.weights
 
 
-def _check_six_dofs(iface: Interface, node_points: np.ndarray, key: str) -> None:
+def check_interface(iface: Interface, node_points: np.ndarray, key: str) -> None:
     """Refuse a region whose (weighted) nodes cannot carry 3 translations and 3 rotations."""
     w = iface.fit_weights()
     used = w > 0
@@ -235,7 +239,7 @@ def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: 
     weights[np.searchsorted(nodes, sr.nodes)] = sr.weights
     iface = Interface(name, region, np.asarray(point, dtype=float).reshape(3), coupling,
                       nodes, weights)
-    _check_six_dofs(iface, space.node_points, key)
+    check_interface(iface, space.node_points, key)
     return iface
 
 
@@ -401,8 +405,8 @@ class ConnectionModel:
 
 def check_residual_mass(D_P0: np.ndarray, name: str, rtol: float = 1e-9) -> np.ndarray:
     """Return the symmetrised D_P0, or raise SolverError unless it is symmetric positive
-    definite (asymmetry <= rtol max|D|, smallest eigenvalue > rtol times the largest, both
-    on the dimensionless matrix scaled by its diagonal)."""
+    definite: on the matrix scaled to a unit diagonal (dimensionless), the asymmetry must
+    stay below 1e-8 and the smallest eigenvalue above ``rtol`` times the largest."""
     D = np.asarray(D_P0, dtype=float)
     diag = np.diag(D)
     if not np.all(np.isfinite(D)) or np.any(diag <= 0):
@@ -414,7 +418,7 @@ def check_residual_mass(D_P0: np.ndarray, name: str, rtol: float = 1e-9) -> np.n
     Dn = D * s[:, None] * s[None, :]
     asym = float(np.abs(Dn - Dn.T).max())
     eig = np.linalg.eigvalsh(0.5 * (Dn + Dn.T))
-    if asym > rtol * max(1.0, np.abs(Dn).max()) * 1e3 or eig[0] <= rtol * eig[-1]:
+    if asym > 1e-8 or eig[0] <= rtol * eig[-1]:
         raise SolverError(
             f"connection '{name}': residual mass D_P0 = D_P - L_P^T L_P is not symmetric "
             f"positive definite (smallest eigenvalue of the diagonally scaled matrix "
@@ -424,19 +428,43 @@ def check_residual_mass(D_P0: np.ndarray, name: str, rtol: float = 1e-9) -> np.n
     return 0.5 * (D + D.T)
 
 
+def clamped_modes(K: sp.spmatrix, M: sp.spmatrix, n_modes: int | None, backend: str = "auto",
+                  tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(omega2 (N,), shapes (n, N) M-orthonormal, residuals (N,)) of a supported problem.
+
+    ``backend="dense"``: scipy.linalg.eigh on dense copies (small problems; ``n_modes``
+    None gives every mode). Otherwise :func:`pipeline.modes.solve_modes` (shift-invert
+    eigsh with ``backend`` auto | pardiso | superlu).
+    """
+    if backend == "dense":
+        Kd, Md = K.toarray(), M.toarray()
+        Kd, Md = 0.5 * (Kd + Kd.T), 0.5 * (Md + Md.T)
+        n = Kd.shape[0]
+        subset = None if n_modes is None else [0, min(n_modes, n) - 1]
+        w, V = sla.eigh(Kd, Md, subset_by_index=subset)
+        res = np.linalg.norm(Kd @ V - (Md @ V) * w, axis=0) / np.maximum(
+            np.linalg.norm(Kd @ V, axis=0), 1e-300)
+        return w, V, res
+    from .modes import solve_modes
+
+    if n_modes is None:
+        raise SolverError("n_modes=None (every mode) needs backend='dense'")
+    modes = solve_modes(K, M, n_modes, supported=True, backend=backend, tolerance=tolerance)
+    return modes.omega2, modes.shapes, modes.residuals
+
+
 def connection_model(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
-                     interfaces: Sequence[Interface], n_modes: int, backend: str = "auto",
-                     tolerance: float = 0.0) -> ConnectionModel:
+                     interfaces: Sequence[Interface], n_modes: int | None,
+                     backend: str = "auto", tolerance: float = 0.0) -> ConnectionModel:
     """The hybrid-cantilever model at ``interfaces[0]`` (the parent point P), with
     ``interfaces[1:]`` as child points.
 
     ``K_full``, ``M_full``: (n_dofs x n_dofs) assembled matrices of the UNSUPPORTED body
     (before :func:`pipeline.assemble.restrict`: the connection replaces the supports).
     ``n_modes``: number of clamped modes N. ``backend``/``tolerance``: as for
-    :func:`pipeline.modes.solve_modes`.
+    :func:`pipeline.modes.solve_modes`, or ``backend="dense"`` for a dense solve of a
+    small model (then ``n_modes=None`` keeps every mode).
     """
-    from .modes import solve_modes
-
     interfaces = tuple(interfaces)
     if not interfaces:
         raise RegionError("connections: expected at least one connection (the parent point)")
@@ -450,8 +478,7 @@ def connection_model(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Tc = tr.T[:, :n_c].tocsc()
     Kc = project(K_full, Tc)
     Mc = project(M_full, Tc)
-    modes = solve_modes(Kc, Mc, n_modes, supported=True, backend=backend, tolerance=tolerance)
-    Phi_x = modes.shapes
+    omega2, Phi_x, residuals = clamped_modes(Kc, Mc, n_modes, backend, tolerance)
     shapes = np.asarray(Tc @ Phi_x)
     rigid = rigid_properties_at(M_full, node_points, parent.point)
     R_P = rigid_body_modes(node_points, parent.point)
@@ -460,11 +487,11 @@ def connection_model(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Phi_C = Phi_x[tr.n_z:n_c]
     tau_C = (np.vstack([twist_transform(parent.point, c.point) for c in children])
              if children else np.zeros((0, 6)))
+    f = np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi)
     log.info("connection '%s': %d clamped modes, %.4g .. %.4g Hz, %d child point(s)",
-             parent.name, n_modes, modes.frequencies_hz[0], modes.frequencies_hz[-1],
-             len(children))
-    return ConnectionModel(parent, children, rigid, modes.omega2, L_P, D_P0, shapes, Phi_C,
-                           tau_C, modes.residuals)
+             parent.name, omega2.size, f[0], f[-1], len(children))
+    return ConnectionModel(parent, children, rigid, omega2, L_P, D_P0, shapes, Phi_C,
+                           tau_C, residuals)
 
 
 def connection_model_from_modes(parent: Interface, node_points: np.ndarray, M_full,

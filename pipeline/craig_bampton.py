@@ -113,15 +113,17 @@ class CraigBamptonModel:
 
 
 def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
-                  interfaces: Sequence[Interface], n_modes: int, backend: str = "auto",
+                  interfaces: Sequence[Interface], n_modes: int | None, backend: str = "auto",
                   tolerance: float = 0.0) -> CraigBamptonModel:
     """Craig-Bampton reduction with ``interfaces`` and ``n_modes`` fixed-interface modes.
 
     ``space``: the FESpace (or the node coordinates (n_nodes, 3)). ``K_full``, ``M_full``:
     (n_dofs x n_dofs) matrices of the UNSUPPORTED body (before support condensation).
     ``interfaces``: from :func:`pipeline.connection.make_interfaces` (at least one).
+    ``backend``: auto | pardiso | superlu (shift-invert eigsh), or ``dense`` for small
+    models (``n_modes=None`` then keeps every fixed-interface mode).
     """
-    from .modes import solve_modes
+    from .connection import clamped_modes
     from .solvers import factorize
 
     interfaces = tuple(interfaces)
@@ -135,9 +137,9 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Kt = project(K_full, tr.T)
     Mt = project(M_full, tr.T)
     Kzz, Mzz = Kt[:nz, :nz].tocsr(), Mt[:nz, :nz].tocsr()
-    modes = solve_modes(Kzz, Mzz, n_modes, supported=True, backend=backend,
-                        tolerance=tolerance)
-    fact = factorize(Kzz, backend, positive_definite=True)
+    omega2, Phi, residuals = clamped_modes(Kzz, Mzz, n_modes, backend, tolerance)
+    n_modes = omega2.size
+    fact = factorize(Kzz, "superlu" if backend == "dense" else backend, positive_definite=True)
     try:
         # Fortran order: the PARDISO backend reads a multi-column right-hand side by columns
         X = -np.asarray(fact.solve(np.asfortranarray(Kt[:nz, nz:].toarray())))
@@ -147,7 +149,7 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     B = np.zeros((nz + nb, nb + n_modes))
     B[:nz, :nb] = X
     B[nz:, :nb] = np.eye(nb)
-    B[:nz, nb:] = modes.shapes
+    B[:nz, nb:] = Phi
     Kr = B.T @ (Kt @ B)
     Mr = B.T @ (Mt @ B)
     Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
@@ -161,7 +163,7 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     log.info("Craig-Bampton: %d interface(s), %d boundary + %d modal coordinates",
              len(interfaces), nb, n_modes)
     return CraigBamptonModel(interfaces, Mr, Kr, tuple(names), tuple(units), shapes,
-                             modes.omega2, modes.residuals)
+                             omega2, residuals)
 
 
 def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",

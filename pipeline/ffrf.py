@@ -141,13 +141,14 @@ def ffrf_invariants(M_full: sp.spmatrix, node_points: np.ndarray, basis: np.ndar
     PsiT = skew_columns(Psi)  # (3 n_nodes, 3 n)
     MPsiT = np.asarray(M_full @ PsiT)
     XT = skew_columns(x.reshape(-1, 1))  # (3 n_nodes, 3): skew(x_j) blocks
+    # skew(a)^T = -skew(a), so a block of A~^T M B~ is -int rho a~ b~:
     # X_k = -int rho x~ psi_k~  (3 x 3 per k)
-    Xk = -(XT.T @ MPsiT).reshape(3, n, 3).transpose(1, 0, 2)
+    Xk = (XT.T @ MPsiT).reshape(3, n, 3).transpose(1, 0, 2)
     J1 = Xk + Xk.transpose(0, 2, 1)
     # J2_kl = -int rho psi_k~ psi_l~
-    J2 = -(PsiT.T @ MPsiT).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
-    # G_kl = int rho psi_k x psi_l = int rho psi_k~ psi_l
-    G = (PsiT.T @ MPsi).reshape(n, 3, n).transpose(0, 2, 1)
+    J2 = (PsiT.T @ MPsiT).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    # G_kl = int rho psi_k x psi_l = int rho psi_k~ psi_l = -(psi_k~^T M psi_l)
+    G = -(PsiT.T @ MPsi).reshape(n, 3, n).transpose(0, 2, 1)
     names = tuple(coordinate_names) if coordinate_names is not None else tuple(
         f"q_{i + 1}" for i in range(n))
     units = (tuple(coordinate_units) if coordinate_units is not None
