@@ -448,6 +448,9 @@ def _child(cfg, target: Path, workdir: Path) -> None:
     os.dup2(fd, 1)
     os.dup2(fd, 2)
     os.close(fd)
+    # Python-level streams may be replaced (pytest's capture, a worker's log redirect)
+    sys.stdout = open(1, "w", buffering=1, encoding="utf-8", errors="replace", closefd=False)
+    sys.stderr = open(2, "w", buffering=1, encoding="utf-8", errors="replace", closefd=False)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s",
                                            "%H:%M:%S"))
@@ -578,9 +581,10 @@ def run_case_task(cfg, key: str, cases_dir: str, token: str, write_here: bool | 
             if log_file.exists() else ""
         if out.get("status") == "ok" and not shared:
             out["h5_bytes"] = target.read_bytes()
+    finished = time.time()
     out.update(key=key, worker=worker_name, written_by_worker=bool(shared),
-               started_utc=_utc(started), finished_utc=_utc(time.time()),
-               wall_s=time.time() - started)
+               started_utc=_utc(started), finished_utc=_utc(finished), started_unix=started,
+               finished_unix=finished, wall_s=finished - started)
     return out
 
 
