@@ -5,9 +5,9 @@
 ``step``
     A STEP (``.step``/``.stp``), IGES (``.iges``/``.igs``) or BREP file, read by gmsh's
     OpenCASCADE kernel. STEP and IGES files declare their length unit; they are read
-    **in metres** whatever unit they were drawn in (OpenCASCADE converts), so ``scale``
-    stays 1 for them unless the file's unit declaration is wrong. (BREP has no unit:
-    its numbers are taken as they are, times ``scale``.) Several solids are fused
+    **in metres** whatever unit they were drawn in (OpenCASCADE converts to mm, we to
+    m), so ``scale`` stays 1 for them unless the file's unit declaration is wrong.
+    (BREP has no unit: its numbers are taken as metres, times ``scale``.) Several solids are fused
     into one conforming mesh (boolean fragments). The mesh has one physical group,
     the volume ``body``; named surfaces come from the config's ``regions`` selectors.
 ``geo``
@@ -217,16 +217,19 @@ def cad_volume(path: str | Path, scale: float = 1.0) -> float:
     """Volume (m^3) of the solids in a STEP/IGES/BREP file as OpenCASCADE computes it."""
     path = Path(path)
     with _gmsh_session("cad_volume") as gmsh:
-        vols = _import_cad(gmsh, path, Geometry(kind="step", path=str(path), scale=scale))
-        return float(sum(gmsh.model.occ.getMass(3, v) for v in vols))
+        return _import_cad(gmsh, path, Geometry(kind="step", path=str(path), scale=scale))[1]
 
 
-def _import_cad(gmsh, path: Path, geometry: Geometry) -> list[int]:
-    """Import the solids of a CAD file into the OCC model, in metres; their tags."""
+def _import_cad(gmsh, path: Path, geometry: Geometry) -> tuple[list[int], float]:
+    """Import the solids of a CAD file into the OCC model, in metres: (tags, volume m^3)."""
     if path.suffix.lower() not in CAD_SUFFIXES:
         raise ConfigError(f"config key 'geometry.path': got '{path}' for kind 'step'; expected "
                           f"a CAD file ending in {', '.join(CAD_SUFFIXES)}")
-    gmsh.option.setString("Geometry.OCCTargetUnit", "M")
+    # OpenCASCADE converts STEP/IGES coordinates to its unit from the file's declaration.
+    # That unit is process-wide state of OpenCASCADE (it outlives gmsh.finalize), so set
+    # it to OpenCASCADE's own default, millimetres, and convert to metres ourselves.
+    gmsh.option.setString("Geometry.OCCTargetUnit", "MM")
+    to_metres = 1.0 if path.suffix.lower() == ".brep" else 1e-3
     try:
         with _quiet_fd1():
             entities = gmsh.model.occ.importShapes(str(path), highestDimOnly=False)
@@ -241,29 +244,31 @@ def _import_cad(gmsh, path: Path, geometry: Geometry) -> list[int]:
         raise MeshError(f"geometry.path '{path}': has no solid (found {counts[2]} surfaces, "
                         f"{counts[1]} curves, {counts[0]} points); expected at least one closed "
                         "volume: export solids, not surfaces, from the CAD tool")
-    if geometry.scale != 1.0:
-        s = geometry.scale
-        gmsh.model.occ.dilate(gmsh.model.getEntities(3), 0.0, 0.0, 0.0, s, s, s)
-        gmsh.model.occ.synchronize()
     if len(vols) > 1:  # several solids: one conforming mesh, shared faces merged
         gmsh.model.occ.fragment([(3, v) for v in vols[:1]], [(3, v) for v in vols[1:]])
         gmsh.model.occ.synchronize()
         vols = [tag for dim, tag in gmsh.model.getEntities(3)]
+    s = to_metres * geometry.scale
+    # the volume before scaling: OpenCASCADE integrates a scaled shape less exactly
+    volume = float(sum(gmsh.model.occ.getMass(3, v) for v in vols)) * s ** 3
+    if s != 1.0:
+        gmsh.model.occ.dilate([(3, v) for v in vols], 0.0, 0.0, 0.0, s, s, s)
+        gmsh.model.occ.synchronize()
     del entities
-    return vols
+    return vols, volume
 
 
 def _extent(gmsh, unit: float = 1.0) -> np.ndarray:
-    x0, y0, z0, x1, y1, z1 = gmsh.model.getBoundingBox(-1, -1)
-    return np.array([x1 - x0, y1 - y0, z1 - z0]) * unit
+    """Bounding-box size of the model's volumes, times ``unit``."""
+    boxes = np.array([gmsh.model.getBoundingBox(3, tag) for _, tag in gmsh.model.getEntities(3)])
+    return (boxes[:, 3:].max(axis=0) - boxes[:, :3].min(axis=0)) * unit
 
 
 def _mesh_step(geometry: Geometry, spec: MeshSpec, out_path: Path) -> BodyMesh:
     path = Path(geometry.path)
     with _gmsh_session("body") as gmsh:
-        vols = _import_cad(gmsh, path, geometry)
+        vols, volume = _import_cad(gmsh, path, geometry)
         check_dimensions(_extent(gmsh), geometry, str(path))
-        volume = float(sum(gmsh.model.occ.getMass(3, v) for v in vols))
         _check_size(volume, spec, str(path))
         gmsh.model.addPhysicalGroup(3, vols, name="body")
         _mesh_options(gmsh, spec, 1.0, from_points=False)
@@ -345,7 +350,9 @@ def _read_foreign(geometry: Geometry) -> BodyMesh:
     path = Path(geometry.path)
     try:
         mesh = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for files it cannot parse
+    except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
+        if isinstance(exc, SystemExit):
+            exc = RuntimeError(f"no reader of '{path.suffix}' files could parse it")
         raise MeshError(f"geometry.path '{path}': meshio cannot read it ({type(exc).__name__}: "
                         f"{exc}); expected a mesh file meshio reads (.msh, .inp, .vtu, .med, "
                         "...)") from None
