@@ -163,10 +163,10 @@ def _write(group, key: str, value: Any) -> None:
         A = sp.csr_matrix(value)
         sub = group.create_group(key)
         sub.attrs["datatype"] = "csr_matrix"
-        sub.create_dataset("data", data=A.data)
-        sub.create_dataset("indices", data=A.indices)
-        sub.create_dataset("indptr", data=A.indptr)
-        sub.create_dataset("shape", data=np.array(A.shape))
+        for part, arr in (("data", A.data), ("indices", A.indices), ("indptr", A.indptr),
+                          ("shape", np.array(A.shape))):
+            sub.create_dataset(part, data=arr)
+            sub[part].attrs["datatype"] = "ndarray"  # Exudyn ignores it here; tagged anyway
     elif isinstance(value, np.ndarray):
         group.create_dataset(key, data=value)
         group[key].attrs["datatype"] = "ndarray"
