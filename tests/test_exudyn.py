@@ -254,3 +254,35 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
         scale = max(np.abs(theirs).max(), 1e-300)
         # Exudyn rounds reduced-matrix entries below 1e-13 of the largest to zero
         assert np.abs(ours - theirs).max() <= 1e-10 * scale, name
+
+
+def test_craig_bampton_basis_is_exported_without_the_reference_interface(small_file, tmp_path):
+    """With /craig_bampton in the file, the export carries the CB basis less the six static
+    modes of the first interface (the frame follows it), as Exudyn's own HCB modes do."""
+    from types import SimpleNamespace
+
+    from pipeline.connection import make_interfaces
+    from pipeline.craig_bampton import craig_bampton, craig_bampton_datasets
+
+    m, _, _, path = small_file
+    ifs = make_interfaces(m.space, m.regions, [
+        SimpleNamespace(name="root", region="root", point=[0, H / 2, W / 2], coupling="rigid"),
+        SimpleNamespace(name="tip", region="tip", point=[0.2, H / 2, W / 2],
+                        coupling="distributing")])
+    cb = craig_bampton(m.space, m.K_full, m.M_full, ifs, 3, backend="superlu")
+    cb_file = tmp_path / "cb.h5"
+    with h5py.File(path, "r") as src, h5py.File(cb_file, "w") as dst:
+        for key in src.attrs:
+            dst.attrs[key] = src.attrs[key]
+        for key in src:
+            src.copy(src[key], dst, name=key)
+    _append(cb_file, craig_bampton_datasets(cb))
+    out = export(cb_file, "exudyn", tmp_path / "cb.hdf5")
+    with h5py.File(out, "r") as h5:
+        assert h5["modeBasis/type"][()].decode() == "HCBmodes"
+        basis = h5["modeBasis/matrix"][()]
+        assert "tip.x" in h5["metaData/basis"][()].decode()
+        eig = h5["eigenValues"][()]
+    np.testing.assert_allclose(basis, cb.shapes[:, 6:], atol=1e-12 * np.abs(cb.shapes).max())
+    np.testing.assert_allclose(np.sqrt(eig) / (2 * np.pi), cb.frequencies_hz(["root"]),
+                               rtol=1e-8)

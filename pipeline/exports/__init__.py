@@ -69,13 +69,13 @@ def csr_datasets(A: sp.spmatrix, group: str, units: str, description: str,
                  symmetric: bool = True) -> dict[str, Dataset]:
     """A sparse matrix as CSR arrays ``<group>/{data, indices, indptr, shape}``.
 
-    ``symmetric``: store only the upper triangle (diagonal included); the ``data``
+    Explicit zeros are dropped. ``symmetric``: store only the upper triangle (diagonal
+    included); the ``data``
     dataset then carries ``storage = "upper"`` (else ``"full"``). :func:`read_csr`
     restores the full matrix.
     """
-    A = sp.csr_matrix(A)
-    if symmetric:
-        A = sp.triu(A, format="csr")
+    A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
+    A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
     A.sort_indices()
     itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
     storage = "upper" if symmetric else "full"
