@@ -102,6 +102,7 @@ __all__ = [
     "connection_datasets",
     "connections_datasets",
     "effective_mass_table",
+    "build_connection_model",
 ]
 
 COUPLINGS = ("rigid", "distributing")
@@ -676,3 +677,29 @@ def connections_datasets(model: ConnectionModel, damping_ratio=0.0,
     """:func:`connection_datasets` with its state space built at ``damping_ratio``."""
     return connection_datasets(model, connection_statespace(model, damping_ratio),
                                include_shapes=include_shapes)
+
+
+# --------------------------------------------------------------------------- one call
+def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
+    """Damping ratios at ``omega2``: a number, a per-mode sequence, or an object with
+    ``ratios_for(omega)`` (:class:`pipeline.reduce.DampingSpec`)."""
+    if hasattr(damping, "ratios_for"):
+        return np.asarray(damping.ratios_for(np.sqrt(np.maximum(omega2, 0.0))), dtype=float)
+    return _xi(damping, omega2.size)
+
+
+def build_connection_model(space, regions: Mapping[str, np.ndarray], K_full: sp.spmatrix,
+                           M_full: sp.spmatrix, connections: Sequence[Any], n_modes: int,
+                           damping=0.0, backend: str = "auto", include_shapes: bool = False
+                           ) -> tuple[ConnectionModel, ConnectionStateSpace, dict[str, Dataset]]:
+    """Everything for ``/connections/<parent>``, in one call.
+
+    ``connections``: the config's records (name, region, point, coupling); the first is
+    the parent point P, the others child points. ``K_full``, ``M_full``: assembled
+    matrices of the unsupported body. ``damping``: a ratio, one per mode, or a
+    :class:`pipeline.reduce.DampingSpec`. Returns (model, state space, datasets).
+    """
+    interfaces = make_interfaces(space, regions, connections)
+    model = connection_model(space, K_full, M_full, interfaces, n_modes, backend=backend)
+    ss = connection_statespace(model, _ratios(damping, model.omega2))
+    return model, ss, connection_datasets(model, ss, include_shapes=include_shapes)

@@ -44,7 +44,7 @@ from .h5tree import Dataset
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CraigBamptonModel", "craig_bampton", "craig_bampton_datasets"]
+__all__ = ["CraigBamptonModel", "craig_bampton", "craig_bampton_datasets", "build_craig_bampton"]
 
 COORD_UNITS = {"x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad"}
 MODAL_UNITS = "m kg^1/2"
@@ -200,3 +200,17 @@ def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",
             "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
             "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
     return tree
+
+
+def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix,
+                        connections, n_modes: int, backend: str = "auto",
+                        include_shapes: bool = True
+                        ) -> tuple[CraigBamptonModel, dict[str, Dataset]]:
+    """Everything for ``/craig_bampton``, in one call: one interface per record of
+    ``connections`` (name, region, point, coupling), checked before any solve;
+    ``n_modes`` fixed-interface modes; matrices of the unsupported body."""
+    from .connection import make_interfaces
+
+    interfaces = make_interfaces(space, regions, connections)
+    cb = craig_bampton(space, K_full, M_full, interfaces, n_modes, backend=backend)
+    return cb, craig_bampton_datasets(cb, include_shapes=include_shapes)

@@ -60,7 +60,7 @@ from .h5tree import Dataset
 MODAL_UNIT = "m kg^1/2"
 
 __all__ = ["FFRFInvariants", "ffrf_invariants", "free_free_basis", "craig_bampton_basis",
-           "ffrf_datasets", "skew_columns"]
+           "ffrf_datasets", "skew_columns", "build_ffrf"]
 
 
 @dataclass(frozen=True)
@@ -253,3 +253,29 @@ def ffrf_datasets(inv: FFRFInvariants, group: str = "ffrf", include_basis: bool 
         tree[f"{group}/basis"] = Dataset(inv.basis.reshape(n_nodes, 3, -1), units("basis"),
                                          "Psi on every mesh point (n_points, 3, n)", at("basis"))
     return tree
+
+
+def build_ffrf(M_full: sp.spmatrix, K_full: sp.spmatrix | None, node_points: np.ndarray, *,
+               cb=None, shapes: np.ndarray | None = None, omega2: np.ndarray | None = None,
+               n_rigid: int = 0, supported: bool = False, origin=(0.0, 0.0, 0.0),
+               include_basis: bool = False) -> tuple[FFRFInvariants, dict[str, Dataset]]:
+    """Everything for ``/ffrf``, in one call, from the best basis available:
+
+    - ``cb`` (a :class:`pipeline.craig_bampton.CraigBamptonModel`): its basis without the
+      first interface's static modes;
+    - else ``shapes`` (n_dofs, n_m) or (n_points, 3, n_m) and ``omega2`` of the run's
+      modes: without the ``n_rigid`` rigid-body modes; ``supported`` says whether they
+      are modes of a supported body (the frame is then the support).
+    """
+    if cb is not None:
+        Psi, names, units = craig_bampton_basis(cb, 0)
+        kind = f"craig_bampton (frame follows interface '{cb.interfaces[0].name}')"
+        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind, names, units)
+    else:
+        if shapes is None or omega2 is None:
+            raise ValueError("build_ffrf: give cb, or shapes and omega2")
+        Psi, keep = free_free_basis(shapes, omega2, n_rigid)
+        kind = "supported modes (frame = support)" if supported else "free-free elastic modes"
+        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind,
+                              [f"mode_{i + 1}" for i in keep])
+    return inv, ffrf_datasets(inv, include_basis=include_basis)

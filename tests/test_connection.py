@@ -278,3 +278,37 @@ def test_datasets_carry_units_and_the_table_prints(beam):
     assert tree["connections/root/shapes"].data.shape == (beam.space.n_nodes, 3, 4)
     lines = effective_mass_table(cm)
     assert len(lines) == 2 + 4 + 2 and "cum_y" in lines[0]
+
+
+def test_one_call_builders_write_a_valid_file(beam, tmp_path):
+    """The integration entry points with the config's Connection records: every dataset
+    they return is written by pipeline.store and carries its units."""
+    import h5py
+
+    from pipeline.config import Connection
+    from pipeline.connection import build_connection_model
+    from pipeline.craig_bampton import build_craig_bampton
+    from pipeline.ffrf import build_ffrf
+    from pipeline.reduce import DampingSpec
+    from pipeline.store import open_verified, write_file
+
+    conns = (Connection("root", "root", (0.0, 0.0, 0.0), "rigid"),
+             Connection("tip", "tip", (L, 0.01, 0.025), "distributing"))
+    model, ss, tree = build_connection_model(beam.space, beam.regions, beam.K_full,
+                                             beam.M_full, conns, 4,
+                                             DampingSpec("uniform", ratio=0.02),
+                                             backend="superlu")
+    np.testing.assert_allclose(ss.damping_ratio, 0.02)
+    cb, cb_tree = build_craig_bampton(beam.space, beam.regions, beam.K_full, beam.M_full,
+                                      conns, 4, backend="superlu")
+    inv, ffrf_tree = build_ffrf(beam.M_full, beam.K_full, beam.space.node_points, cb=cb)
+    assert inv.n == 6 + 4 and "tip" in inv.basis_kind + inv.coordinate_names[0]
+    path = write_file(tmp_path / "c.h5", {**tree, **cb_tree, **ffrf_tree})
+    with open_verified(path) as h5:
+        names = []
+        h5.visititems(lambda n, o: names.append(n) if hasattr(o, "dtype") else None)
+        assert all("units" in h5[n].attrs for n in names)
+        assert h5["connections/root/statespace/A"].shape == (8, 8)
+        assert h5["connections/root/statespace/B"].shape == (8, 12)
+        assert h5["craig_bampton/M"].shape == (16, 16)
+        assert h5["ffrf/inertia_second_order"].shape == (10, 10, 3, 3)
