@@ -26,8 +26,7 @@ import scipy.sparse as sp
 
 from conftest import ALUMINIUM, build_model
 from pipeline.body import rigid_body_modes, skew
-from pipeline.connection import (ConnectionModel, check_interface, check_interfaces,
-                                 check_residual_mass, connection_datasets, connection_model,
+from pipeline.connection import (check_interface, check_residual_mass, connection_datasets, connection_model,
                                  connection_model_from_modes, connection_statespace,
                                  effective_mass_table, interface_transformation,
                                  make_interface, make_interfaces, project, rbe3_matrix,
@@ -283,8 +282,6 @@ def test_datasets_carry_units_and_the_table_prints(beam):
 def test_one_call_builders_write_a_valid_file(beam, tmp_path):
     """The integration entry points with the config's Connection records: every dataset
     they return is written by pipeline.store and carries its units."""
-    import h5py
-
     from pipeline.config import Connection
     from pipeline.connection import build_connection_model
     from pipeline.craig_bampton import build_craig_bampton

@@ -194,7 +194,8 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
     root, tip = sets["root"], sets["tip"]
     ground = mbs.AddObject(ObjectGround(referencePosition=[0, 0, 0]))
     # the rigid marker sits at the weighted centroid of the root nodes: put the ground there
-    centre = list(np.asarray(root["NodeWeights"]) @ fem.GetNodePositionsAsArray()[root["NodeNumbers"]])
+    xyz = fem.GetNodePositionsAsArray()
+    centre = list(np.asarray(root["NodeWeights"]) @ xyz[root["NodeNumbers"]])
     m_ground = mbs.AddMarker(MarkerBodyRigid(bodyNumber=ground, localPosition=centre))
     m_root = mbs.AddMarker(MarkerSuperElementRigid(
         bodyNumber=body, meshNodeNumbers=np.array(root["NodeNumbers"]),

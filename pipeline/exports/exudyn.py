@@ -10,13 +10,15 @@ nodes['Position']    (n_points, 3) m, one 3-DOF node per mesh point             
 elements[0]          {'Name': 'body', 'Tet10' | 'Tet4': connectivity}            /mesh/cells/tetra10
                      (Exudyn's Tet10 order = meshio's: corners, 01 12 02 03 13 23)
 massMatrix           scipy CSR (3 n_points)^2 kg, unsupported body               /fe/mass_matrix
-stiffnessMatrix      scipy CSR (3 n_points)^2 N/m, unsupported body              /fe/stiffness_matrix
+stiffnessMatrix      scipy CSR (3 n_points)^2 N/m, unsupported body              /fe/stiffness_
+                                                                                 matrix
 surface[0]           {'Name': 'boundary', 'Trigs', 'Trigs6'}: outward boundary   from the cells
                      triangles (and their 6-node form for P2)
 nodeSets             one per region: {'Name', 'NodeNumbers', 'NodeWeights'},     /mesh/regions/*
                      weights = consistent area weights, normalised to sum 1
 modeBasis            {'matrix': (3 n_points, n), 'type': 'NormalModes' |         /modes/shapes or
-                     'HCBmodes'}                                                 /craig_bampton/shapes
+                     'HCBmodes'}                                                 /craig_bampton/
+                                                                                 shapes
 eigenValues          (n,) rad^2/s^2 of the basis' own (K, M) projection
 metaData             source, file, basis description
 ===================  ==========================================================  ===================
