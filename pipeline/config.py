@@ -246,10 +246,16 @@ def _describe(value: Any) -> str:
 
 
 def _key_text(key: Any) -> str:
-    """A config key as it appears in a message: itself if short and printable."""
-    if isinstance(key, str) and key.isprintable() and len(key) <= 64:
-        return key
-    return _describe(key)
+    """A config key as it appears in a message: itself if short and printable, else
+    escaped (no quotes, no newlines) and shortened."""
+    if isinstance(key, str):
+        text = key if key.isprintable() else key.encode("unicode_escape").decode("ascii")
+        text = text.replace("'", "\\x27")
+    elif key is None or isinstance(key, (bool, int, float)):
+        text = _short_repr(key)
+    else:
+        text = f"<{type(key).__name__}>"
+    return text if len(text) <= 64 else text[:61] + "..."
 
 
 def _fail(path: str, value: Any, expected: str) -> ConfigError:
@@ -787,6 +793,9 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> Config:
     raw = _parse_yaml(text, f"config file '{path}'")
     if raw is None:
         raise ConfigError(f"config file '{path}': is empty, expected a mapping of config keys")
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"config file '{path}': got {_describe(raw)}, expected a mapping of "
+                          "config keys at the top level")
     raw = apply_overrides(raw, overrides)
     try:
         return config_from_dict(raw, source=str(path))
