@@ -1,0 +1,137 @@
+"""Pictures (issue 9): ``python -m pipeline plot FILE.h5`` writes a PNG per mode, an overview,
+a frequency table (PNG + CSV), and for a reduced model its Bode magnitude and step
+response; each PNG is checked to be written and non-trivial (size, not blank).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import FileFormatError
+from pipeline.plots import add_plot_parser, boundary_surface, is_slender, plot_file, read_modes
+from pipeline.run import run_pipeline
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def assert_picture(path: Path, min_bytes: int = 15_000) -> None:
+    """A PNG that exists, is not tiny, and is not blank (pixel variance, colour present)."""
+    from matplotlib.image import imread
+
+    assert path.exists(), path
+    assert path.stat().st_size >= min_bytes, (path, path.stat().st_size)
+    img = imread(path)[..., :3]
+    assert img.shape[0] >= 300 and img.shape[1] >= 400
+    assert img.std() > 0.05, (path, img.std())              # not one flat colour
+    non_white = np.mean(img.min(axis=2) < 0.9)
+    assert non_white > 0.03, (path, non_white)              # something is drawn
+    saturation = img.max(axis=2) - img.min(axis=2)
+    assert np.mean(saturation > 0.2) > 0.005, path          # and some of it in colour
+
+
+@pytest.fixture(scope="module")
+def bracket_h5(tmp_path_factory) -> Path:
+    """The bracket (a 3D picture), coarse, 3 modes, with its reduced model."""
+    tmp = tmp_path_factory.mktemp("plots_bracket")
+    cfg = load_config(ROOT / "configs" / "bracket.yaml", ["mesh.size=0.007", "modes.count=4"])
+    return run_pipeline(cfg, tmp / "bracket.h5", mesh_dir=tmp).output
+
+
+@pytest.fixture(scope="module")
+def beam_h5(tmp_path_factory) -> Path:
+    """The cantilever box (slender: a side view), modes only."""
+    tmp = tmp_path_factory.mktemp("plots_beam")
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml",
+                      ["mesh.size=0.025", "modes.count=3", "reduction=null", "lumped=null",
+                       "filter=null", "ports=null"])
+    return run_pipeline(cfg, tmp / "cantilever.h5", mesh_dir=tmp).output
+
+
+def test_every_picture_of_a_reduced_model_is_written_and_non_trivial(bracket_h5, tmp_path):
+    files = plot_file(bracket_h5, tmp_path / "pics")
+    names = sorted(p.name for p in files)
+    assert names == sorted(["mode_01.png", "mode_02.png", "mode_03.png", "mode_04.png",
+                            "modes.png", "frequencies.png", "frequencies.csv", "bode.png",
+                            "step.png"])
+    for p in files:
+        if p.suffix == ".png":
+            assert_picture(p)
+    rows = list(csv.DictReader(open(tmp_path / "pics" / "frequencies.csv")))
+    data = read_modes(bracket_h5)
+    assert [float(r["frequency_hz"]) for r in rows] == pytest.approx(list(data.frequencies_hz))
+    assert [r["in_reduced_model"] for r in rows] == ["1", "1", "1", "1"]
+    assert not is_slender(data.points)
+
+
+def test_slender_body_is_drawn_as_a_side_view_and_modes_only_file_has_no_bode(beam_h5, tmp_path):
+    data = read_modes(beam_h5)
+    assert is_slender(data.points)
+    files = plot_file(beam_h5, tmp_path, modes=2)
+    assert sorted(p.name for p in files) == ["frequencies.csv", "frequencies.png",
+                                             "mode_01.png", "mode_02.png", "modes.png"]
+    for p in files:
+        if p.suffix == ".png":
+            assert_picture(p)
+
+
+def test_plot_command(beam_h5, tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    add_plot_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["plot", str(beam_h5), "-o", str(tmp_path / "cli"), "--modes", "1"])
+    assert args.func(args) == 0
+    printed = capsys.readouterr().out.split()
+    assert str(tmp_path / "cli" / "mode_01.png") in printed
+    assert_picture(tmp_path / "cli" / "mode_01.png")
+    # default folder: <stem>_plots next to the file
+    args = parser.parse_args(["plot", str(beam_h5), "--modes", "1"])
+    args.func(args)
+    assert (beam_h5.parent / "cantilever_plots" / "frequencies.png").exists()
+
+
+def test_plot_refuses_a_file_that_is_not_ours(tmp_path):
+    bogus = tmp_path / "other.h5"
+    import h5py
+
+    with h5py.File(bogus, "w") as h5:
+        h5["x"] = 1
+    with pytest.raises(FileFormatError, match="schema"):
+        plot_file(bogus, tmp_path)
+
+
+def test_boundary_surface_of_a_tetrahedron_and_of_a_meshed_box(tmp_path):
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    s = boundary_surface(pts, np.array([[0, 1, 2, 3]]))
+    assert s.triangles.shape == (4, 3) and s.feature_edges.shape == (6, 2)
+    a, b, c = (pts[s.triangles[:, i]] for i in range(3))
+    outward = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3 - pts.mean(0))
+    assert (outward > 0).all()
+
+    from pipeline.config import Geometry, MeshSpec
+    from pipeline.fespace import build_space
+    from pipeline.mesh import generate_mesh, read_mesh
+
+    path = generate_mesh(Geometry("box", 0.3, 0.1, 0.05), MeshSpec(order=2, size=0.05,
+                                                                    algorithm="delaunay"),
+                         tmp_path / "box.msh")
+    space = build_space(read_mesh(path), 2)
+    s = boundary_surface(space.node_points, space.element_nodes)
+    v = space.node_points
+    a, b, c = (v[s.triangles[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+    assert area == pytest.approx(2 * (0.3 * 0.1 + 0.3 * 0.05 + 0.1 * 0.05), rel=1e-9)
+    # divergence theorem: outward orientation gives the volume
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6
+    assert vol == pytest.approx(0.3 * 0.1 * 0.05, rel=1e-9)
+    assert s.drawn.shape[0] == 4 * s.triangles.shape[0]       # quadratic: subdivided
+    assert s.feature_edges.shape[1] == 3                      # through the edge midpoint
+    ends = v[s.feature_edges[:, [0, 2]]]
+    # the outline is the box's 12 edges: every point on two of its faces
+    on_faces = [np.isclose(ends[..., k], 0) | np.isclose(ends[..., k], hi)
+                for k, hi in enumerate((0.3, 0.1, 0.05))]
+    assert (np.sum(on_faces, axis=0) >= 2).all()
