@@ -802,6 +802,10 @@ def _worker_budgets(client) -> dict[str, dict]:
 
 
 def _start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int):
+    """Worker processes on 127.0.0.1, one thread each; each has ``memory_limit`` (the
+    machine's available memory: a case may use it all while the others wait, the client
+    admits cases by their estimates) and advertises 80 % of it as the ``memory``
+    resource."""
     import dask
     from distributed import Client, LocalCluster
 
@@ -816,22 +820,29 @@ def _start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: in
     return cluster, client
 
 
-def _plan_local_workers(requested: int | None, pending: Sequence[Case], available: int
-                        ) -> tuple[int, int]:
-    """(workers, memory limit per worker) for the local cluster.
-
-    Default: one per core, fewer when the largest case's estimate needs more memory than
-    a per-core share (never fewer than one); an explicit request is kept.
-    """
-    cores = os.cpu_count() or 1
+def _plan_local_workers(requested: int | None, pending: Sequence[Case]) -> int:
+    """Local worker processes: as requested, else one per core (no more than cases)."""
     if requested:
-        n = requested
-    else:
-        n = max(1, min(cores, len(pending)))
-        largest = max((c.memory_bytes or 0 for c in pending), default=0)
-        if largest:
-            n = max(1, min(n, int(BUDGET_FRACTION * available // largest)))
-    return n, int(available // n)
+        return requested
+    return max(1, min(os.cpu_count() or 1, len(pending)))
+
+
+def admit(queue: Sequence[Case], running_bytes: int, free_slots: int,
+          budget: float | None) -> list[Case]:
+    """Cases of ``queue`` to start now, in order, skipping ahead past a case that does not
+    fit: at most ``free_slots``, and the running cases' estimates plus theirs within
+    ``budget`` (no limit when None). A case starts alone whatever its estimate when
+    nothing runs (one that exceeds the budget is refused before, by split_by_budget)."""
+    chosen: list[Case] = []
+    for case in queue:
+        if len(chosen) >= free_slots:
+            break
+        need = case.memory_bytes or 0
+        if budget is None or (running_bytes == 0 and not chosen) \
+                or running_bytes + need <= budget:
+            chosen.append(case)
+            running_bytes += need
+    return chosen
 
 
 def split_by_budget(pending: Sequence[Case], budgets: Sequence[float]
@@ -844,10 +855,11 @@ def split_by_budget(pending: Sequence[Case], budgets: Sequence[float]
     fits, refused = [], []
     for case in pending:
         if case.memory_bytes is not None and case.memory_bytes > largest:
-            refused.append((case, f"needs about {case.memory_bytes / 1e9:.1f} GB (estimate), but "
-                                  f"the largest worker offers {largest / 1e9:.1f} GB to cases; run "
-                                  "it with fewer workers (--workers 1), on a larger worker, or "
-                                  "with a coarser mesh"))
+            refused.append((case, f"needs about {case.memory_bytes / 1e9:.1f} GB (estimate), more "
+                                  f"than the {largest / 1e9:.1f} GB cases may use on any worker "
+                                  "(80 % of the memory available to a local cluster, or a "
+                                  "worker's 'memory' resource); free memory, use a larger "
+                                  "worker or a coarser mesh"))
         else:
             fits.append(case)
     return fits, refused
@@ -865,6 +877,8 @@ def _execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
     from .resources import available_memory_bytes
 
     cluster = None
+    machine_budget: float | None = None  # local: the estimates of running cases share it
+    slots = 1 << 30                      # local: one case per worker process at a time
     if scheduler:
         client = Client(scheduler, timeout=start_timeout)
         try:
@@ -884,13 +898,16 @@ def _execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
         if workers:
             log.warning("--workers is ignored with --scheduler")
     else:
-        n, limit = _plan_local_workers(workers, pending, available_memory_bytes())
+        n = _plan_local_workers(workers, pending)
+        available = available_memory_bytes()
         threads_per_case = max(1, (os.cpu_count() or 1) // n)
-        cluster, client = _start_local_cluster(n, limit, threads_per_case)
-        budgets = [BUDGET_FRACTION * limit] * n
-        where = (f"local cluster ({n} worker process{'es' if n > 1 else ''}, memory limit "
-                 f"{limit / 1e9:.1f} GB each, {threads_per_case} thread"
-                 f"{'s' if threads_per_case > 1 else ''} per case)")
+        cluster, client = _start_local_cluster(n, available, threads_per_case)
+        budgets = [BUDGET_FRACTION * available] * n
+        machine_budget = BUDGET_FRACTION * available
+        slots = n
+        where = (f"local cluster ({n} worker process{'es' if n > 1 else ''}, "
+                 f"{threads_per_case} thread{'s' if threads_per_case > 1 else ''} per case; "
+                 f"cases share {machine_budget / 1e9:.1f} GB by their estimates)")
     progress.line(f"running {len(pending)} case(s) on {where}")
     try:
         runnable, refused = split_by_budget(pending, budgets)
@@ -911,28 +928,40 @@ def _execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
 
         with contextlib.suppress(Exception):
             client.subscribe_topic(EVENT_TOPIC, on_event)
-        futures = {}
-        for case in runnable:
-            kwargs = {}
-            if budgets and case.memory_bytes is not None:
-                kwargs["resources"] = {"memory": case.memory_bytes}
-            fut = client.submit(run_case_task, case.config, case.key, str(cases_dir.resolve()),
-                                token, write_here, key=f"fe-case-{case.key}-{token[:8]}",
-                                pure=False, retries=0, **kwargs)
-            futures[fut] = case
-        not_done = set(futures)
+        futures: dict[Any, Case] = {}
+        queue = list(runnable)
+        not_done: set = set()
+
+        def submit_more() -> None:
+            running = sum(futures[f].memory_bytes or 0 for f in not_done)
+            for case in admit(queue, running, slots - len(not_done), machine_budget):
+                queue.remove(case)
+                kwargs = {}
+                if budgets and case.memory_bytes is not None:
+                    kwargs["resources"] = {"memory": case.memory_bytes}
+                fut = client.submit(run_case_task, case.config, case.key,
+                                    str(cases_dir.resolve()), token, write_here,
+                                    key=f"fe-case-{case.key}-{token[:8]}", pure=False,
+                                    retries=0, **kwargs)
+                futures[fut] = case
+                not_done.add(fut)
+
         try:
+            submit_more()
             while not_done:
                 try:
-                    done, not_done = wait(not_done, timeout=0.5, return_when=FIRST_COMPLETED)
+                    done, rest = wait(not_done, timeout=0.5, return_when=FIRST_COMPLETED)
                 except Exception:  # distributed's wait raises TimeoutError on timeout
                     progress.refresh()
                     continue
+                not_done.clear()
+                not_done.update(rest)
                 for fut in done:
                     case = futures[fut]
                     record = _collect(fut, case, cases_dir, outcomes, progress)
                     progress.advance(weights.get(case.key, 1),
                                      "done" if record["status"] == "ok" else "failed")
+                submit_more()
         except BaseException:
             for fut in not_done:
                 fut.cancel()

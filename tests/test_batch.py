@@ -33,6 +33,7 @@ from pipeline.batch import (
     main,
     predict_mesh_size,
     run_batch,
+    admit,
     split_by_budget,
     _plan_local_workers,
 )
@@ -170,23 +171,30 @@ batch: {base: base.yaml, combine: zip,
         [(0.012, False), (0.01, True)]
 
 
-def test_memory_budget_planning():
+def test_memory_aware_admission():
     def case(i, gb):
         return Case(index=i, label=f"c{i}", overrides=(), config=None, key=f"k{i}",
                     memory_bytes=None if gb is None else int(gb * 1e9))
 
-    cases = [case(1, 10), case(2, 10), case(3, 2), case(4, None), case(5, 30)]
-    # two 10 GB cases on a 24 GB machine: one worker per 10 GB case, not one per core
-    n, limit = _plan_local_workers(None, cases[:3], 24e9)
-    assert n == 1 and limit == 24e9
-    assert _plan_local_workers(None, cases[2:4], 24e9)[0] == min(os.cpu_count() or 1, 2)
-    assert _plan_local_workers(3, cases, 24e9) == (3, 8e9)
-    # a worker advertising 19.2 GB (80 % of 24) takes each 10 GB case, never 30 GB
-    fits, refused = split_by_budget(cases, [19.2e9])
-    assert [c.index for c in fits] == [1, 2, 3, 4]
-    assert [c.index for c, _ in refused] == [5]
+    big1, big2, small, unknown, huge = case(1, 10), case(2, 10), case(3, 2), case(4, None), \
+        case(5, 30)
+    # a 24 GB machine offers 19.2 GB to cases: never the two 10 GB cases at once, but a
+    # small one beside one of them; an unknown estimate counts as nothing
+    budget = 0.8 * 24e9
+    assert admit([big1, big2, small], 0, 2, budget) == [big1, small]
+    assert admit([big2, small, unknown], big1.memory_bytes, 1, budget) == [small]
+    assert admit([big2], big1.memory_bytes, 1, budget) == []
+    assert admit([big2, small], big1.memory_bytes + small.memory_bytes, 1, budget) == [small]
+    assert admit([big1, big2, small], 0, 3, None) == [big1, big2, small]   # remote: Dask's
+    assert admit([big1, big2], 0, 0, budget) == []                          # no free slot
+    # a case larger than every worker's budget fails at once rather than waiting forever
+    fits, refused = split_by_budget([big1, big2, small, unknown, huge], [budget])
+    assert fits == [big1, big2, small, unknown]
+    assert [c for c, _ in refused] == [huge]
     assert "30.0 GB" in refused[0][1] and "19.2 GB" in refused[0][1]
-    assert split_by_budget(cases, [])[1] == []        # nobody advertises memory: run all
+    assert split_by_budget([huge], [])[1] == []       # nobody advertises memory: run all
+    assert _plan_local_workers(None, [big1] * 5) == min(os.cpu_count() or 1, 5)
+    assert _plan_local_workers(None, [big1]) == 1 and _plan_local_workers(3, [big1]) == 3
 
 
 # --------------------------------------------------------------------------- local cluster
