@@ -212,6 +212,7 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
     settings = exu.SimulationSettings()
     settings.staticSolver.newton.relativeTolerance = 1e-10
     settings.staticSolver.verboseMode = 0
+    settings.solution.file.write = False  # no solution/ folder in the cwd
     p0 = np.array(mbs.GetSensorValues(sensor))
     mbs.SolveStatic(settings)
     deflection = (np.array(mbs.GetSensorValues(sensor)) - p0)[1]
