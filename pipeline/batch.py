@@ -768,7 +768,7 @@ class _Progress:
         self.bar = tqdm(total=total, desc=name, unit="case", disable=not self.enabled,
                         dynamic_ncols=True, file=sys.stderr,
                         bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} "
-                                   "[{elapsed}<{remaining}] {postfix}")
+                                   "[{elapsed}<{remaining}]{postfix}")
         self.echo = echo
         self.done = self.failed = self.cached = 0
         self.running: set[str] = set()
@@ -815,6 +815,8 @@ def _start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: in
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                memory_limit=memory_limit, host="127.0.0.1",
                                dashboard_address=None, silence_logs=logging.WARNING,
+                               # its HTTP server (health routes) would take :8787 otherwise
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                                resources={"memory": int(BUDGET_FRACTION * memory_limit)})
         client = Client(cluster)
     return cluster, client

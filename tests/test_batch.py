@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.batch import (
+pytest.importorskip("distributed", reason="the batch extra (dask[distributed]) is not installed")
+
+from pipeline.batch import (  # noqa: E402
     Case,
     load_batch,
     main,
@@ -37,8 +39,8 @@ from pipeline.batch import (
     split_by_budget,
     _plan_local_workers,
 )
-from pipeline.errors import ConfigError
-from pipeline.store import open_verified
+from pipeline.errors import ConfigError  # noqa: E402
+from pipeline.store import open_verified  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DASK = Path(sys.executable).with_name("dask")
