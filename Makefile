@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS ?= test,fast,plots
+EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 
 .PHONY: modes test test-all bench env clean

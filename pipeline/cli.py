@@ -85,6 +85,17 @@ def build_parser() -> argparse.ArgumentParser:
     insp = sub.add_parser("inspect", help="human summary of an HDF5 file")
     insp.add_argument("file")
     insp.set_defaults(func=cmd_inspect)
+
+    # the other commands live beside the stage they drive (light imports only here)
+    from .batch import add_batch_parser
+    from .export_cli import add_export_parser
+    from .plots import add_plot_parser
+    from .simulate import add_simulate_parser
+
+    add_batch_parser(sub)
+    add_simulate_parser(sub)
+    add_plot_parser(sub)
+    add_export_parser(sub)
     return parser
 
 

@@ -137,3 +137,41 @@ def build_lumped(cfg: Config, modes, labels, fe_deflection):
              "x-y bending, 1 N tip force:"]
     lines += ["  " + line for line in format_comparison(rows).splitlines()]
     return lumped_datasets(model, rows), lumped_group_attrs(model), lines
+
+
+def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, shapes
+                            ) -> tuple[dict[str, Dataset], list[str]]:
+    """Connection-point (6x6) model, Craig-Bampton (``craig_bampton.modes`` > 0), the
+    floating-frame invariants and the FE matrices Exudyn needs, for ``cfg.connections``.
+
+    K_full, M_full: matrices of the unsupported body (n_dofs x n_dofs).
+    shapes: (n_points, 3, n_m) modes of the run (used for the invariants without CB).
+    """
+    from .connection import build_connection_model, effective_mass_table
+    from .exports.exudyn import exudyn_datasets
+    from .ffrf import build_ffrf
+
+    tree: dict[str, Dataset] = {}
+    model, _, conn_tree = build_connection_model(
+        space, regions, K_full, M_full, cfg.connections, cfg.modes.count,
+        damping=_damping_spec(cfg), backend=cfg.modes.solver)
+    tree.update(conn_tree)
+    parent = cfg.connections[0]
+    lines = [f"connection point '{parent.name}' at {list(parent.point)} ({parent.coupling}): "
+             "effective modal masses (kg, kg m^2) and cumulative fractions"]
+    lines += ["  " + line for line in effective_mass_table(model, cfg.modes.count)]
+    cb = None
+    if cfg.craig_bampton_modes > 0:
+        from .craig_bampton import build_craig_bampton
+
+        cb, cb_tree = build_craig_bampton(space, regions, K_full, M_full, cfg.connections,
+                                          cfg.craig_bampton_modes, backend=cfg.modes.solver)
+        tree.update(cb_tree)
+        lines.append(f"Craig-Bampton: {len(cfg.connections)} interface(s), "
+                     f"{cfg.craig_bampton_modes} fixed-interface modes")
+    _, ffrf_tree = build_ffrf(M_full, K_full, space.node_points, cb=cb, shapes=shapes,
+                              omega2=modes.omega2, n_rigid=modes.n_rigid,
+                              supported=bool(cfg.supports))
+    tree.update(ffrf_tree)
+    tree.update(exudyn_datasets(K_full, M_full))
+    return tree, lines

@@ -98,6 +98,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
         props = body_properties(M, space.node_points)
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
+        # connection-point models need the unsupported body: keep it only then
+        full = (K, M) if cfg.connections else None
         K = restrict(K, free)
         M = restrict(M, free)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
@@ -124,7 +126,14 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
                                                            modes, props, labels)
             tree.update(model_tree)
             group_attrs.update(model_attrs)
-    del K, M
+        del K, M
+        if full is not None:
+            from .models import build_connection_models
+
+            conn_tree, lines = build_connection_models(cfg, space, regions, *full, modes, shapes)
+            tree.update(conn_tree)
+            extras.setdefault("summary", []).extend(lines)
+            del full
 
     tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
     group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
