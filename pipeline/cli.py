@@ -67,6 +67,11 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+#: (module, function registering its subcommand), in the order ``--help`` lists them
+COMMAND_MODULES = [("batch", "add_batch_parser"), ("simulate", "add_simulate_parser"),
+                   ("plots", "add_plot_parser"), ("export_cli", "add_export_parser")]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m pipeline",
                                      description="Reduced models of flexible bodies from 3D FE.")
@@ -87,15 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
     insp.set_defaults(func=cmd_inspect)
 
     # the other commands live beside the stage they drive (light imports only here)
-    from .batch import add_batch_parser
-    from .export_cli import add_export_parser
-    from .plots import add_plot_parser
-    from .simulate import add_simulate_parser
+    import importlib
 
-    add_batch_parser(sub)
-    add_simulate_parser(sub)
-    add_plot_parser(sub)
-    add_export_parser(sub)
+    for module, register in COMMAND_MODULES:
+        getattr(importlib.import_module(f"pipeline.{module}"), register)(sub)
     return parser
 
 
