@@ -338,6 +338,18 @@ def case_key(cfg) -> str:
     return digest.hexdigest()[:16]
 
 
+def portable_config(cfg):
+    """``cfg`` with a relative geometry file path made absolute, as sent to workers (whose
+    working folder may differ). The cache key is computed before, from ``cfg`` itself."""
+    import dataclasses
+
+    path = getattr(cfg.geometry, "path", "")
+    if path and not os.path.isabs(path):
+        return dataclasses.replace(cfg, geometry=dataclasses.replace(
+            cfg.geometry, path=os.path.abspath(path)))
+    return cfg
+
+
 def predict_mesh_size(cfg) -> tuple[int, int] | None:
     """(nodes, tetrahedra) a gmsh mesh of ``cfg`` will have, before meshing; None if unknown.
 
@@ -629,7 +641,7 @@ def _record_from_file(path: Path, case: Case, verify: bool = True) -> dict:
 
     with open_verified(path, verify_checksum=verify) as h5:
         stored = h5.attrs.get("config_yaml")
-        if stored is not None and str(stored) != config_to_yaml(case.config):
+        if stored is not None and str(stored) != config_to_yaml(portable_config(case.config)):
             raise FileFormatError(f"file '{path}': its config differs from case {case.index}'s")
         if str(h5.attrs.get("pipeline_version")) != __version__:
             raise FileFormatError(f"file '{path}': written by pipeline "
@@ -941,7 +953,7 @@ def _execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
                 kwargs = {}
                 if budgets and case.memory_bytes is not None:
                     kwargs["resources"] = {"memory": case.memory_bytes}
-                fut = client.submit(run_case_task, case.config, case.key,
+                fut = client.submit(run_case_task, portable_config(case.config), case.key,
                                     str(cases_dir.resolve()), token, write_here,
                                     key=f"fe-case-{case.key}-{token[:8]}", pure=False,
                                     retries=0, **kwargs)

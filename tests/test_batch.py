@@ -173,6 +173,32 @@ batch: {base: base.yaml, combine: zip,
         [(0.012, False), (0.01, True)]
 
 
+def test_key_follows_a_geometry_file_and_the_cli_parser(tmp_path):
+    import argparse
+
+    from pipeline.batch import add_batch_parser, cmd_batch
+
+    text = BASE.replace("geometry: {kind: box, length: 0.5, height: 0.02, depth: 0.05}",
+                        "geometry: {kind: geo, path: part.geo}")
+    folder = tmp_path / "b"
+    folder.mkdir()
+    write(folder / "base.yaml", text)
+    path = write(folder / "batch.yaml", "batch: {base: base.yaml}")
+    write(folder / "part.geo", "// version 1\n")
+    first = load_batch(path).cases[0]
+    assert first.label == "base" and first.memory_bytes is None   # unknown before meshing
+    write(folder / "part.geo", "// version 2\n")
+    assert load_batch(path).cases[0].key != first.key             # new geometry, new key
+    # the subcommand as pipeline/cli.py registers it
+    parser = argparse.ArgumentParser()
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    add_batch_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["batch", "f.yaml", "--workers", "2", "--scheduler",
+                              "tcp://127.0.0.1:8786", "-o", "out"])
+    assert (args.func, args.file, args.workers, args.scheduler, args.output) == \
+        (cmd_batch, "f.yaml", 2, "tcp://127.0.0.1:8786", "out")
+
+
 def test_memory_aware_admission():
     def case(i, gb):
         return Case(index=i, label=f"c{i}", overrides=(), config=None, key=f"k{i}",
