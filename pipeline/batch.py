@@ -96,6 +96,7 @@ RECORD_VERSION = 1
 BUDGET_FRACTION = 0.8
 KILL_FRACTION = 0.95
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+_KEY_RE = re.compile(r"^[A-Za-z0-9_\-]+(\.[A-Za-z0-9_\-]+|\[\d+\])*$")
 
 
 # --------------------------------------------------------------------------- batch file
@@ -155,8 +156,7 @@ def _override_items(raw: Any, where: str, file: str) -> list[tuple[str, Any]]:
                           "mapping of dotted config keys to values, e.g. {mesh.size: 0.005}")
     out = []
     for key, value in raw.items():
-        if not isinstance(key, str) or not re.match(r"^[A-Za-z0-9_\-]+(\.[A-Za-z0-9_\-]+|\[\d+\])*$",
-                                                    key):
+        if not isinstance(key, str) or not _KEY_RE.match(key):
             raise ConfigError(f"batch file '{file}': key '{where}.{key}': expected a dotted config "
                               "key path such as mesh.size or supports[0].fix")
         out.append((key, value))

@@ -506,17 +506,18 @@ def _fmt(value: Any, digits: int = 5) -> str:
     return str(value)
 
 
-def _table(head: Sequence[str], body: Sequence[Sequence[Any]], left: Sequence[int] = (),
+def _table(head: Sequence[str] | None, body: Sequence[Sequence[Any]], left: Sequence[int] = (),
            row_class: Sequence[str] | None = None) -> str:
     h = "".join(f"<th{' class=l' if i in left else ''}>{html.escape(str(c))}</th>"
-                for i, c in enumerate(head))
+                for i, c in enumerate(head or ()))
     rows = []
     for r, cells in enumerate(body):
         cls = f" class={row_class[r]}" if row_class and row_class[r] else ""
         tds = "".join(f"<td{' class=l' if i in left else ''}>{html.escape(_fmt(c))}</td>"
                       for i, c in enumerate(cells))
         rows.append(f"<tr{cls}>{tds}</tr>")
-    return f"<table><tr>{h}</tr>{''.join(rows)}</table>"
+    head_row = f"<tr>{h}</tr>" if head else ""
+    return f"<table>{head_row}{''.join(rows)}</table>"
 
 
 def _html(result, columns, rows, figures, conv_rows) -> str:
@@ -530,7 +531,8 @@ def _html(result, columns, rows, figures, conv_rows) -> str:
     if spec.description:
         parts.append(f"<p>{html.escape(spec.description)}</p>")
     meta = [("batch file", str(spec.path)), ("base config", spec.base),
-            ("overrides for every case", ", ".join(f"{k}={_value_text(v)}" for k, v in spec.common)
+            ("overrides for every case", ", ".join(
+                f"{k}={v if isinstance(v, str) else json.dumps(v)}" for k, v in spec.common)
              or "none"),
             ("sweep", (", ".join(spec.sweep_keys) + f" ({spec.combine})") if spec.sweep_keys
              else "none"),
@@ -540,7 +542,7 @@ def _html(result, columns, rows, figures, conv_rows) -> str:
             ("ran on", result.workers), ("wall time", f"{result.wall_s:.1f} s"),
             ("pipeline", __version__),
             ("written", _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z"))]
-    parts.append(_table(["", ""], meta, left=(0, 1)))
+    parts.append(_table(None, meta, left=(0, 1)))
     failed = [r for r in rows if r["status"] in ("failed", "not run")]
     parts.append("<h2>Failed cases</h2>")
     if failed:
