@@ -73,26 +73,51 @@ def _to_control(mats: dict[str, np.ndarray], names: dict[str, tuple[str, ...]]):
                       states=list(names["state_names"]) or None)
 
 
+REQUIRED = ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
+            "statespace/damping_ratios", "modes/frequencies_hz", "modes/labels")
+
+
 def load_model(path: str | Path) -> LoadedModel:
-    """Read the reduced model of ``path`` (see the class docstring)."""
+    """Read the reduced model of ``path`` (see the class docstring).
+
+    Raises FileFormatError for a file that is not ours, corrupt (see
+    :func:`pipeline.store.open_verified`), holds modes only, or lacks a dataset the
+    layout requires.
+    """
     path = Path(path)
     with open_verified(path) as h5:
         if "statespace" not in h5:
             raise FileFormatError(f"file '{path}': has no /statespace group (the config had no "
                                   "'reduction' section); it holds modes only")
-        mats, names = _group_matrices(h5, "statespace")
-        filt = None
-        filter_kind, cutoff = "none", None
-        if "statespace_filtered" in h5:
-            filt, fnames = _group_matrices(h5, "statespace_filtered")
-            attrs = h5["statespace_filtered"].attrs
-            filter_kind = str(attrs.get("filter_kind", "unknown"))
-            cutoff = float(attrs["cutoff_hz"]) if "cutoff_hz" in attrs else None
-        compliance = (np.array(h5["statespace/static_compliance"][()])
-                      if "statespace/static_compliance" in h5 else None)
-        damping = np.array(h5["statespace/damping_ratios"][()])
-        freqs = np.array(h5["modes/frequencies_hz"][()])
-        labels = tuple(read_strings(h5["modes/labels"]))
+        missing = [k for k in REQUIRED if k not in h5]
+        if missing:
+            raise FileFormatError(f"file '{path}': dataset{'s' if len(missing) > 1 else ''} "
+                                  f"{', '.join(missing)} missing (an incomplete file, not the "
+                                  "layout of docs/hdf5-format.md)")
+        try:
+            return _read(h5, path)
+        except FileFormatError:
+            raise
+        except (KeyError, IndexError, ValueError, TypeError, OSError, RuntimeError) as exc:
+            text = " ".join(str(exc).split())[:200]
+            raise FileFormatError(f"file '{path}': inconsistent with the layout of "
+                                  f"docs/hdf5-format.md ({type(exc).__name__}: {text})") from None
+
+
+def _read(h5, path: Path) -> LoadedModel:
+    mats, names = _group_matrices(h5, "statespace")
+    filt = None
+    filter_kind, cutoff = "none", None
+    if "statespace_filtered" in h5:
+        filt, fnames = _group_matrices(h5, "statespace_filtered")
+        attrs = h5["statespace_filtered"].attrs
+        filter_kind = str(attrs.get("filter_kind", "unknown"))
+        cutoff = float(attrs["cutoff_hz"]) if "cutoff_hz" in attrs else None
+    compliance = (np.array(h5["statespace/static_compliance"][()])
+                  if "statespace/static_compliance" in h5 else None)
+    damping = np.array(h5["statespace/damping_ratios"][()])
+    freqs = np.array(h5["modes/frequencies_hz"][()])
+    labels = tuple(read_strings(h5["modes/labels"]))
     return LoadedModel(path, _to_control(mats, names),
                        _to_control(filt, fnames) if filt is not None else None,
                        names["input_names"], names["output_names"], names["state_names"],
