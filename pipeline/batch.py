@@ -965,7 +965,7 @@ def _execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
             while not_done:
                 try:
                     done, rest = wait(not_done, timeout=0.5, return_when=FIRST_COMPLETED)
-                except Exception:  # distributed's wait raises TimeoutError on timeout
+                except TimeoutError:  # (dask.distributed.TimeoutError is the builtin one)
                     progress.refresh()
                     continue
                 not_done.clear()
