@@ -247,6 +247,8 @@ HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
 def _short(value: Any) -> str:
+    if isinstance(value, np.generic):
+        value = value.item()  # 1.5, not np.float64(1.5)
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
