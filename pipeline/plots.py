@@ -600,7 +600,8 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
         log.info("wrote %s", written[-1])
     if n > 1:
         coarse = boundary_surface(data.points, data.cells, subdivide_below=0)
-        written.append(plot_modes_overview(data, out_dir / "modes.png", coarse, max_modes=min(n, 12)))
+        written.append(plot_modes_overview(data, out_dir / "modes.png", coarse,
+                                           max_modes=min(n, 12)))
     written.append(plot_frequency_table(data, out_dir / "frequencies.png"))
     written.append(write_frequency_csv(data, out_dir / "frequencies.csv"))
     if data.has_statespace:

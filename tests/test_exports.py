@@ -121,7 +121,8 @@ sys = ss(A{suffix}, B{suffix}, C{suffix}, D{suffix}, 'InputName', input_names{su
 p = pole(sys); g = dcgain(sys);
 printf('POLES\\n%d\\n', numel(p)); printf('%.17g %.17g\\n', [real(p) imag(p)]');
 printf('DCGAIN\\n%d\\n', rows(g)); for i = 1:rows(g) printf('%.17g ', g(i, :)); printf('\\n'); end
-printf('NAMES\\n%d\\n', iscellstr(input_names{suffix}) && numel(sys.inputname) == columns(B{suffix}));
+ok = iscellstr(input_names{suffix}) && numel(sys.inputname) == columns(B{suffix});
+printf('NAMES\\n%d\\n', ok);
 """
     out = _run_octave(script, tmp_path)
     m = _matrices(result_h5, group)

@@ -44,7 +44,8 @@ log = logging.getLogger(__name__)
 __all__ = ["export", "mat_variables", "MODELS"]
 
 #: (HDF5 group, suffix of the MATLAB variable names)
-MODELS = (("statespace", ""), ("statespace_filtered", "_filtered"), ("lumped/statespace", "_lumped"))
+MODELS = (("statespace", ""), ("statespace_filtered", "_filtered"),
+          ("lumped/statespace", "_lumped"))
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
 
 
