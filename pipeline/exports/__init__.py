@@ -40,10 +40,31 @@ def _exudyn(h5_path: Path, out_path: Path) -> Path:
     return export_exudyn(h5_path, out_path)
 
 
+def _lazy(module: str, func: str = "export") -> Callable[[Path, Path], Path]:
+    """A writer that imports ``pipeline.exports.<module>`` only when it runs."""
+
+    def write(h5_path: Path, out_path: Path) -> Path:
+        from importlib import import_module
+
+        return getattr(import_module(f"{__name__}.{module}"), func)(h5_path, out_path)
+
+    return write
+
+
 EXPORTERS: dict[str, Exporter] = {
     "exudyn": Exporter(_exudyn, ".exudyn.hdf5",
                        "Exudyn FEMinterface file (nodes, elements, M, K, mode basis, node "
                        "sets) for ObjectFFRFreducedOrder; load with fem.LoadFromFile(path)"),
+    "mat": Exporter(_lazy("mat"), ".mat",
+                    "MATLAB v5 .mat: A, B, C, D of the reduced, filtered and lumped models, "
+                    "names, units, frequencies; Simulink State-Space block, GNU Octave"),
+    "vtu": Exporter(_lazy("vtu", "export_vtu"), ".vtu",
+                    "VTK unstructured grid for ParaView: mesh, every mode shape as point data, "
+                    "frequencies as field data"),
+    "xdmf": Exporter(_lazy("vtu", "export_xdmf"), ".modes.xdmf",
+                     "XDMF (+ <stem>.modes.h5) for ParaView: mesh and every mode shape"),
+    "json": Exporter(_lazy("summary_json"), ".json",
+                     "small JSON summary: frequencies, labels, ports, DC gains"),
 }
 
 
