@@ -1,57 +1,28 @@
 """``python -m pipeline export FILE.h5 --to FORMAT [-o OUT]``.
 
-Dispatches through the registry of :mod:`pipeline.exports` (``EXPORTERS``,
-``export(h5_path, fmt, out_path)``). Formats whose module exists here but which the
-registry does not list yet (``mat``, ``vtu``, ``xdmf``, ``json``) are served from
-:data:`FALLBACK`, so the command works before and after they are registered.
+Dispatches through the registry of :mod:`pipeline.exports` (``EXPORTERS``).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 from pathlib import Path
 
-from .errors import ConfigError
-
-__all__ = ["FALLBACK", "formats", "run_export", "add_export_parser"]
-
-#: format -> (module under pipeline.exports, function, default suffix)
-FALLBACK = {
-    "mat": ("mat", "export", ".mat"),
-    "vtu": ("vtu", "export_vtu", ".vtu"),
-    "xdmf": ("vtu", "export_xdmf", ".modes.xdmf"),
-    "json": ("summary_json", "export", ".json"),
-}
-
-
-def _registry():
-    try:
-        from . import exports
-    except ImportError:
-        return None
-    return exports if hasattr(exports, "EXPORTERS") and hasattr(exports, "export") else None
+__all__ = ["formats", "run_export", "add_export_parser"]
 
 
 def formats() -> list[str]:
     """Every format the export command knows."""
-    reg = _registry()
-    names = set(FALLBACK) | (set(reg.EXPORTERS) if reg is not None else set())
-    return sorted(names)
+    from .exports import EXPORTERS
+
+    return sorted(EXPORTERS)
 
 
 def run_export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None) -> Path:
     """Export ``h5_path`` to ``fmt``; ``out_path`` defaults to ``<stem><suffix>`` beside it."""
-    h5_path = Path(h5_path)
-    reg = _registry()
-    if reg is not None and fmt in reg.EXPORTERS:
-        return Path(reg.export(h5_path, fmt, out_path))
-    if fmt not in FALLBACK:
-        raise ConfigError(f"export --to: got {fmt!r}, expected one of {', '.join(formats())}")
-    module, func, suffix = FALLBACK[fmt]
-    out = Path(out_path) if out_path else h5_path.with_name(h5_path.stem + suffix)
-    writer = getattr(importlib.import_module(f"pipeline.exports.{module}"), func)
-    return Path(writer(h5_path, out))
+    from .exports import export
+
+    return Path(export(Path(h5_path), fmt, out_path))
 
 
 def cmd_export(args: argparse.Namespace) -> int:
