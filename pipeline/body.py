@@ -62,9 +62,12 @@ AXES = "xyz"
 
 
 def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
-                node_weights: np.ndarray | None = None, n_slices: int = 24) -> list[str]:
+                node_weights: np.ndarray | None = None, n_slices: int = 24,
+                slender_ratio: float = 3.0) -> list[str]:
     """A label per mode from its dominant motion: ``bending_<axis>_<k>`` (bending about
     that axis), ``torsion_<k>``, ``axial_<k>``, or ``rigid_<k>`` for the first n_rigid.
+    A body whose longest dimension is less than ``slender_ratio`` times the next one is
+    not beam-like: its elastic modes are labelled ``elastic_<k>``.
 
     The body is cut into slices along its longest dimension (the beam axis a); in each
     slice the weighted mean displacement and the mean rotation about a are taken; the
@@ -74,6 +77,10 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     w = np.ones(x.shape[0]) if node_weights is None else np.asarray(node_weights, dtype=float)
     extent = x.max(axis=0) - x.min(axis=0)
     a = int(np.argmax(extent))
+    if extent[a] < slender_ratio * np.sort(extent)[1]:
+        # not beam-like: bending/torsion/axial would be guesses; number the modes instead
+        return [f"rigid_{k + 1}" if k < n_rigid else f"elastic_{k + 1 - n_rigid}"
+                for k in range(shapes.shape[2])]
     others = [c for c in range(3) if c != a]
     edges = np.linspace(x[:, a].min(), x[:, a].max(), n_slices + 1)
     slice_of = np.clip(np.searchsorted(edges, x[:, a], side="right") - 1, 0, n_slices - 1)
