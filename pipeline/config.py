@@ -663,6 +663,13 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     if cfg.reduction is not None and not (cfg.ports.inputs and cfg.ports.outputs):
         raise _fail("reduction", raw.get("reduction"), "ports with at least one input and one "
                     "output (a reduced model needs both)")
+    if cfg.reduction is not None and not cfg.supports \
+            and cfg.reduction.static_correction != "none":
+        raise _fail("reduction.static_correction", cfg.reduction.static_correction,
+                    "'none' for a body without supports (its stiffness matrix is singular: a "
+                    "free body has no static deflection to correct with); add supports, e.g. "
+                    "supports: [{region: root, fix: all}], or set "
+                    "reduction.static_correction: none")
     if cfg.lumped is not None and geometry.kind != "box":
         raise _fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
                     f"straight beam; geometry.kind is '{geometry.kind}')")

@@ -52,6 +52,7 @@ RELATED = {
     "regions": {"regions", "supports", "ports", "connections"},
     "reduction": {"reduction", "damping"},
     "damping": {"damping"},
+    "supports": {"supports", "reduction"},  # no supports: no static correction
 }
 
 COUNTS: Counter = Counter()
