@@ -442,13 +442,14 @@ def plot_bode(ok: list, models: dict[str, dict]) -> tuple[str, Any, str] | None:
         curves.append((o, mags))
         pairs += [p for p in mags if p not in pairs]
     pairs = pairs[:MAX_PAIRS]
-    fig, axes = _figure(len(pairs))
+    longest = max(len(f"{o.case.index}: {o.case.label}") for o in cases)
+    fig, axes = _figure(len(pairs), width=max(4.6, (4.0 + 0.13 * longest) / len(pairs)))
     colors = _colors(len(cases))
     for ax, pair in zip(axes[0], pairs):
-        for color, (o, mags) in zip(colors, curves):
-            if pair in mags:
-                ax.loglog(f, mags[pair], color=color, lw=1.1, label=f"{o.case.index}: "
-                          f"{o.case.label}")
+        for i, (color, (o, mags)) in enumerate(zip(colors, curves)):
+            if pair in mags:  # dashes tell apart models that lie on one another
+                ax.loglog(f, mags[pair], color=color, lw=1.2, ls=("-", "--", ":", "-.")[i % 4],
+                          label=f"{o.case.index}: {o.case.label}")
         ax.set_title(f"{pair[0]} -> {pair[1]}", fontsize=9)
         ax.set_xlabel("frequency [Hz]")
         ax.set_ylabel("|H| [output/input, SI]")
