@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 
-.PHONY: modes test test-all bench env clean
+.PHONY: modes test test-all bench batch env clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -26,6 +26,10 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m ""
+
+BATCH ?= configs/batch_convergence.yaml
+batch: $(STAMP)
+	$(PY) -m pipeline batch $(BATCH) $(BATCH_ARGS)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)

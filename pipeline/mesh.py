@@ -63,20 +63,23 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     Physical groups: the volume ``body`` and, for the box, its faces ``root`` (x=0),
     ``tip`` (x=L), ``bottom`` (y=0), ``top`` (y=H), ``back`` (z=0), ``front`` (z=D).
     The file is written to a temporary name and renamed, so a failed run never leaves
-    a partial mesh under ``path``.
+    a partial mesh under ``path``. gmsh runs on one thread, which makes the mesh
+    reproducible (the same config gives the same mesh, so cached results stay valid);
+    ``PIPELINE_GMSH_THREADS=N`` trades that for threads.
     """
     import gmsh
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    threads = int(os.environ.get("PIPELINE_GMSH_THREADS", "1"))
     if gmsh.isInitialized():
         gmsh.finalize()
     gmsh.initialize(interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 2)
-        gmsh.option.setNumber("General.NumThreads", os.cpu_count() or 1)
+        gmsh.option.setNumber("General.NumThreads", threads)
         gmsh.logger.start()
         gmsh.model.add("body")
         if geometry.kind != "box":  # validated in config; kept as a guard for library use
