@@ -82,14 +82,16 @@ def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=N
             attrs.update(filter_group_attrs(cfg.filter.kind, cfg.filter.cutoff_hz))
         extras["reduced"] = reduced
         extras["filtered"] = filtered
-        dc = reduced.dc_gain_position
         exact = reduced.static_compliance
+        dc = reduced.dc_gain_position if exact is not None else None
         summary.append(f"reduced model: {reduced.n_modes} modes ({reduced.n_basis} basis "
                        f"vectors), static correction {reduced.static_correction}, "
                        f"{reduced.statespace.n_states} states"
                        + (f"; filtered: {cfg.filter.kind} at {cfg.filter.cutoff_hz:g} Hz, "
                           f"{filtered.n_states} states" if filtered is not None else ""))
-        for i, out in enumerate(ports.output_names):
+        if dc is None:
+            summary.append("  floating model (rigid-body modes retained): no static gain")
+        for i, out in enumerate(ports.output_names if dc is not None else ()):
             for j, inp in enumerate(ports.input_names):
                 line = f"  DC gain {inp} -> {out}: {dc[i, j]:.6e}"
                 if exact is not None:

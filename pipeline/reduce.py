@@ -218,7 +218,12 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
     Mr = Phi.T @ (M @ Phi)
     Kr = Phi.T @ (K @ Phi)
     eM = np.abs(Mr - np.eye(n))
-    scale = float(np.max(np.abs(omega2))) if n else 1.0
+    # stiffness scale: the largest retained omega^2, but never below 1e-6 of the mesh's
+    # own eigenvalue scale (diag K / diag M), so rigid-body modes (omega^2 = 0) are judged
+    # against round-off of K, not against 1 rad^2/s^2
+    floor = 1e-6 * float(np.median(np.abs(K.diagonal()) / np.abs(M.diagonal()))) \
+        if K.shape[0] else 0.0
+    scale = max(float(np.max(np.abs(omega2))) if n else 0.0, floor)
     scale = scale if scale > 0 else 1.0
     eK = np.abs(Kr - np.diag(omega2)) / scale
     errM, errK = float(eM.max(initial=0.0)), float(eK.max(initial=0.0))
@@ -269,10 +274,18 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarra
     Fd = _dense(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
-    X = np.asarray(_solver(K, solve, factorize)(Fd), dtype=float).reshape(Fd.shape)
+    X = np.asarray(_solver(K, solve, factorize)(np.asfortranarray(Fd)),
+                   dtype=float).reshape(Fd.shape)
     if not np.all(np.isfinite(X)):
         raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
                           "(unsupported body?)")
+    # a factorisation of a numerically singular K can return finite garbage: check
+    residual = np.linalg.norm(K @ X - Fd, axis=0) / np.maximum(np.linalg.norm(Fd, axis=0),
+                                                               1e-300)
+    if residual.max() > 1e-6:
+        raise SolverError(f"static solve K^-1 F failed (relative residual {residual.max():.2e}): "
+                          "K is singular, the body is not fully supported; add supports that "
+                          "remove every rigid-body motion, or use static_correction: none")
     return X
 
 
