@@ -64,6 +64,7 @@ __all__ = [
     "zero_crossing_frequency",
     "fft_peak_frequency",
     "steady_state",
+    "decay_damping_ratio",
     "add_simulate_parser",
 ]
 
@@ -1104,6 +1105,20 @@ def steady_state(t: np.ndarray, y: np.ndarray) -> float:
     return level
 
 
+def decay_damping_ratio(t: np.ndarray, y: np.ndarray, level: float | None = None) -> float:
+    """Damping ratio from the decay of the half-cycle extremes about ``level`` (default:
+    the steady state): the slope -d of ln|extreme - level| per half cycle (least squares)
+    gives zeta = d / sqrt(pi^2 + d^2). NaN with fewer than 4 extremes."""
+    if level is None:
+        level = steady_state(t, y)
+    e = np.abs(_extremes(t, y, level) - level)
+    e = e[e > 0]
+    if e.size < 4:
+        return math.nan
+    d = -np.polyfit(np.arange(e.size, dtype=float), np.log(e), 1)[0]
+    return float(d / math.sqrt(math.pi ** 2 + d * d))
+
+
 def zero_crossing_frequency(t: np.ndarray, y: np.ndarray, level: float | None = None) -> float:
     """Frequency (Hz) from the crossings of y through ``level`` (default: its steady
     state): the half period is the slope of a least-squares line through the crossing
@@ -1365,7 +1380,9 @@ def _run_step(mf: ModelFile, sc: Scenario, em: ElasticModel, key: str, inp: str,
     level = steady_state(seg_t, seg_y)
     f_zc = zero_crossing_frequency(seg_t, seg_y, level)
     f_fft, _ = fft_peak_frequency(seg_t, seg_y, level=level)
-    run.measured.update(frequency_zc=f_zc, frequency_fft=f_fft, steady_state=ss)
+    zeta_m = decay_damping_ratio(seg_t, seg_y, level)
+    run.measured.update(frequency_zc=f_zc, frequency_fft=f_fft, steady_state=ss,
+                        damping_ratio=zeta_m)
     run.predicted.update(frequency=f_pred, damping_ratio=zeta, dc_gain=dc,
                          steady_state=dc * sc.force)
     run.info["frequency_window"] = "after t_off (free decay)" if use_free else "load on"
@@ -1378,6 +1395,7 @@ def _run_step(mf: ModelFile, sc: Scenario, em: ElasticModel, key: str, inp: str,
     rows = [Row(sc.name, lab, f"frequency, zero crossings ({win})", f_zc, f_pred, "Hz",
                 "damped mode"),
             Row(sc.name, lab, f"frequency, FFT peak ({win})", f_fft, f_pred, "Hz"),
+            Row(sc.name, lab, f"damping ratio, log decrement ({win})", zeta_m, zeta, "1"),
             Row(sc.name, lab, "steady deflection (load on)", ss, dc * sc.force, "m",
                 "DC gain x load")]
     return run, rows
@@ -1491,7 +1509,8 @@ def _measure_coupled(sc: Scenario, run: Run, sys: LinearSystem, z_eq: np.ndarray
         f2_fft, h2 = (fft_peak_frequency(t, th, 0.75 * f2p, 1.25 * f2p, level=th_level)
                       if math.isfinite(f2p) else (math.nan, math.nan))
         th_pred = float(sys.S[sys.signal("theta")] @ z_eq + sys.Sw[sys.signal("theta")] @ Wc)
-        run.measured.update(mode1_zc=f1_zc, mode1_fft=f1_fft, mode2_fft=f2_fft,
+        zeta1 = decay_damping_ratio(t, y, level)
+        run.measured.update(mode1_zc=f1_zc, mode1_fft=f1_fft, mode2_fft=f2_fft, mode1_damping=zeta1,
                             mode2_peak_height=h2, steady_state=level, theta_steady=th_level)
         run.predicted.update(mode1=f1p, mode2=f2p, steady_state=ss_pred, theta_steady=th_pred,
                              mode1_damping=two[0][1] if two else math.nan,
@@ -1499,6 +1518,8 @@ def _measure_coupled(sc: Scenario, run: Run, sys: LinearSystem, z_eq: np.ndarray
         rows += [Row(sc.name, lab, "mode 1 frequency, zero crossings", f1_zc, f1p, "Hz",
                      "coupled eigenvalue"),
                  Row(sc.name, lab, "mode 1 frequency, FFT peak", f1_fft, f1p, "Hz"),
+                 Row(sc.name, lab, "mode 1 damping ratio, log decrement", zeta1,
+                     two[0][1] if two else math.nan, "1"),
                  Row(sc.name, lab, "mode 2 frequency, FFT of theta", f2_fft, f2p, "Hz",
                      f"peak {h2:.2g} of the largest" if math.isfinite(h2) else ""),
                  Row(sc.name, lab, "steady mass displacement", level, ss_pred, "m",
@@ -1509,13 +1530,16 @@ def _measure_coupled(sc: Scenario, run: Run, sys: LinearSystem, z_eq: np.ndarray
     zeta = modes[0][1] if modes else math.nan
     f_zc = zero_crossing_frequency(t, y, level)
     f_fft, _ = fft_peak_frequency(t, y, level=level)
-    run.measured.update(frequency_zc=f_zc, frequency_fft=f_fft, steady_state=level)
+    zeta_m = decay_damping_ratio(t, y, level)
+    run.measured.update(frequency_zc=f_zc, frequency_fft=f_fft, steady_state=level,
+                        damping_ratio=zeta_m)
     run.predicted.update(frequency=fp, damping_ratio=zeta, steady_state=ss_pred)
     rows += [Row(sc.name, lab, "frequency, zero crossings", f_zc, fp, "Hz", "coupled eigenvalue"),
              Row(sc.name, lab, "frequency, FFT peak", f_fft, fp, "Hz")]
     if sc.kind == "body_load":
-        rows.append(Row(sc.name, lab, "steady mass displacement", level, ss_pred, "m",
-                        "static equilibrium"))
+        rows += [Row(sc.name, lab, "damping ratio, log decrement", zeta_m, zeta, "1"),
+                 Row(sc.name, lab, "steady mass displacement", level, ss_pred, "m",
+                     "static equilibrium")]
     return rows
 
 
@@ -1537,7 +1561,7 @@ def _exact_reference(mf: ModelFile, sc: Scenario, inp: str, port: str, mass: flo
         z0[_theta_index(sys)] += sc.initial_angle
     rows = [sys.signal("mass_displacement")]
     modes = _modes_in(sys, z0 - sys.equilibrium(w_run), rows)
-    return modes[0][0] if modes else math.nan
+    return (modes[0][0], modes[0][1]) if modes else (math.nan, math.nan)
 
 
 def _fit_sweep(masses: np.ndarray, freqs: np.ndarray) -> dict[str, float]:
@@ -1596,12 +1620,16 @@ def _run_scenario(mf: ModelFile, sc: Scenario) -> ScenarioResult:
             run, sys, z_eq = _run_coupled(mf, sc, em, key, inp, port, m, exact, notes)
             rows = _measure_coupled(sc, run, sys, z_eq, port)
             if not exact and key == "fe" and sc.kind != "mass_sweep":
-                f_ex = _exact_reference(mf, sc, inp, port, m)
+                f_ex, z_ex = _exact_reference(mf, sc, inp, port, m)
                 run.predicted["frequency_exact_loop"] = f_ex
+                run.predicted["damping_ratio_exact_loop"] = z_ex
                 meas = run.measured.get("frequency_zc", run.measured.get("mode1_zc"))
                 rows.insert(1, Row(sc.name, rows[0].model, rows[0].quantity.replace(
                     "zero crossings", "z.c. vs exact-loop plant"), meas, f_ex, "Hz",
                     "cutoff-free reference"))
+                zm = run.measured.get("damping_ratio", run.measured.get("mode1_damping"))
+                rows.append(Row(sc.name, rows[0].model, "damping ratio vs exact-loop plant", zm,
+                                z_ex, "1", "the filter lag adds ~1.5 omega/K"))
             result.runs.append(run)
             if sc.kind == "mass_sweep":
                 f_meas.append(run.measured["frequency_zc"])
@@ -1738,6 +1766,10 @@ def _plot(path: Path, s: ScenarioResult, port: str) -> Path:
         ax2.set_xlabel("tip mass [kg]")
         ax2.set_ylabel("frequency [Hz]")
         ax2.set_yscale("log")
+        from matplotlib.ticker import ScalarFormatter
+
+        ax2.yaxis.set_major_formatter(ScalarFormatter())
+        ax2.yaxis.set_minor_formatter(ScalarFormatter())
         ax2.set_title("first coupled mode")
         for ax in (ax1, ax2):
             ax.grid(alpha=0.3)
