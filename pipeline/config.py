@@ -715,7 +715,8 @@ def _parse_yaml(text: str, where: str) -> Any:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         pos = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(exc, "problem", None) or (str(exc).splitlines() or [type(exc).__name__])[0]
+        first = (str(exc).splitlines() or [type(exc).__name__])[0]
+        problem = getattr(exc, "problem", None) or first
         raise ConfigError(f"{where}: not valid YAML{pos}: {problem}") from None
     except RecursionError:
         raise ConfigError(f"{where}: not valid YAML: nested too deeply") from None

@@ -42,8 +42,8 @@ def _lines(h5, path) -> list[str]:
                      f"{float(h5['body/mass'][()]):.6g} kg, centre of mass "
                      f"{np.round(h5['body/center_of_mass'][()], 6).tolist()} m")
         inertia = np.asarray(h5["body/inertia"][()], dtype=float).reshape(3, 3)
-        lines.append(f"          principal inertia {np.round(np.linalg.eigvalsh(inertia), 9).tolist()}"
-                     " kg m^2 (about the centre of mass)")
+        principal = np.round(np.linalg.eigvalsh(inertia), 9).tolist()
+        lines.append(f"          principal inertia {principal} kg m^2 (about the centre of mass)")
     if "mesh" in h5:
         m = h5["mesh"].attrs
         cells = [f"{len(h5['mesh/cells'][k])} {k}" for k in h5["mesh/cells"]] \

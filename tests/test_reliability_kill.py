@@ -221,9 +221,9 @@ batch:
 def _batch_available() -> str | None:
     if not (ROOT / "pipeline" / "batch.py").exists():
         return "pipeline/batch.py does not exist (the batch engineer's)"
-    try:
-        import distributed  # noqa: F401
-    except Exception:
+    import importlib.util
+
+    if importlib.util.find_spec("distributed") is None:
         return "dask[distributed] is not installed"
     return None
 

@@ -21,7 +21,6 @@ import dataclasses
 import inspect
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
