@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 
-.PHONY: modes test test-all bench batch env clean
+.PHONY: modes test test-all test-reliability bench batch env clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -26,6 +26,13 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m ""
+
+RELIABILITY_TESTS := tests/test_reliability_fuzz.py tests/test_reliability_files.py \
+                     tests/test_reliability_kill.py tests/test_reliability_numerics.py
+test-reliability: $(STAMP)
+	mkdir -p outputs && rm -f outputs/reliability_counts.json
+	RELIABILITY_COUNTS=outputs/reliability_counts.json $(PY) -m pytest -q -m "" $(RELIABILITY_TESTS)
+	cat outputs/reliability_counts.json
 
 BATCH ?= configs/batch_convergence.yaml
 batch: $(STAMP)
