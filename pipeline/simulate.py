@@ -40,7 +40,7 @@ import re
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -1587,6 +1587,20 @@ def _fit_sweep(masses: np.ndarray, freqs: np.ndarray) -> dict[str, float]:
             / float(((T2 - T2.mean()) ** 2).sum())}
 
 
+def _check_against_model(mf: ModelFile, sc: Scenario) -> None:
+    """Ports, directions, filtered model and mount geometry of ``sc`` against the file
+    (the same checks the run makes, done up front)."""
+    inp, port = _ports(mf, sc)
+    if sc.kind == "step_load":
+        return
+    _, d_out, _ = _directions(mf, sc, inp, port)
+    if sc.loop == "filtered":
+        _filtered_for(mf, sc, [])
+    if sc.kind == "spring_mount":
+        g = np.zeros(3) if sc.gravity is None else np.asarray(sc.gravity, float)
+        _mount_for(mf, sc, "fe", port, d_out, g)
+
+
 def _run_scenario(mf: ModelFile, sc: Scenario) -> ScenarioResult:
     inp, port = _ports(mf, sc)
     notes: list[str] = []
@@ -1858,6 +1872,8 @@ def simulate(model_path: str | Path, scenario: Any, output: str | Path | None = 
     t0 = time.perf_counter()
     scenarios = _as_scenarios(scenario)
     mf = read_model_file(model_path)
+    for sc in scenarios:          # refuse a bad scenario before running any
+        _check_against_model(mf, sc)
     results = SimulationResults(Path(model_path), [])
     for sc in scenarios:
         ts = time.perf_counter()

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import math
 import subprocess
 import sys
@@ -31,7 +30,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.simulate import (Integrator, add_simulate_parser, decay_damping_ratio,
+from pipeline.simulate import (add_simulate_parser, decay_damping_ratio,
                                load_scenarios, parse_scenarios, simulate, steady_state,
                                zero_crossing_frequency)
 
@@ -351,6 +350,14 @@ def test_missing_port_and_file_problems(model_file, tmp_path):
         _one(model_file, kind="step_load", force=1.0, duration=0.05, output="tip_z")
     with pytest.raises(ConfigError, match=r"input port 'nope'"):
         _one(model_file, kind="step_load", force=1.0, duration=0.05, input="nope")
+    # a bad scenario later in a list is refused before anything runs or is written
+    out = tmp_path / "never.h5"
+    with pytest.raises(ConfigError, match=r"'late'.*output port 'tip_z'"):
+        simulate(model_file, parse_scenarios([
+            {"kind": "step_load", "force": 1.0, "duration": 0.05},
+            {"name": "late", "kind": "body_load", "mass": 1.0, "gravity": True,
+             "duration": 0.1, "output": "tip_z"}]), output=out)
+    assert not out.exists()
     with pytest.raises(ConfigError, match=r"scenario file .* not found"):
         load_scenarios(tmp_path / "missing.yaml")
     with pytest.raises(FileFormatError, match=r"not found"):
