@@ -1,9 +1,22 @@
 """Modes stage: the lowest eigenpairs of K phi = omega^2 M phi.
 
-scipy's ``eigsh`` in shift-invert mode, with the shifted matrix factorised once by
-:mod:`pipeline.solvers`. The Ritz vectors are then re-orthonormalised by a small
-dense Rayleigh-Ritz step, so that Phi^T M Phi = I and Phi^T K Phi = diag(omega^2)
-hold to round-off even for repeated frequencies.
+Shift-invert around sigma (0 for a supported body, slightly negative for a free one):
+the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solvers`.
+
+- With a symmetric factor A = F F^T (PARDISO), a **block Lanczos** method with full
+  re-orthogonalisation and thick restarts finds the largest eigenvalues
+  theta = 1/(omega^2 - sigma) of the symmetric operator S = F^-1 M F^-T. Every step
+  applies S to a whole block of vectors: one backward and one forward substitution
+  with many right-hand sides, which reads the factor once for the block instead of
+  once per vector (the factor is gigabytes at 1M DOFs, and reading it dominates a
+  single-vector solve). The inner products are plain dot products, so the mass
+  matrix is applied once per step.
+- Otherwise (SuperLU), scipy's ``eigsh`` (ARPACK) in shift-invert mode with the
+  factorisation as its ``OPinv``.
+
+Either way the Ritz vectors are then re-orthonormalised by a small dense Rayleigh-Ritz
+step with K and M, so that Phi^T M Phi = I and Phi^T K Phi = diag(omega^2) hold to
+round-off even for repeated frequencies, and residuals are measured, not estimated.
 """
 
 from __future__ import annotations
@@ -19,6 +32,12 @@ from .errors import SolverError
 
 log = logging.getLogger(__name__)
 
+# Lanczos stopping test: ||S y - theta y|| <= tol * theta for every wanted Ritz pair;
+# tol is modes.tolerance when given, else this (eigenvalues then agree with ARPACK at
+# machine precision to ~1e-12 relative; residuals ||K phi - w2 M phi|| / ||K phi|| ~1e-9)
+DEFAULT_TOLERANCE = 1e-10
+DENSE_MAX = 600  # below this many free DOFs, a dense generalized eigh
+
 
 @dataclass(frozen=True)
 class ModeSet:
@@ -29,7 +48,9 @@ class ModeSet:
     shapes: (n_free, n_m) M-orthonormal mode shapes on the free DOFs.
     residuals: (n_m,) ||K phi - omega^2 M phi|| / ||K phi|| (rigid: / ||M phi|| |shift|).
     n_rigid: number of zero-frequency (rigid-body) modes found.
-    backend: the factorisation used; shift: the eigsh shift sigma (rad^2/s^2).
+    backend: the factorisation used; shift: the shift sigma (rad^2/s^2).
+    seconds: wall time of the whole stage; stats: what the solver did (method, solves,
+    steps, factor size...).
     """
 
     omega2: np.ndarray
@@ -40,10 +61,11 @@ class ModeSet:
     backend: str
     shift: float
     seconds: float
+    stats: dict | None = None
 
 
 def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
-    """eigsh shift: 0 for a supported body, a small negative value for a free one.
+    """Shift: 0 for a supported body, a small negative value for a free one.
 
     For a free body K is singular; K - sigma M with sigma < 0 is positive definite.
     |sigma| is 1e-7 of the median diagonal ratio K_ii / M_ii (a stiffness scale of
@@ -56,65 +78,92 @@ def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
     return -1e-7 * float(ratio)
 
 
+def default_block_size(count: int, supported: bool = True) -> int:
+    """Lanczos block size: 4 for a supported body, 8 for a free one.
+
+    A block of b vectors costs one pass over the factor plus b vectors' arithmetic;
+    larger blocks need more vectors in all before the wanted modes converge (20 modes
+    of the cantilever: b = 4: 68 vectors in 17 blocks; 8: 104 in 13; 20: 180 in 9), so
+    small blocks win as soon as the arithmetic per vector dominates, which it does at
+    100k DOFs and more. A free body needs b >= 7: its six rigid-body modes share one
+    eigenvalue, and a block Krylov space holds at most b copies of one eigenvalue.
+    """
+    return int(min(max(count, 1), 4)) if supported else 8
+
+
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
-                progress=None) -> ModeSet:
+                progress=None, method: str = "auto", block_size: int | None = None,
+                max_basis: int | None = None, keep: bool = True) -> ModeSet:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
-    :func:`default_shift`). ``progress``, if given, is called once per operator solve.
+    :func:`default_shift`). ``tolerance``: relative residual of the shift-inverted
+    problem at which a mode counts as converged (0: :data:`DEFAULT_TOLERANCE` for
+    Lanczos, machine precision for ARPACK). ``method``: ``auto`` (block Lanczos when the
+    backend offers a symmetric factor, else ARPACK), ``lanczos``, ``arpack`` or
+    ``dense``. ``progress``, if given, is called with the number of right-hand sides
+    of every solve. ``keep``: for a supported body, keep the factorisation of K for a
+    later :func:`pipeline.solvers.factorize` of the same K object (the static
+    correction), see :func:`pipeline.solvers.keep_factorization`.
     """
-    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
-
-    from .solvers import factorize
+    from .solvers import check_factorization, factorize, keep_factorization, resolve_backend
 
     t0 = time.perf_counter()
     n = K.shape[0]
     if count >= n - 1:
         raise SolverError(f"config key 'modes.count': got {count}, expected fewer than the "
                           f"{n - 1} free degrees of freedom of this mesh (refine the mesh)")
+    if method not in ("auto", "lanczos", "arpack", "dense"):
+        raise ValueError(f"method '{method}': expected auto, lanczos, arpack or dense")
+    K_given = K
+    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
+    M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
     sigma = default_shift(K, M, supported) if shift is None else float(shift)
-    shifted = K - sigma * M if sigma != 0.0 else K
-    fact = factorize(shifted, backend, positive_definite=True)
-    del shifted
-    log.info("factorised %d DOFs with %s in %.2f s (shift %.3g)", n, fact.backend,
-             time.perf_counter() - t0, sigma)
-
-    def apply(b):
-        if progress is not None:
-            progress(1)
-        return fact.solve(b)
-
-    op = LinearOperator((n, n), matvec=apply, dtype=np.float64)
-    ncv = min(n, max(2 * count + 1, count + 20))
-    rng = np.random.default_rng(12345)
-    v0 = rng.standard_normal(n)
-    try:
-        w, v = eigsh(K, k=count, M=M, sigma=sigma, which="LM", OPinv=op, tol=tolerance, ncv=ncv,
-                     v0=v0, maxiter=max(1000, 10 * n // ncv))
-    except ArpackNoConvergence as exc:
-        raise SolverError(f"eigsh did not converge for {count} modes (converged: "
-                          f"{len(exc.eigenvalues)}); try a smaller modes.count or a finer "
-                          "modes.tolerance") from None
-    finally:
-        fact.release()
-    # Rayleigh-Ritz: exact M-orthonormality and diagonal K in the computed subspace
-    Kv, Mv = K @ v, M @ v
-    Kr, Mr = v.T @ Kv, v.T @ Mv
-    Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
-    from scipy.linalg import eigh
-
-    w, Q = eigh(Kr, Mr)
-    v = v @ Q
-    Kv, Mv = Kv @ Q, Mv @ Q
-    order = np.argsort(w)
-    w, v, Kv, Mv = w[order], v[:, order], Kv[:, order], Mv[:, order]
-    # sign convention: the largest-magnitude entry of every mode is positive
-    idx = np.abs(v).argmax(axis=0)
-    signs = np.sign(v[idx, np.arange(v.shape[1])])
-    v, Kv, Mv = v * signs, Kv * signs, Mv * signs
-    scale = np.maximum(np.linalg.norm(Kv, axis=0), abs(sigma) * np.linalg.norm(Mv, axis=0))
-    residuals = np.linalg.norm(Kv - Mv * w, axis=0) / np.where(scale > 0, scale, 1.0)
+    stats: dict = {"n": n, "count": count}
+    if method == "dense" or (method == "auto" and n <= DENSE_MAX):
+        backend_name = f"dense ({resolve_backend(backend)} not needed)"
+        v = _dense_modes(K, M, count, sigma)
+        stats["method"] = "dense"
+    else:
+        shifted = K - sigma * M if sigma != 0.0 else K
+        t1 = time.perf_counter()
+        fact = factorize(shifted, backend, positive_definite=True, check=False)
+        try:
+            check_factorization(shifted, fact)
+        except SolverError:
+            fact.release()
+            raise
+        del shifted
+        t2 = time.perf_counter()
+        stats.update(backend=fact.backend, factor_seconds=t2 - t1,
+                     **{k: v for k, v in fact.info.items() if not callable(v)})
+        log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", n,
+                 fact.backend, t2 - t1, sigma, fact.info.get("factor_bytes", 0) / 1e9)
+        backend_name = fact.backend
+        use_lanczos = method == "lanczos" or (method == "auto" and fact.forward is not None)
+        try:
+            if use_lanczos:
+                if fact.forward is None:
+                    raise SolverError(f"method 'lanczos' needs a symmetric factor; backend "
+                                      f"'{fact.backend}' has none (use method 'arpack')")
+                v, lstats = _lanczos_modes(fact, M, count, tolerance,
+                                           block_size or default_block_size(count, supported),
+                                           max_basis, progress)
+            else:
+                v, lstats = _arpack_modes(fact, K, M, count, sigma, tolerance, progress)
+        except BaseException:
+            fact.release()
+            raise
+        if sigma == 0.0 and keep:
+            keep_factorization(K_given, fact)  # the static correction solves with this K
+        else:
+            fact.release()
+        stats.update(lstats)
+        stats["eigensolver_seconds"] = time.perf_counter() - t2
+        log.info("%s: %d solves (%d calls) in %.2f s", stats["method"], stats["solves"],
+                 stats["calls"], stats["eigensolver_seconds"])
+    w, v, residuals = _rayleigh_ritz(K, M, v, sigma)
     rigid = np.zeros(w.size, dtype=bool)
     if not supported:
         rigid = np.abs(w) < 1e-6 * abs(sigma)
@@ -124,5 +173,198 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
                           "indefinite; check the material (E > 0, -1 < nu < 0.5)")
     seconds = time.perf_counter() - t0
     return ModeSet(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
-                   residuals=residuals, n_rigid=int(rigid.sum()), backend=fact.backend,
-                   shift=sigma, seconds=seconds)
+                   residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
+                   shift=sigma, seconds=seconds, stats=stats)
+
+
+# --------------------------------------------------------------------------- post-processing
+def _rayleigh_ritz(K, M, v: np.ndarray, sigma: float):
+    """Exact M-orthonormality and diagonal K in span(v); sorted; sign convention."""
+    from scipy.linalg import eigh
+
+    v = np.ascontiguousarray(v)
+    Kv, Mv = K @ v, M @ v
+    Kr, Mr = v.T @ Kv, v.T @ Mv
+    Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
+    w, Q = eigh(Kr, Mr)
+    v, Kv, Mv = v @ Q, Kv @ Q, Mv @ Q
+    order = np.argsort(w)
+    w, v, Kv, Mv = w[order], v[:, order], Kv[:, order], Mv[:, order]
+    # sign convention: the largest-magnitude entry of every mode is positive
+    idx = np.abs(v).argmax(axis=0)
+    signs = np.sign(v[idx, np.arange(v.shape[1])])
+    signs[signs == 0] = 1.0
+    v, Kv, Mv = v * signs, Kv * signs, Mv * signs
+    scale = np.maximum(np.linalg.norm(Kv, axis=0), abs(sigma) * np.linalg.norm(Mv, axis=0))
+    residuals = np.linalg.norm(Kv - Mv * w, axis=0) / np.where(scale > 0, scale, 1.0)
+    return w, v, residuals
+
+
+def _dense_modes(K, M, count: int, sigma: float) -> np.ndarray:
+    from scipy.linalg import eigh
+
+    Kd, Md = K.toarray(), M.toarray()
+    Kd, Md = 0.5 * (Kd + Kd.T), 0.5 * (Md + Md.T)
+    try:
+        _, v = eigh(Kd - sigma * Md, Md, subset_by_index=[0, count - 1])
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"dense eigensolver failed on the {K.shape[0]}-DOF problem ({exc}); "
+                          "the mass matrix must be positive definite") from None
+    return v
+
+
+def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
+    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
+
+    n = K.shape[0]
+    calls = [0]
+
+    def apply(b):
+        calls[0] += 1
+        if progress is not None:
+            progress(1)
+        return fact.solve(b)
+
+    op = LinearOperator((n, n), matvec=apply, dtype=np.float64)
+    ncv = min(n, max(2 * count + 1, count + 20))
+    v0 = np.random.default_rng(12345).standard_normal(n)
+    try:
+        _, v = eigsh(K, k=count, M=M, sigma=sigma, which="LM", OPinv=op, tol=tolerance,
+                     ncv=ncv, v0=v0, maxiter=max(1000, 10 * n // ncv))
+    except ArpackNoConvergence as exc:
+        raise SolverError(f"eigsh did not converge for {count} modes (converged: "
+                          f"{len(exc.eigenvalues)}); try a smaller modes.count or a finer "
+                          "modes.tolerance") from None
+    return v, {"method": "arpack", "solves": calls[0], "calls": calls[0], "ncv": ncv}
+
+
+# --------------------------------------------------------------------------- block Lanczos
+def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
+    """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
+    n = fact.n
+    rows = fact.info["rows"]  # (phase, C-ordered (k, n) block) -> (k, n)
+    calls = [0, 0]
+
+    def op(Y: np.ndarray) -> np.ndarray:
+        X = rows(333, Y)  # F^-T Y
+        MX = M @ X.T  # (n, k)
+        del X
+        out = rows(331, MX.T)  # F^-1 M F^-T Y
+        calls[0] += 2 * Y.shape[0]
+        calls[1] += 2
+        if progress is not None:
+            progress(Y.shape[0])
+        return out
+
+    b = max(1, min(block_size, n // 4))
+    tol = tolerance if tolerance > 0 else DEFAULT_TOLERANCE
+    if max_basis is None:
+        max_basis = max(3 * count + 4 * b, count + 8 * b)
+    max_basis = min(max_basis, n // 2)
+    Y, theta, steps, restarts = block_lanczos(op, n, count, b, tol, max_basis)
+    X = rows(333, Y)  # Ritz vectors of the pencil: x = F^-T y
+    calls[0] += Y.shape[0]
+    calls[1] += 1
+    return X.T, {"method": "block-lanczos", "block": b, "steps": steps, "restarts": restarts,
+                 "solves": calls[0], "calls": calls[1], "tolerance": tol,
+                 "max_basis": max_basis}
+
+
+def _orthonormal_block(W: np.ndarray, basis: list[np.ndarray], rng, scale: float):
+    """Orthonormal rows V spanning the rows of W (already orthogonal to ``basis``).
+
+    Returns (V, B) with W = B^T V: directions of W below round-off of ``scale`` are
+    replaced by random vectors orthogonal to everything (their coupling row is 0).
+    """
+    U, s, Vt = np.linalg.svd(W.T, full_matrices=False)  # W^T = U s Vt
+    V = np.ascontiguousarray(U.T)
+    B = s[:, None] * Vt
+    small = s <= 1e-12 * scale
+    if small.any():
+        good = V[~small]
+        R = rng.standard_normal((int(small.sum()), W.shape[1]))
+        for _ in range(2):
+            for Q in basis + [good]:
+                R -= (R @ Q.T) @ Q
+        Ur, _, _ = np.linalg.svd(R.T, full_matrices=False)
+        V[small] = Ur.T
+        B[small] = 0.0
+    return V, B
+
+
+def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
+                  seed: int = 12345, max_restarts: int = 50):
+    """The ``count`` largest eigenpairs of the symmetric operator ``op`` (n x n).
+
+    ``op(Y)`` applies the operator to the rows of Y (k, n). Block Lanczos with full
+    two-pass re-orthogonalisation; the projected matrix is built from the projection
+    coefficients themselves, which makes thick restarts (keep the best Ritz vectors,
+    continue from the residual block) exact. Returns (Y (count, n) orthonormal Ritz
+    vectors, theta (count,), steps, restarts).
+    """
+    rng = np.random.default_rng(seed)
+    V, _ = _orthonormal_block(rng.standard_normal((b, n)), [], rng, 1.0)
+    basis: list[np.ndarray] = []
+    size = 0  # rows in basis
+    H = np.zeros((max_basis + b, max_basis + b))
+    steps = restarts = 0
+    scale = 0.0
+    while True:
+        basis.append(V)
+        lo, hi = size, size + V.shape[0]
+        size = hi
+        W = op(V)
+        steps += 1
+        scale = max(scale, float(np.sqrt((W * W).sum(axis=1).max())))
+        for _ in range(2):  # classical Gram-Schmidt, twice
+            C = np.vstack([Q @ W.T for Q in basis])  # (size, k)
+            H[:hi, lo:hi] += C
+            start = 0
+            for Q in basis:
+                W -= C[start:start + Q.shape[0]].T @ Q
+                start += Q.shape[0]
+        Hs = np.triu(H[:hi, :hi])
+        Hs = Hs + np.triu(Hs, 1).T
+        theta, U = np.linalg.eigh(Hs)
+        theta, U = theta[::-1], U[:, ::-1]  # largest first
+        V, B = _orthonormal_block(W, basis, rng, scale)
+        del W
+        want = min(count, hi)
+        resid = np.linalg.norm(B @ U[lo:hi, :want], axis=0)
+        converged = want == count and bool(
+            np.all(resid <= tol * np.abs(theta[:want])))
+        if converged or hi >= n - b:
+            if want < count:
+                raise SolverError(f"block Lanczos: the Krylov space of this {n}-DOF problem "
+                                  f"holds only {want} of the {count} modes asked for")
+            Y = _combine(basis, U[:, :count])
+            return Y, theta[:count], steps, restarts
+        if hi + V.shape[0] > max_basis:
+            if restarts >= max_restarts:
+                worst = float(np.max(resid / np.abs(theta[:want])))
+                raise SolverError(f"block Lanczos did not converge for {count} modes in "
+                                  f"{steps} steps (worst relative residual {worst:.1e}, "
+                                  f"tolerance {tol:.1e}); try a smaller modes.count or a "
+                                  "larger modes.tolerance")
+            keep = min(hi - V.shape[0], max(count + V.shape[0], max_basis // 2))
+            X = _combine(basis, U[:, :keep])
+            basis = [X]
+            H[:] = 0.0
+            H[np.arange(keep), np.arange(keep)] = theta[:keep]
+            # H[:keep, keep:] (the coupling B U_last of V to the kept vectors) is found
+            # again by the next step's projections
+            size = keep
+            restarts += 1
+            log.debug("block Lanczos: restart %d after %d steps, kept %d", restarts, steps,
+                      keep)
+
+
+def _combine(basis: list[np.ndarray], U: np.ndarray) -> np.ndarray:
+    """Rows of U^T @ vstack(basis), without stacking the basis."""
+    out = None
+    start = 0
+    for Q in basis:
+        part = U[start:start + Q.shape[0]].T @ Q
+        out = part if out is None else out + part
+        start += Q.shape[0]
+    return out

@@ -1,0 +1,121 @@
+"""Assembly: the vectorised kernel equals plain scikit-fem; the pattern, restriction and
+storage formats behave as documented."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from pipeline import assemble as asm
+from pipeline.config import Geometry, Material, MeshSpec
+from pipeline.fespace import build_space
+from pipeline.mesh import generate_mesh, read_mesh
+
+ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
+
+
+def _space(tmp_path_factory, order: int, size: float = 0.01):
+    path = tmp_path_factory.mktemp("asm") / f"box_{order}.msh"
+    generate_mesh(Geometry("box", 0.1, 0.02, 0.03), MeshSpec(order=order, size=size,
+                                                             algorithm="delaunay"), path)
+    return build_space(read_mesh(path), order)
+
+
+@pytest.fixture(scope="module", params=[1, 2], ids=["P1", "P2"])
+def space(request, tmp_path_factory):
+    return _space(tmp_path_factory, request.param)
+
+
+@pytest.fixture(scope="module")
+def matrices(space):
+    return asm.assemble_stiffness_mass(space, ALUMINIUM)
+
+
+def _rel(A, B) -> float:
+    return abs(A - B).max() / abs(B).max()
+
+
+def test_equals_plain_scikit_fem(space, matrices):
+    K, M = matrices
+    K_ref, M_ref = asm.assemble_reference(space, ALUMINIUM)
+    assert K.shape == K_ref.shape == (space.n_dofs, space.n_dofs)
+    assert _rel(K, K_ref) < 1e-13
+    assert _rel(M, M_ref) < 1e-13
+
+
+def test_chunks_do_not_change_the_result(space, matrices):
+    K, M = matrices
+    K2, M2 = asm.assemble_stiffness_mass(space, ALUMINIUM, chunk_size=37)
+    assert _rel(K2, K) < 1e-14 and _rel(M2, M) < 1e-14
+
+
+def test_progress_counts_every_element(space):
+    done = []
+    asm.assemble_stiffness_mass(space, ALUMINIUM, chunk_size=50, progress=done.append)
+    assert sum(done) == space.body.n_tetrahedra
+
+
+def test_storage_symmetric_32bit_and_mass_without_zeros(space, matrices):
+    K, M = matrices
+    for A in (K, M):
+        assert A.indices.dtype == np.int32 and A.indptr.dtype == np.int32
+        assert A.has_sorted_indices
+        assert abs(A - A.T).max() <= 1e-12 * abs(A).max()
+    # K: full 3x3 node blocks; M: only equal components couple (a third of K's entries)
+    assert K.nnz == 9 * asm.block_pattern(space).n_blocks
+    assert M.nnz * 3 == K.nnz
+    rows = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
+    assert np.all(rows % 3 == M.indices % 3)
+
+
+def test_rigid_motions_are_free_and_mass_is_exact(space, matrices):
+    K, M = matrices
+    x = space.node_points
+    n = space.n_nodes
+    translations = np.kron(np.ones(n), np.eye(3)).T  # (3n, 3)
+    rotation = np.zeros((n, 3))
+    rotation[:, 0], rotation[:, 1] = -x[:, 1], x[:, 0]  # about z
+    for u in list(translations.T) + [rotation.ravel()]:
+        assert np.linalg.norm(K @ u) <= 1e-9 * abs(K).max() * np.linalg.norm(u)
+    mass = translations[:, 0] @ (M @ translations[:, 0])
+    assert mass == pytest.approx(ALUMINIUM.rho * 0.1 * 0.02 * 0.03, rel=1e-12)
+
+
+def test_pattern_fallback_equals_fast_path(space, monkeypatch):
+    fast = asm.block_pattern(space)
+    from scipy.sparse import _sparsetools
+
+    monkeypatch.delattr(_sparsetools, "coo_tocsr")
+    slow = asm.block_pattern(space)
+    assert np.array_equal(fast.indptr, slow.indptr)
+    assert np.array_equal(fast.indices, slow.indices)
+    assert np.array_equal(fast.slots, slow.slots)
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_restrict_equals_fancy_indexing(matrices, overwrite):
+    K, _ = matrices
+    n = K.shape[0]
+    keep = np.sort(np.random.default_rng(3).choice(n, 2 * n // 3, replace=False))
+    expected = K[keep][:, keep]
+    source = K.copy() if overwrite else K
+    R = asm.restrict(source, keep, overwrite=overwrite)
+    assert R.shape == (keep.size, keep.size)
+    assert R.indices.dtype == np.int32
+    assert R.has_sorted_indices
+    assert abs(R - expected).max() == 0.0
+    assert R.nnz == expected.nnz
+    if overwrite:
+        assert source.data.size == 0  # emptied: a second copy never existed
+    else:
+        assert abs(K - K.copy()).max() == 0.0 and K.nnz == 9 * (K.nnz // 9)
+
+
+def test_restrict_keeps_everything_and_accepts_other_formats(matrices):
+    K, _ = matrices
+    n = K.shape[0]
+    assert asm.restrict(K, np.arange(n)) is K
+    keep = np.arange(0, n, 2)
+    R = asm.restrict(sp.coo_matrix(K), keep)
+    assert abs(R - K[keep][:, keep]).max() == 0.0

@@ -1,0 +1,175 @@
+"""Factorisation backends and the eigensolvers: every installed backend and method gives
+the same modes, singular systems are refused with a clear message."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.linalg import eigh
+
+from pipeline import solvers
+from pipeline.assemble import assemble_stiffness_mass, restrict
+from pipeline.config import Geometry, Material, MeshSpec, Support
+from pipeline.errors import ConfigError, SolverError
+from pipeline.fespace import build_space
+from pipeline.mesh import generate_mesh, read_mesh
+from pipeline.modes import block_lanczos, solve_modes
+from pipeline.regions import fixed_dofs, free_dofs, resolve_regions
+
+ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
+BACKENDS = solvers.available_backends()
+COUNT = 8
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory):
+    """A small clamped P2 beam (about 2.5k free DOFs): K, M free and full."""
+    path = tmp_path_factory.mktemp("solvers") / "beam.msh"
+    generate_mesh(Geometry("box", 0.1, 0.02, 0.03), MeshSpec(order=2, size=0.01,
+                                                             algorithm="delaunay"), path)
+    space = build_space(read_mesh(path), 2)
+    K_full, M_full = assemble_stiffness_mass(space, ALUMINIUM)
+    regions = resolve_regions(space, {})
+    free = free_dofs(space.n_dofs, fixed_dofs(space, regions, [Support("root")], False))
+    return {"K": restrict(K_full, free), "M": restrict(M_full, free), "K_full": K_full,
+            "M_full": M_full}
+
+
+@pytest.fixture(scope="module")
+def dense_reference(beam):
+    K, M = beam["K"].toarray(), beam["M"].toarray()
+    w = eigh(K, M, eigvals_only=True, subset_by_index=[0, COUNT - 1])
+    return np.sqrt(w) / (2 * np.pi)
+
+
+def _check_modes(modes, K, M, count):
+    Phi = modes.shapes
+    assert Phi.shape == (K.shape[0], count)
+    assert np.abs(Phi.T @ (M @ Phi) - np.eye(count)).max() < 1e-8
+    KK = Phi.T @ (K @ Phi)
+    assert np.abs(KK - np.diag(modes.omega2)).max() < 1e-8 * modes.omega2.max()
+    assert modes.residuals.max() < 1e-6
+
+
+def test_superlu_is_always_there_and_pardiso_comes_first_when_installed():
+    assert "superlu" in BACKENDS
+    if "pardiso" in BACKENDS:
+        assert BACKENDS[0] == "pardiso"
+    assert solvers.resolve_backend("auto") == BACKENDS[0]
+
+
+def test_unknown_or_missing_backend_is_a_config_error():
+    with pytest.raises(ConfigError, match="modes.solver.*mumps.*installed backends"):
+        solvers.factorize(sp.identity(4, format="csr"), "mumps")
+    with pytest.raises(ConfigError, match="nonsense"):
+        solvers.resolve_backend("nonsense")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_every_backend_gives_the_same_frequencies(beam, dense_reference, backend):
+    K, M = beam["K"], beam["M"]
+    modes = solve_modes(K, M, COUNT, backend=backend, keep=False)
+    assert modes.backend == backend
+    np.testing.assert_allclose(modes.frequencies_hz, dense_reference, rtol=1e-8)
+    _check_modes(modes, K, M, COUNT)
+
+
+@pytest.mark.parametrize("method", ["lanczos", "arpack"])
+def test_block_lanczos_and_arpack_agree(beam, dense_reference, method):
+    if "pardiso" not in BACKENDS:
+        pytest.skip("block Lanczos needs the symmetric PARDISO factor")
+    K, M = beam["K"], beam["M"]
+    modes = solve_modes(K, M, COUNT, backend="pardiso", method=method, keep=False)
+    assert modes.stats["method"] == ("block-lanczos" if method == "lanczos" else "arpack")
+    np.testing.assert_allclose(modes.frequencies_hz, dense_reference, rtol=1e-8)
+    _check_modes(modes, K, M, COUNT)
+
+
+def test_lanczos_with_restarts_and_other_block_sizes(beam, dense_reference):
+    if "pardiso" not in BACKENDS:
+        pytest.skip("block Lanczos needs the symmetric PARDISO factor")
+    K, M = beam["K"], beam["M"]
+    for block, basis in ((1, 24), (3, 30), (8, 40)):
+        modes = solve_modes(K, M, COUNT, backend="pardiso", method="lanczos",
+                            block_size=block, max_basis=basis, keep=False)
+        np.testing.assert_allclose(modes.frequencies_hz, dense_reference, rtol=1e-8)
+    assert modes.stats["restarts"] >= 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_free_body_has_six_rigid_modes(beam, backend):
+    K, M = beam["K_full"], beam["M_full"]
+    modes = solve_modes(K, M, 10, supported=False, backend=backend, keep=False)
+    assert modes.shift < 0
+    assert modes.n_rigid == 6
+    assert np.all(modes.omega2[:6] == 0.0) and modes.omega2[6] > 0
+    Kd, Md = K.toarray(), M.toarray()
+    w = eigh(Kd, Md, eigvals_only=True, subset_by_index=[6, 9])
+    np.testing.assert_allclose(modes.omega2[6:], w, rtol=1e-8)
+    Phi = modes.shapes
+    assert np.abs(Phi.T @ (M @ Phi) - np.eye(10)).max() < 1e-8
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_singular_stiffness_is_refused_with_a_clear_message(beam, backend):
+    with pytest.raises(SolverError, match="singular") as info:
+        solvers.factorize(beam["K_full"], backend)
+    assert "supports" in str(info.value)
+    with pytest.raises(SolverError, match="supports"):
+        solve_modes(beam["K_full"], beam["M_full"], 4, supported=True, backend=backend)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_factorisation_solves_blocks_of_right_hand_sides(beam, backend):
+    K = beam["K"]
+    fact = solvers.factorize(K, backend)
+    B = np.random.default_rng(0).standard_normal((K.shape[0], 3))
+    X = fact.solve(B)
+    assert X.shape == B.shape
+    for j in range(3):
+        np.testing.assert_allclose(X[:, j], fact.solve(B[:, j]), rtol=1e-10, atol=1e-20)
+    assert np.linalg.norm(K @ X - B) / np.linalg.norm(B) < 1e-8
+    if fact.forward is not None:  # A = F F^T: ||F^-1 b||^2 = b^T A^-1 b
+        Y = fact.forward(B)
+        np.testing.assert_allclose((Y * Y).sum(axis=0), (B * X).sum(axis=0), rtol=1e-10)
+        np.testing.assert_allclose(fact.backward(Y), X, rtol=1e-9, atol=1e-20)
+    fact.release()
+    if backend == "pardiso":
+        with pytest.raises(SolverError, match="released"):
+            fact.solve(B)
+
+
+def test_kept_factorisation_is_reused_for_the_same_matrix_only(beam):
+    K, M = beam["K"].copy(), beam["M"]
+    solve_modes(K, M, 4)
+    kept = solvers._kept.get("entry")
+    assert kept is not None
+    again = solvers.factorize(K, solvers.resolve_backend("auto"))
+    assert again.solve is kept[1].solve
+    other = solvers.factorize(K.copy(), "superlu")
+    assert other.solve is not kept[1].solve
+    del K, again
+    import gc
+
+    gc.collect()
+    assert "entry" not in solvers._kept
+
+
+def test_upper_triangle_is_one_pass_and_32_bit(beam):
+    K = beam["K"]
+    U = solvers.upper_triangle_csr(K)
+    assert U.indices.dtype == np.int32 and U.indptr.dtype == np.int32
+    assert abs(U - sp.triu(K)).max() == 0.0
+
+
+def test_block_lanczos_on_a_diagonal_operator():
+    """Largest eigenvalues of diag(d), including a 3-fold one, to round-off."""
+    d = np.concatenate([[5.0, 5.0, 5.0, 4.0], np.linspace(0.1, 3.0, 400)])
+
+    def op(Y):
+        return Y * d
+
+    Y, theta, steps, restarts = block_lanczos(op, d.size, 6, 4, 1e-12, 40)
+    np.testing.assert_allclose(theta, [5, 5, 5, 4, 3.0, d[-2]], rtol=1e-12)
+    assert np.abs(Y @ Y.T - np.eye(6)).max() < 1e-12
