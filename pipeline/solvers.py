@@ -38,6 +38,7 @@ import glob
 import logging
 import os
 import sys
+import time
 import weakref
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -184,6 +185,56 @@ def upper_triangle_csr(A: sp.csr_matrix) -> sp.csr_matrix:
                           indptr.astype(itype, copy=False)), shape=A.shape)
 
 
+# --------------------------------------------------------------------------- products
+class _SparseMatrixT(ctypes.Structure):
+    _fields_ = [("type", ctypes.c_int), ("mode", ctypes.c_int), ("diag", ctypes.c_int)]
+
+
+def sparse_times_dense(A: sp.spmatrix, X: np.ndarray) -> np.ndarray:
+    """A @ X for CSR ``A`` (n x m, 32-bit indices) and dense X (m,) or (m, k).
+
+    MKL's threaded sparse BLAS (``mkl_sparse_d_mm``) when MKL is there, else scipy's
+    single-threaded product; the result is the same to round-off.
+    """
+    lib = _mkl_library()
+    X = np.asarray(X, dtype=np.float64)
+    if (lib is None or not sp.isspmatrix_csr(A) or A.indices.dtype != np.int32
+            or A.indptr.dtype != np.int32 or A.dtype != np.float64 or X.ndim != 2
+            or X.shape[1] < 2 or A.nnz == 0):
+        return A @ X
+    m, k = A.shape[0], X.shape[1]
+    if X.flags.f_contiguous:  # column-major in and out: no transposing copies
+        layout, ldx, ldy = 102, A.shape[1], m
+        Y = np.empty((m, k), order="F")
+    else:
+        X = np.ascontiguousarray(X)
+        layout, ldx, ldy = 101, k, k
+        Y = np.empty((m, k))
+    handle = ctypes.c_void_p()
+    ip = A.indptr
+    P = ctypes.POINTER
+    st = lib.mkl_sparse_d_create_csr(
+        ctypes.byref(handle), ctypes.c_int(0), ctypes.c_int(m), ctypes.c_int(A.shape[1]),
+        ip.ctypes.data_as(P(ctypes.c_int32)),
+        ctypes.c_void_p(ip.ctypes.data + 4),  # rows_end = indptr[1:]
+        A.indices.ctypes.data_as(P(ctypes.c_int32)), A.data.ctypes.data_as(ctypes.c_void_p))
+    if st != 0:
+        return A @ X
+    try:
+        descr = _SparseMatrixT(20, 0, 0)  # SPARSE_MATRIX_TYPE_GENERAL
+        lib.mkl_sparse_d_mm.argtypes = [ctypes.c_int, ctypes.c_double, ctypes.c_void_p,
+                                        _SparseMatrixT, ctypes.c_int, ctypes.c_void_p,
+                                        ctypes.c_int, ctypes.c_int, ctypes.c_double,
+                                        ctypes.c_void_p, ctypes.c_int]
+        st = lib.mkl_sparse_d_mm(10, 1.0, handle, descr, layout,  # non-transposed
+                                 X.ctypes.data, k, ldx, 0.0, Y.ctypes.data, ldy)
+    finally:
+        lib.mkl_sparse_destroy(handle)
+    if st != 0:
+        return A @ X
+    return Y
+
+
 # --------------------------------------------------------------------------- PARDISO
 class _Pardiso:
     """One MKL PARDISO factorisation (matrix type 2 or -2), prepared once."""
@@ -217,13 +268,20 @@ class _Pardiso:
             lib.MKL_Domain_Set_Num_Threads(ctypes.c_int(usable_cores()),
                                            ctypes.c_int(_MKL_DOMAIN_PARDISO))
         self._alive = False
+        t0 = time.perf_counter()
         self._call(11)  # analysis: ordering and symbolic factorisation
         self._alive = True
+        t1 = time.perf_counter()
         try:
+            # the exact factor size is known now, before the factorisation allocates it
+            from .resources import check_factor_memory
+
+            check_factor_memory(float(self.iparm[16]) * 1024, self.n)
             self._call(22)  # numerical factorisation
-        except SolverError:
+        except BaseException:
             self.release()
             raise
+        self.seconds = {"analysis": t1 - t0, "factorisation": time.perf_counter() - t1}
 
     def _call(self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None,
               nrhs: int = 1) -> None:
@@ -301,6 +359,8 @@ class _Pardiso:
         # iparm[16]: memory of numerical factorisation and solution (KB), iparm[17]: nnz
         # of the factor, in blocks for BSR input
         return {"format": "csr-upper/vbsr",
+                "analysis_seconds": self.seconds["analysis"],
+                "numeric_seconds": self.seconds["factorisation"],
                 "factor_nnz": int(self.iparm[17]),
                 "factor_bytes": int(self.iparm[16]) * 1024,
                 "analysis_bytes": int(self.iparm[14]) * 1024}

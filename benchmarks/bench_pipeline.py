@@ -1,0 +1,289 @@
+"""Benchmark: the pipeline against the straightforward stack, from 20k to 1M DOFs.
+
+``make bench`` (or ``python benchmarks/bench_pipeline.py [--large] [--write-doc]``)
+runs, each case in its own subprocess so that the peak memory (ru_maxrss) is the
+case's own:
+
+- the real pipeline, :func:`pipeline.run.run_pipeline` on ``configs/cantilever.yaml``
+  with ``mesh.size`` set for about 20k, 100k and 300k DOFs (and 1M with ``--large``)
+  and ``modes.count`` = 20: mesh, assembly, eigensolve, reduced model, HDF5 file;
+- the straightforward stack at the sizes it can finish (20k, 100k): the same gmsh
+  mesh, plain scikit-fem ``form.assemble(basis)``, ``A[free][:, free]`` and
+  ``scipy.sparse.linalg.eigsh(K, 20, M, sigma=0)`` with its default SuperLU.
+
+It prints one table (DOFs, stage times, total, peak memory, speed-up over the
+straightforward stack from the same run) and the time-to-accuracy line: the fewest
+DOFs whose first five frequencies are within 0.1% of the finest mesh's.
+``--write-doc`` also writes the table and the machine into docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "configs" / "cantilever.yaml"
+DOC = ROOT / "docs" / "performance.md"
+# mesh.size (m) of the cantilever -> DOFs with HXT, one gmsh thread (P2)
+SIZES = {"20k": 0.0085, "100k": 0.005, "300k": 0.0032, "1M": 0.00211}
+REFERENCE_SIZES = ("20k", "100k")  # the straightforward stack: 300k takes 6 min, 10 GB
+COUNT = 20
+
+
+# --------------------------------------------------------------------------- child side
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_pipeline_case(size: float, count: int, workdir: Path) -> dict:
+    """One pipeline run; returns stage times, peak memory and the frequencies."""
+    sys.path.insert(0, str(ROOT))
+    import pipeline.modes as modes_module
+    from pipeline.config import load_config
+    from pipeline.run import run_pipeline
+
+    captured: dict = {}
+    solve = modes_module.solve_modes
+
+    def spy(*args, **kwargs):  # records the eigensolver's own statistics
+        result = solve(*args, **kwargs)
+        captured.update(result.stats or {})
+        return result
+
+    modes_module.solve_modes = spy
+    cfg = load_config(CONFIG, [f"mesh.size={size}", f"modes.count={count}"])
+    t0 = time.perf_counter()
+    result = run_pipeline(cfg, workdir / "out.hdf5", mesh_dir=workdir)
+    total = time.perf_counter() - t0
+    t = result.times
+    return {"kind": "pipeline", "n_dofs": result.n_dofs, "n_free": result.n_free,
+            "mesh": t.get("mesh"), "assembly": t.get("assemble"), "eigensolve": t.get("modes"),
+            "reduction": t.get("reduce"), "write": t.get("write"), "total": total,
+            "peak_mb": _peak_mb(), "backend": result.backend,
+            "frequencies": [float(f) for f in result.frequencies_hz],
+            "factor_s": captured.get("factor_seconds"),
+            "lanczos_s": captured.get("eigensolver_seconds"),
+            "factor_gb": (captured.get("factor_bytes") or 0) / 1e9,
+            "solves": captured.get("solves"), "method": captured.get("method"),
+            "file_mb": (workdir / "out.hdf5").stat().st_size / 1e6}
+
+
+def run_reference_case(size: float, count: int, workdir: Path) -> dict:
+    """The straightforward stack: plain skfem assembly, fancy indexing, eigsh/SuperLU."""
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+    from scipy.sparse.linalg import eigsh
+
+    from pipeline.assemble import assemble_reference
+    from pipeline.config import load_config
+    from pipeline.fespace import build_space
+    from pipeline.mesh import generate_mesh, read_mesh
+    from pipeline.regions import fixed_dofs, free_dofs, resolve_regions
+
+    cfg = load_config(CONFIG, [f"mesh.size={size}", f"modes.count={count}"])
+    t0 = time.perf_counter()
+    path = generate_mesh(cfg.geometry, cfg.mesh, workdir / "ref.msh")
+    space = build_space(read_mesh(path), cfg.mesh.order)
+    regions = resolve_regions(space, cfg.regions)
+    t1 = time.perf_counter()
+    K, M = assemble_reference(space, cfg.material)
+    free = free_dofs(space.n_dofs, fixed_dofs(space, regions, cfg.supports,
+                                              cfg.constraints.in_plane))
+    K = K[free][:, free]
+    M = M[free][:, free]
+    t2 = time.perf_counter()
+    w, _ = eigsh(K, k=count, M=M, sigma=0)
+    t3 = time.perf_counter()
+    return {"kind": "straightforward", "n_dofs": space.n_dofs, "n_free": int(free.size),
+            "mesh": t1 - t0, "assembly": t2 - t1, "eigensolve": t3 - t2, "reduction": None,
+            "write": None, "total": t3 - t0, "peak_mb": _peak_mb(), "backend": "superlu",
+            "frequencies": [float(f) for f in np.sort(np.sqrt(np.abs(w)) / (2 * np.pi))]}
+
+
+# --------------------------------------------------------------------------- parent side
+def _run_child(kind: str, label: str, count: int, timeout: float) -> dict:
+    with tempfile.TemporaryDirectory(prefix=f"bench_{label}_") as tmp:
+        out = Path(tmp) / "result.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--child", kind,
+               "--size", str(SIZES[label]), "--count", str(count), "--result", str(out)]
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
+                                  timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"kind": kind, "label": label, "error": f"timed out after {timeout:.0f} s"}
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0 or not out.exists():
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            return {"kind": kind, "label": label,
+                    "error": f"exit {proc.returncode}: {' | '.join(tail)}"}
+        row = json.loads(out.read_text())
+        row.update(label=label, process_s=wall)
+        return row
+
+
+def _fmt(value, spec: str = ".2f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def table(rows: list[dict]) -> str:
+    """The results as one Markdown table."""
+    ref = {r["label"]: r for r in rows if r["kind"] == "straightforward" and "error" not in r}
+    head = ("| stack | DOFs | mesh s | assembly s | eigensolve s | reduction s | write s | "
+            "total s | peak MB | speed-up |")
+    lines = [head, "|" + " --- |" * 10]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['kind']} | {r['label']} | {r['error']} |" + " |" * 7)
+            continue
+        speed = "-"
+        if r["kind"] == "pipeline" and r["label"] in ref:
+            speed = f"{ref[r['label']]['total'] / r['total']:.1f}x"
+        lines.append(
+            f"| {r['kind']} | {r['n_dofs']:,} | {_fmt(r['mesh'])} | {_fmt(r['assembly'])} | "
+            f"{_fmt(r['eigensolve'])} | {_fmt(r['reduction'])} | {_fmt(r['write'])} | "
+            f"{_fmt(r['total'])} | {r['peak_mb']:,.0f} | {speed} |")
+    return "\n".join(lines)
+
+
+def details(rows: list[dict]) -> str:
+    """Eigensolve breakdown of the pipeline rows."""
+    lines = ["| DOFs | factorisation s | factor GB | eigensolver s | vector solves | "
+             "HDF5 MB | process wall s |", "|" + " --- |" * 7]
+    for r in rows:
+        if r["kind"] != "pipeline" or "error" in r:
+            continue
+        lines.append(f"| {r['n_dofs']:,} | {_fmt(r.get('factor_s'))} | "
+                     f"{_fmt(r.get('factor_gb'))} | {_fmt(r.get('lanczos_s'))} | "
+                     f"{r.get('solves') or '-'} | {_fmt(r.get('file_mb'), '.1f')} | "
+                     f"{_fmt(r.get('process_s'))} |")
+    return "\n".join(lines)
+
+
+def time_to_accuracy(rows: list[dict], n_freq: int = 5, rel: float = 1e-3) -> str:
+    runs = sorted((r for r in rows if r["kind"] == "pipeline" and "error" not in r),
+                  key=lambda r: r["n_dofs"])
+    if len(runs) < 2:
+        return "time to accuracy: needs at least two pipeline sizes"
+    finest = runs[-1]
+    f_ref = finest["frequencies"][:n_freq]
+    parts = []
+    first = None
+    for r in runs[:-1]:
+        err = max(abs(f / g - 1.0) for f, g in zip(r["frequencies"][:n_freq], f_ref))
+        parts.append(f"{r['n_dofs']:,} DOFs: {100 * err:.3f}%")
+        if first is None and err <= rel:
+            first = r
+    verdict = (f"{first['n_dofs']:,} DOFs ({first['total']:.1f} s) suffice"
+               if first else "no coarser mesh is close enough")
+    return (f"time to accuracy: first {n_freq} frequencies within {100 * rel:g}% of the finest "
+            f"mesh's ({finest['n_dofs']:,} DOFs): {verdict}; worst deviation "
+            + ", ".join(parts))
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    import numpy
+    import scipy
+
+    try:
+        from importlib.metadata import version
+
+        mkl = version("mkl")
+    except Exception:
+        mkl = "not installed"
+    return (f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB RAM, {platform.system()} "
+            f"{platform.release()}; Python {platform.python_version()}, numpy "
+            f"{numpy.__version__}, scipy {scipy.__version__}, MKL {mkl}")
+
+
+def write_doc(text: str) -> None:
+    marker_start, marker_end = "<!-- bench:start -->", "<!-- bench:end -->"
+    block = f"{marker_start}\n{text}\n{marker_end}"
+    if DOC.exists() and marker_start in DOC.read_text():
+        doc = DOC.read_text()
+        head, rest = doc.split(marker_start, 1)
+        tail = rest.split(marker_end, 1)[1] if marker_end in rest else ""
+        DOC.write_text(head + block + tail)
+    else:
+        DOC.write_text("# Performance\n\n" + block + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--large", action="store_true", help="add the 1M-DOF case")
+    ap.add_argument("--sizes", default=None,
+                    help="comma-separated subset of " + ",".join(SIZES))
+    ap.add_argument("--no-reference", action="store_true",
+                    help="skip the straightforward stack")
+    ap.add_argument("--count", type=int, default=COUNT, help="modes per case")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
+    ap.add_argument("--write-doc", action="store_true", help="update docs/performance.md")
+    ap.add_argument("--json", default=None, help="also write all rows to this file")
+    ap.add_argument("--child", choices=["pipeline", "straightforward"], help=argparse.SUPPRESS)
+    ap.add_argument("--size", type=float, help=argparse.SUPPRESS)
+    ap.add_argument("--result", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.child:
+        with tempfile.TemporaryDirectory(prefix="bench_case_") as tmp:
+            run = run_pipeline_case if args.child == "pipeline" else run_reference_case
+            row = run(args.size, args.count, Path(tmp))
+        Path(args.result).write_text(json.dumps(row))
+        return 0
+
+    labels = args.sizes.split(",") if args.sizes else ["20k", "100k", "300k"]
+    if args.large and "1M" not in labels:
+        labels.append("1M")
+    unknown = [x for x in labels if x not in SIZES]
+    if unknown:
+        ap.error(f"unknown size(s) {unknown}; expected some of {list(SIZES)}")
+    rows = []
+    load_before = os.getloadavg()
+    for label in labels:
+        for kind in ("straightforward", "pipeline"):
+            if kind == "straightforward" and (args.no_reference or label not in REFERENCE_SIZES):
+                continue
+            print(f"running {kind} {label} ...", flush=True)
+            row = _run_child(kind, label, args.count, args.timeout)
+            rows.append(row)
+            if "error" in row:
+                print(f"  {row['error']}", flush=True)
+            else:
+                print(f"  {row['n_dofs']:,} DOFs in {row['total']:.1f} s, peak "
+                      f"{row['peak_mb']:,.0f} MB", flush=True)
+    load_after = os.getloadavg()
+    text = "\n\n".join([
+        f"Machine: {machine()}.",
+        f"Load average (1 min) {load_before[0]:.1f} before and {load_after[0]:.1f} after "
+        f"the run; {args.count} modes per case; times in seconds, wall clock.",
+        table(rows), details(rows), time_to_accuracy(rows)])
+    print()
+    print(text)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    if args.write_doc:
+        write_doc(text)
+        print(f"\nwrote {DOC.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

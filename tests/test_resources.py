@@ -1,0 +1,70 @@
+"""Memory awareness: the estimate grows with the mesh and the modes, and a mesh that
+does not fit is refused with both figures and a mesh size that would fit."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from pipeline import resources
+from pipeline.config import Geometry, MeshSpec
+from pipeline.errors import ResourceError
+from pipeline.fespace import build_space
+from pipeline.mesh import generate_mesh, read_mesh
+
+
+@pytest.fixture(scope="module")
+def space(tmp_path_factory):
+    path = tmp_path_factory.mktemp("res") / "box.msh"
+    generate_mesh(Geometry("box", 0.1, 0.02, 0.03), MeshSpec(order=2, size=0.01,
+                                                             algorithm="delaunay"), path)
+    return build_space(read_mesh(path), 2)
+
+
+def test_estimate_is_monotone_in_mesh_size_and_modes():
+    sizes = [1_000, 10_000, 100_000, 333_000, 1_000_000]
+    for order in (1, 2):
+        est = [resources.estimate_memory_bytes(n, n, order, 20) for n in sizes]
+        assert all(a < b for a, b in zip(est, est[1:]))
+    by_modes = [resources.estimate_memory_bytes(100_000, 60_000, 2, m) for m in (1, 10, 50, 200)]
+    assert all(a < b for a, b in zip(by_modes, by_modes[1:]))
+
+
+def test_estimate_matches_the_measured_cantilever():
+    # 977k DOFs (325,582 nodes, 217,000 tetrahedra), 20 modes: PARDISO factor 8.99 GB,
+    # run peak 11.7 GB (make bench, docs/performance.md)
+    assert resources.factor_bytes(976_746) == pytest.approx(8.99e9, rel=0.1)
+    peak = resources.estimate_memory_bytes(325_582, 217_000, 2, 20)
+    assert 11.0e9 < peak < 13.5e9
+
+
+def test_check_memory_passes_when_it_fits(space):
+    need = resources.check_memory(space, 10, available=64 * 2**30)
+    assert need == resources.estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra,
+                                                   2, 10)
+
+
+def test_check_memory_refuses_with_both_figures_and_a_size_that_fits(space):
+    need = resources.estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra, 2, 10)
+    have = need // 20
+    with pytest.raises(ResourceError) as info:
+        resources.check_memory(space, 10, available=have)
+    msg = str(info.value)
+    assert f"{space.n_dofs} DOFs" in msg
+    assert f"{need / 1e9:.1f} GB" in msg and f"{have / 1e9:.1f} GB" in msg
+    sizes = [float(x) for x in re.findall(r"about ([0-9.e-]+) m", msg)]
+    suggested, current = sizes
+    assert suggested > current
+    # memory scales like size^-4: the suggested size brings the estimate under the limit
+    assert need * (current / suggested) ** 4 < resources.HEADROOM * have
+
+
+def test_factor_check_refuses_before_factorising():
+    with pytest.raises(ResourceError, match=r"needs 5\.0 GB, but only 1\.0 GB"):
+        resources.check_factor_memory(5.0e9, 1_000_000, available=int(1.0e9))
+    resources.check_factor_memory(0.5e9, 1_000_000, available=int(1.0e9))
+
+
+def test_available_memory_is_positive():
+    assert resources.available_memory_bytes() > 0
