@@ -256,8 +256,9 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
     monkeypatch.setattr(assemble, "assemble_stiffness_mass", no_assembly)
     cfg = load_config(CONFIG, ["mesh.size=0.02"])
     with pytest.raises(ResourceError, match=r"mesh with \d+ DOFs needs about [\d.]+ GB, but "
-                                            r"only 0.2 GB is available; a mesh.size about "
-                                            r"[\d.]+ times larger would fit"):
+                                            r"only 0.2 GB is available; a mesh.size of about "
+                                            r"[\d.]+ m \(now about [\d.]+ m, i.e. [\d.]+ times "
+                                            r"larger\) would fit"):
         run_pipeline(cfg, tmp_path / "big.h5", mesh_dir=tmp_path)
     assert not (tmp_path / "big.h5").exists()
 
