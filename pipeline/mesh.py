@@ -57,6 +57,20 @@ def _box_faces(geometry: Geometry) -> dict[str, tuple[int, float]]:
             "back": (2, 0.0), "front": (2, D)}
 
 
+def _remove_stale_temporaries(path: Path) -> None:
+    """Delete ``.<stem>.<pid>.tmp<suffix>`` files left by killed runs (their pid is gone)."""
+    for tmp in path.parent.glob(f".{path.stem}.*.tmp{path.suffix}"):
+        pid = tmp.name[len(path.stem) + 2:].split(".", 1)[0]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except PermissionError:
+            pass
+
+
 def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     """Mesh ``geometry`` with gmsh and write it (format 4.1, binary) to ``path``.
 
@@ -73,6 +87,7 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
     threads = int(os.environ.get("PIPELINE_GMSH_THREADS", "1"))
+    _remove_stale_temporaries(path)
     if gmsh.isInitialized():
         gmsh.finalize()
     gmsh.initialize(interruptible=False)

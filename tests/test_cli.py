@@ -72,3 +72,15 @@ def test_degenerate_and_non_tetrahedral_meshes_are_refused(tmp_path):
     meshio.write(tri, meshio.Mesh(pts, [("triangle", np.array([[0, 1, 2]]))]))
     with pytest.raises(MeshError, match="has no tetrahedra"):
         read_mesh(tri)
+
+
+def test_stale_mesh_temporaries_of_dead_processes_are_removed(tmp_path):
+    from pipeline.config import Geometry, MeshSpec
+    from pipeline.mesh import generate_mesh
+
+    dead = tmp_path / ".box.999999999.tmp.msh"  # no such pid
+    dead.write_text("partial")
+    alive = tmp_path / f".box.{__import__('os').getpid()}.tmp.msh"
+    alive.write_text("in progress")
+    generate_mesh(Geometry("box", 0.1, 0.02, 0.02), MeshSpec(size=0.02), tmp_path / "box.msh")
+    assert not dead.exists() and alive.exists() and (tmp_path / "box.msh").exists()
