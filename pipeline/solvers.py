@@ -10,7 +10,9 @@ fastest installed backend:
     (matrix type 2) of the upper triangle, prepared once: 32-bit zero-based indices
     (no per-call index conversion or re-hashing, unlike ``pypardiso.spsolve``) and
     PARDISO's variable-block conversion of the rows (the 3 DOFs of a node share one
-    pattern), which makes the METIS analysis 3 times faster at 1M DOFs. Threaded over
+    pattern), which makes the METIS analysis 2-3 times faster at 1M DOFs. The exact
+    factor size, known after the analysis, is checked against the available memory
+    before the factorisation allocates it. Threaded over
     the cores this process may use (``MKL_NUM_THREADS`` overrides).
     Multiple right-hand sides are solved in one call, and the factor ``L`` is also
     offered as separate forward (``L^-1 b``) and backward (``L^-T y``) substitutions,
@@ -69,8 +71,9 @@ _PARDISO_ERRORS = {
 _MKL_DOMAIN_PARDISO = 4
 # iparm[36] < 0: PARDISO converts the CSR input to variable-size blocks, merging rows
 # whose patterns agree to this percentage (the 3 DOFs of a node always do). Measured on
-# the 1M-DOF cantilever: analysis 9 s instead of 28 s (plain CSR), and a factorisation
-# 15% cheaper in CPU time than PARDISO's fixed 3x3 BSR input.
+# the 1M-DOF cantilever: METIS analysis 5-9 s instead of 13-28 s with plain CSR input,
+# numerical factorisation within noise of it (155-170 s CPU on both), and 15% less CPU
+# than PARDISO's fixed 3x3 BSR input (whose multi-RHS solves were also slower).
 VBSR_THRESHOLD = -80
 
 
@@ -267,12 +270,11 @@ class _Pardiso:
         if "MKL_NUM_THREADS" not in os.environ:
             lib.MKL_Domain_Set_Num_Threads(ctypes.c_int(usable_cores()),
                                            ctypes.c_int(_MKL_DOMAIN_PARDISO))
-        self._alive = False
+        self._alive = True  # from the first call on, PARDISO may hold memory to release
         t0 = time.perf_counter()
-        self._call(11)  # analysis: ordering and symbolic factorisation
-        self._alive = True
-        t1 = time.perf_counter()
         try:
+            self._call(11)  # analysis: ordering and symbolic factorisation
+            t1 = time.perf_counter()
             # the exact factor size is known now, before the factorisation allocates it
             from .resources import check_factor_memory
 
@@ -300,9 +302,10 @@ class _Pardiso:
             what = _PARDISO_ERRORS.get(err.value, "unknown error")
             if err.value == -4 or (phase == 22 and err.value == -7):
                 where = int(self.iparm[29])
+                at = f"; first bad pivot at equation {where}" if where > 0 else ""
                 raise SolverError(
-                    f"PARDISO could not factorise the {self.n}x{self.n} system ({what}; first "
-                    f"bad pivot near DOF {where}): the stiffness matrix is singular or not "
+                    f"PARDISO could not factorise the {self.n}x{self.n} system ({what}{at}): "
+                    "the stiffness matrix is singular or not "
                     "positive definite; check the supports (an unsupported body must be "
                     "solved as a free body, with no supports) and the material")
             if err.value in (-2, -9):
@@ -357,7 +360,7 @@ class _Pardiso:
 
     def info(self) -> dict:
         # iparm[16]: memory of numerical factorisation and solution (KB), iparm[17]: nnz
-        # of the factor, in blocks for BSR input
+        # of the factor
         return {"format": "csr-upper/vbsr",
                 "analysis_seconds": self.seconds["analysis"],
                 "numeric_seconds": self.seconds["factorisation"],

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
+
 import pytest
 
 from pipeline import resources
@@ -68,3 +70,20 @@ def test_factor_check_refuses_before_factorising():
 
 def test_available_memory_is_positive():
     assert resources.available_memory_bytes() > 0
+
+
+def test_pardiso_checks_the_exact_factor_size_before_factorising(monkeypatch):
+    from pipeline import solvers
+
+    if "pardiso" not in solvers.available_backends():
+        pytest.skip("needs MKL PARDISO")
+    import scipy.sparse as sp
+
+    n = 3000
+    A = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(n, n), format="csr")
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: 1000)
+    with pytest.raises(ResourceError, match="sparse factorisation of the 3000-DOF"):
+        solvers.factorize(A, "pardiso")
+    monkeypatch.undo()
+    fact = solvers.factorize(A, "pardiso")  # the refused handle was released cleanly
+    assert np.allclose(A @ fact.solve(np.ones(n)), 1.0)
