@@ -36,8 +36,21 @@ log = logging.getLogger(__name__)
 INT32_MAX = 2**31 - 1
 
 
+def check_material(material: Material) -> None:
+    """Refuse a material whose stiffness or mass matrix would not be positive definite."""
+    E, nu, rho = material.E, material.nu, material.rho
+    if not (np.isfinite(E) and E > 0 and np.isfinite(nu) and -1.0 < nu < 0.5
+            and np.isfinite(rho) and rho > 0):
+        from .errors import SolverError
+
+        raise SolverError(f"material E = {E:g} Pa, nu = {nu:g}, rho = {rho:g} kg/m^3: the "
+                          "stiffness or mass matrix would not be positive definite; expected "
+                          "E > 0, -1 < nu < 0.5 and rho > 0")
+
+
 def lame_parameters(material: Material) -> tuple[float, float]:
     """(lambda, mu) in Pa from Young's modulus and Poisson's ratio."""
+    check_material(material)
     E, nu = material.E, material.nu
     return E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
 

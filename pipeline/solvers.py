@@ -378,7 +378,7 @@ def _pardiso(A: sp.spmatrix, positive_definite: bool) -> Factorization:
     return Factorization(fact.solve, "pardiso", A.shape[0], fact.release, fwd, bwd, info)
 
 
-def _superlu(A: sp.spmatrix) -> Factorization:
+def _superlu(A: sp.spmatrix, positive_definite: bool = True) -> Factorization:
     from scipy.sparse.linalg import splu
 
     try:
@@ -387,6 +387,15 @@ def _superlu(A: sp.spmatrix) -> Factorization:
     except RuntimeError as exc:
         raise SolverError(f"SuperLU could not factorise the {A.shape[0]}x{A.shape[0]} system "
                           f"({exc}): the matrix is singular; check the supports") from None
+    if positive_definite and np.array_equal(lu.perm_r, lu.perm_c):
+        # symmetric pivoting only: A = P^T L D L^T P with D = diag(U), so by Sylvester's
+        # law of inertia A is positive definite iff every U_ii > 0
+        negative = int((lu.U.diagonal() <= 0).sum())
+        if negative:
+            raise SolverError(f"the {A.shape[0]}x{A.shape[0]} stiffness system is singular or "
+                              f"not positive definite ({negative} non-positive pivots): check "
+                              "the supports (a body that can move as a rigid body or mechanism "
+                              "needs supports) and the material (E > 0, -1 < nu < 0.5)")
     info = {"format": "csc", "factor_nnz": int(lu.L.nnz + lu.U.nnz),
             "factor_bytes": int(12 * (lu.L.nnz + lu.U.nnz))}
     return Factorization(lu.solve, "superlu", A.shape[0], lambda: None, None, None, info)
@@ -515,7 +524,7 @@ def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = T
     elif backend == "cholmod":
         fact = _cholmod(A)
     else:
-        fact = _superlu(A)
+        fact = _superlu(A, positive_definite)
     if check:
         try:
             check_factorization(A, fact)

@@ -119,3 +119,15 @@ def test_restrict_keeps_everything_and_accepts_other_formats(matrices):
     keep = np.arange(0, n, 2)
     R = asm.restrict(sp.coo_matrix(K), keep)
     assert abs(R - K[keep][:, keep]).max() == 0.0
+
+
+@pytest.mark.parametrize("change", [{"nu": 0.5}, {"nu": 0.6}, {"nu": -1.0}, {"E": -1.0},
+                                    {"rho": 0.0}])
+def test_a_material_without_positive_definite_matrices_is_refused(space, change):
+    import dataclasses
+
+    from pipeline.errors import SolverError
+
+    bad = dataclasses.replace(ALUMINIUM, **change)
+    with pytest.raises(SolverError, match=r"material .*expected E > 0, -1 < nu < 0\.5"):
+        asm.assemble_stiffness_mass(space, bad)

@@ -177,3 +177,11 @@ def test_block_lanczos_on_a_diagonal_operator():
     Y, theta, steps, restarts = block_lanczos(op, d.size, 6, 4, 1e-12, 40)
     np.testing.assert_allclose(theta, [5, 5, 5, 4, 3.0, d[-2]], rtol=1e-12)
     assert np.abs(Y @ Y.T - np.eye(6)).max() < 1e-12
+
+
+def test_superlu_refuses_an_indefinite_matrix_by_its_inertia():
+    A = sp.diags([1.0, 2.0, -3.0, 4.0], format="csr")
+    with pytest.raises(SolverError, match="not positive definite.*1 non-positive pivot"):
+        solvers.factorize(A, "superlu")
+    fact = solvers.factorize(A, "superlu", positive_definite=False, check=False)
+    np.testing.assert_allclose(A @ fact.solve(np.ones(4)), 1.0)
