@@ -203,6 +203,15 @@ def time_to_accuracy(rows: list[dict], n_freq: int = 5, rel: float = 1e-3) -> st
             + ", ".join(parts))
 
 
+def report(rows: list[dict], meta: dict) -> str:
+    return "\n\n".join([
+        f"Machine: {meta['machine']}.",
+        f"Run {meta.get('date', '')}; load average (1 min) {meta['load_before']:.1f} before and "
+        f"{meta['load_after']:.1f} after (the machine is shared); {meta['count']} modes per "
+        "case; times in seconds, wall clock; peak MB is the case's ru_maxrss.",
+        table(rows), details(rows), time_to_accuracy(rows)])
+
+
 def machine() -> str:
     cpu = "unknown CPU"
     try:
@@ -250,6 +259,8 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
     ap.add_argument("--write-doc", action="store_true", help="update docs/performance.md")
     ap.add_argument("--json", default=None, help="also write all rows to this file")
+    ap.add_argument("--render", default=None, metavar="JSON",
+                    help="print (and with --write-doc, write) the report of an earlier --json")
     ap.add_argument("--child", choices=["pipeline", "straightforward"], help=argparse.SUPPRESS)
     ap.add_argument("--size", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
@@ -260,6 +271,14 @@ def main(argv=None) -> int:
             run = run_pipeline_case if args.child == "pipeline" else run_reference_case
             row = run(args.size, args.count, Path(tmp))
         Path(args.result).write_text(json.dumps(row))
+        return 0
+
+    if args.render:
+        saved = json.loads(Path(args.render).read_text())
+        text = report(saved["rows"], saved["meta"])
+        print(text)
+        if args.write_doc:
+            write_doc(text)
         return 0
 
     labels = args.sizes.split(",") if args.sizes else ["20k", "100k", "300k"]
@@ -283,15 +302,13 @@ def main(argv=None) -> int:
                 print(f"  {row['n_dofs']:,} DOFs in {row['total']:.1f} s, peak "
                       f"{row['peak_mb']:,.0f} MB", flush=True)
     load_after = os.getloadavg()
-    text = "\n\n".join([
-        f"Machine: {machine()}.",
-        f"Load average (1 min) {load_before[0]:.1f} before and {load_after[0]:.1f} after "
-        f"the run; {args.count} modes per case; times in seconds, wall clock.",
-        table(rows), details(rows), time_to_accuracy(rows)])
+    meta = {"machine": machine(), "load_before": load_before[0], "load_after": load_after[0],
+            "count": args.count, "date": time.strftime("%Y-%m-%d %H:%M")}
+    text = report(rows, meta)
     print()
     print(text)
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
+        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     if args.write_doc:
         write_doc(text)
         print(f"\nwrote {DOC.relative_to(ROOT)}")
