@@ -92,7 +92,7 @@ class Modes:
 
     count: int = 10
     solver: str = "auto"
-    tolerance: float = 0.0  # ARPACK tol; 0 means machine precision
+    tolerance: float = 0.0  # relative residual of the shift-inverted problem; 0: 1e-10 for block Lanczos, machine precision for ARPACK
 
 
 @dataclass(frozen=True)

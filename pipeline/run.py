@@ -100,8 +100,9 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
         free = free_dofs(space.n_dofs, fixed)
         # connection-point models need the unsupported body: keep it only then
         full = (K, M) if cfg.connections else None
-        K = restrict(K, free)
-        M = restrict(M, free)
+        # in place when nothing else needs the full matrices: never two copies alive
+        K = restrict(K, free, overwrite=full is None)
+        M = restrict(M, free, overwrite=full is None)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
 
     with _stage("modes", times):

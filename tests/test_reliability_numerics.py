@@ -101,21 +101,12 @@ def test_static_solve_of_a_free_body_is_refused(free_beam):
 
 
 # --------------------------------------------------------------------------- indefinite K
-SUPERLU_INDEFINITE = pytest.mark.xfail(strict=False, reason=(
-    "with modes.solver=superlu, nu = 0.6 (K indefinite, but its eigenvalues nearest 0 are "
-    "positive) runs to the end and writes a model: LU does not test definiteness and "
-    "shift-invert at 0 never sees the negative eigenvalues. Fix: assemble_stiffness_mass "
-    "refuses E <= 0, nu outside (-1, 0.5), rho <= 0 (assemble.py); and/or solvers._superlu "
-    "with positive_definite=True refuses a non-positive diagonal of U when perm_r == perm_c "
-    "(Sylvester's inertia; solvers.py)"))
 
 
 @pytest.mark.parametrize("change", [{"nu": 0.6}, {"nu": -1.5}, {"E": -69.0e9}],
                          ids=["nu0.6", "nu-1.5", "E<0"])
 @pytest.mark.parametrize("solver", ["auto", "superlu"])
-def test_indefinite_material_is_detected(tmp_path, change, solver, request):
-    if solver == "superlu" and change == {"nu": 0.6}:
-        request.applymarker(SUPERLU_INDEFINITE)
+def test_indefinite_material_is_detected(tmp_path, change, solver):
     # lumped=null: the lumped chain validates nu itself; the FE path is what is tested here
     cfg = load_config(CONFIG, ["mesh.size=0.02", f"modes.solver={solver}", "lumped=null"])
     bad = dataclasses.replace(cfg, material=dataclasses.replace(cfg.material, **change))
@@ -125,10 +116,6 @@ def test_indefinite_material_is_detected(tmp_path, change, solver, request):
     assert not (tmp_path / "m.h5").exists()
 
 
-@pytest.mark.xfail(raises=ZeroDivisionError, strict=False,
-                   reason="assemble.py divides by (1 - 2 nu): nu = 0.5 (incompressible) raises "
-                          "ZeroDivisionError instead of an error naming material.nu; the config "
-                          "refuses nu = 0.5, so only a caller bypassing it gets here")
 def test_incompressible_material_is_refused_with_a_pipeline_error(tmp_path):
     from pipeline.errors import PipelineError
 
