@@ -104,7 +104,7 @@ def block_pattern(space: FESpace) -> BlockPattern:
         Bj = np.empty(count, dtype=itype)
         Bx = np.empty(count, dtype=itype)
         _sparsetools.coo_tocsr(n, n, count, rows, cols, ids, Bp, Bj, Bx)
-        del rows, cols, ids
+        del ids
         _sparsetools.csr_sort_indices(n, Bp, Bj, Bx)
         row_of = np.repeat(np.arange(n, dtype=itype), np.diff(Bp))
         first = np.empty(count, dtype=bool)
@@ -121,12 +121,12 @@ def block_pattern(space: FESpace) -> BlockPattern:
         del Bj, row_of, first
     except (ImportError, AttributeError, TypeError):  # private scipy API changed: np.unique
         keys = rows.astype(np.int64) * n + cols
-        del rows, cols
         unique, slots = np.unique(keys, return_inverse=True)
         del keys
         per_row = np.bincount(unique // n, minlength=n)
         indices = (unique % n).astype(itype)
         slots = slots.astype(itype)
+    del rows, cols
     indptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(per_row, out=indptr[1:])
     btype = _index_dtype(int(indptr[-1]))

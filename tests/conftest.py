@@ -46,3 +46,19 @@ def build_model(tmp_path: Path, length=0.5, height=0.02, depth=0.05, size=0.01, 
 @pytest.fixture(scope="session")
 def session_tmp(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("shared")
+
+
+def add_reliability_counts(prefix: str, counts) -> None:
+    """Add ``counts`` (what a reliability test file tried) to the JSON file named by
+    $RELIABILITY_COUNTS, keys ``<prefix>.<name>``; ``make test-reliability`` prints it."""
+    import json
+    import os
+
+    target = os.environ.get("RELIABILITY_COUNTS")
+    if not target:
+        return
+    path = Path(target)
+    old = json.loads(path.read_text()) if path.exists() else {}
+    for key, value in counts.items():
+        old[f"{prefix}.{key}"] = old.get(f"{prefix}.{key}", 0) + value
+    path.write_text(json.dumps(old, indent=1, sort_keys=True))

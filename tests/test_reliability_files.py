@@ -15,7 +15,6 @@ is refused or changes nothing a reader can see.
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import shutil
@@ -42,13 +41,9 @@ COUNTS: Counter = Counter()
 @pytest.fixture(scope="module", autouse=True)
 def _report_counts():
     yield
-    target = os.environ.get("RELIABILITY_COUNTS")
-    if target:
-        path = Path(target)
-        old = json.loads(path.read_text()) if path.exists() else {}
-        for key, value in COUNTS.items():
-            old[f"files.{key}"] = old.get(f"files.{key}", 0) + value
-        path.write_text(json.dumps(old, indent=1, sort_keys=True))
+    from conftest import add_reliability_counts
+
+    add_reliability_counts("files", COUNTS)
 
 
 @pytest.fixture(scope="module")

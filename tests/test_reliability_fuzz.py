@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import os
 import re
@@ -60,13 +59,9 @@ COUNTS: Counter = Counter()
 @pytest.fixture(scope="module", autouse=True)
 def _report_counts():
     yield
-    target = os.environ.get("RELIABILITY_COUNTS")
-    if target:
-        path = Path(target)
-        old = json.loads(path.read_text()) if path.exists() else {}
-        for key, value in COUNTS.items():
-            old[f"fuzz.{key}"] = old.get(f"fuzz.{key}", 0) + value
-        path.write_text(json.dumps(old, indent=1, sort_keys=True))
+    from conftest import add_reliability_counts
+
+    add_reliability_counts("fuzz", COUNTS)
 
 
 def _settings(n: int):

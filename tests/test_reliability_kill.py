@@ -51,13 +51,9 @@ COUNTS: Counter = Counter()
 @pytest.fixture(scope="module", autouse=True)
 def _report_counts():
     yield
-    target = os.environ.get("RELIABILITY_COUNTS")
-    if target:
-        path = Path(target)
-        old = json.loads(path.read_text()) if path.exists() else {}
-        for key, value in COUNTS.items():
-            old[f"kill.{key}"] = old.get(f"kill.{key}", 0) + value
-        path.write_text(json.dumps(old, indent=1, sort_keys=True))
+    from conftest import add_reliability_counts
+
+    add_reliability_counts("kill", COUNTS)
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
