@@ -1177,25 +1177,12 @@ def add_batch_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m pipeline.batch FILE ...``: the batch command on its own (the same as
-    ``python -m pipeline batch FILE ...``)."""
-    from .cli import _setup_logging
+    """``python -m pipeline.batch FILE ...``: the same as ``python -m pipeline batch FILE ...``
+    (one CLI, one error handling: :func:`pipeline.cli.main`)."""
+    from .cli import main as cli_main
 
-    parser = argparse.ArgumentParser(prog="python -m pipeline.batch")
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = add_batch_parser(sub)
-    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    p.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] != ["batch"]:
-        argv = ["batch", *argv]
-    args = parser.parse_args(argv)
-    _setup_logging(-1 if args.quiet else args.verbose)
-    try:
-        return int(args.func(args) or 0)
-    except PipelineError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return exc.exit_code
+    return cli_main(argv if argv[:1] == ["batch"] else ["batch", *argv])
 
 
 if __name__ == "__main__":  # pragma: no cover
