@@ -84,31 +84,33 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     others = [c for c in range(3) if c != a]
     edges = np.linspace(x[:, a].min(), x[:, a].max(), n_slices + 1)
     slice_of = np.clip(np.searchsorted(edges, x[:, a], side="right") - 1, 0, n_slices - 1)
+    # per-slice weighted sums for all modes at once: P (n_slices x n_nodes) holds w
+    import scipy.sparse as sp
+
+    P = sp.csr_matrix((w, (slice_of, np.arange(x.shape[0]))), shape=(n_slices, x.shape[0]))
+    ms = np.asarray(P.sum(axis=1)).ravel()
+    filled = ms > 0
+    c = (P @ x)[filled] / ms[filled, None]  # slice centroids
+    P = P[filled]
+    ms = ms[filled]
+    row = np.cumsum(filled) - 1  # slice index -> its row among the filled slices
+    r = x - c[row[slice_of]]  # position relative to the centroid of the node's slice
+    r1, r2 = r[:, others[0]], r[:, others[1]]
+    polar = P @ (r1**2 + r2**2)
+    ubar = np.stack([P @ shapes[:, j, :] for j in range(3)], axis=1) / ms[:, None, None]
+    moment = P @ (r1[:, None] * shapes[:, others[1], :] - r2[:, None] * shapes[:, others[0], :])
+    theta = np.divide(moment, polar[:, None], out=np.zeros_like(moment),
+                      where=polar[:, None] > 0)
+    energies = np.stack([(ms[:, None] * ubar[:, a] ** 2).sum(0),
+                         (ms[:, None] * ubar[:, others[0]] ** 2).sum(0),
+                         (ms[:, None] * ubar[:, others[1]] ** 2).sum(0),
+                         (polar[:, None] * theta**2).sum(0)])  # (4, n_m)
     labels, counts = [], {}
     for k in range(shapes.shape[2]):
         if k < n_rigid:
             labels.append(f"rigid_{k + 1}")
             continue
-        u = shapes[:, :, k]
-        energy = np.zeros(4)  # axial, transverse others[0], transverse others[1], torsion
-        for s in range(n_slices):
-            sel = slice_of == s
-            ws = w[sel]
-            if ws.sum() <= 0:
-                continue
-            ms = ws.sum()
-            c = (ws[:, None] * x[sel]).sum(0) / ms
-            ubar = (ws[:, None] * u[sel]).sum(0) / ms
-            r = x[sel] - c
-            r1, r2 = r[:, others[0]], r[:, others[1]]
-            polar = (ws * (r1**2 + r2**2)).sum()
-            if polar > 0:
-                moment = (ws * (r1 * u[sel, others[1]] - r2 * u[sel, others[0]])).sum()
-                theta = moment / polar
-                energy[3] += polar * theta**2
-            energy[0] += ms * ubar[a] ** 2
-            energy[1] += ms * ubar[others[0]] ** 2
-            energy[2] += ms * ubar[others[1]] ** 2
+        energy = energies[:, k]  # axial, transverse others[0], transverse others[1], torsion
         family = int(np.argmax(energy))
         if family == 0:
             name = "axial"

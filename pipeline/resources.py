@@ -74,7 +74,8 @@ def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: in
     blocks = BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
     matrices = BYTES_PER_BLOCK * blocks
     block = 4 if n_modes <= 4 else 8
-    lanczos = 8.0 * n * (max(3 * n_modes + 4 * block, n_modes + 8 * block) + block)
+    # the Lanczos basis and its images F^-T v (kept so the Ritz vectors need no final solve)
+    lanczos = 2 * 8.0 * n * (max(3 * n_modes + 4 * block, n_modes + 8 * block) + block)
     shapes = 8.0 * n * n_modes * 4  # Ritz vectors, K and M times them, full-size shapes
     assembly = ASSEMBLY_BYTES_PER_NODE * n_nodes + 400 * n_elements
     eigensolve = matrices + factor_bytes(n) + lanczos + shapes

@@ -179,6 +179,41 @@ def test_block_lanczos_on_a_diagonal_operator():
     assert np.abs(Y @ Y.T - np.eye(6)).max() < 1e-12
 
 
+def test_block_lanczos_images_follow_the_ritz_vectors():
+    """The images op returns beside S Y come back combined exactly as the Ritz vectors
+    are, through restarts (max_basis forces several) and a deflated block."""
+    d = np.concatenate([[5.0, 5.0, 5.0, 4.0], np.linspace(0.1, 3.0, 400)])
+    P = np.random.default_rng(3).standard_normal((d.size, d.size)) * 1e-3 + np.eye(d.size)
+
+    def op(Y):
+        return Y * d, Y @ P  # any linear image of the rows of Y
+
+    Y, theta, steps, restarts, Z = block_lanczos(op, d.size, 6, 4, 1e-12, 40,
+                                                 with_images=True)
+    assert restarts > 0
+    np.testing.assert_allclose(theta, [5, 5, 5, 4, 3.0, d[-2]], rtol=1e-12)
+    np.testing.assert_allclose(Z, Y @ P, atol=1e-12)
+    assert np.abs(Y @ Y.T - np.eye(6)).max() < 1e-12
+
+
+def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
+    from pipeline.modes import _orthonormal_block
+
+    rng = np.random.default_rng(4)
+    W = rng.standard_normal((4, 500))
+    for block in (W, np.vstack([W[:3], W[0] + 1e-9 * W[3]])):  # well / ill conditioned
+        V, B = _orthonormal_block(block.copy(), np.zeros((0, 500)), rng, 1.0)
+        np.testing.assert_allclose(V @ V.T, np.eye(4), atol=1e-13)
+        np.testing.assert_allclose(B.T @ V, block, atol=1e-12)
+
+
+def test_default_tolerance_is_tighter_below_the_round_off_floor():
+    from pipeline.modes import default_tolerance
+
+    assert default_tolerance(20_000) == 1e-10
+    assert default_tolerance(1_000_000) == 1e-8
+
+
 def test_superlu_refuses_an_indefinite_matrix_by_its_inertia():
     A = sp.diags([1.0, 2.0, -3.0, 4.0], format="csr")
     with pytest.raises(SolverError, match="not positive definite.*1 non-positive pivot"):
