@@ -302,8 +302,8 @@ def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
 def _orthonormal_block(W: np.ndarray, basis: np.ndarray, rng, scale: float):
     """Orthonormal rows V spanning the rows of W (k, n), already orthogonal to ``basis``.
 
-    Returns (V, B) with W = B^T V. A well-conditioned W (singular values within 1e-6
-    of each other) goes through Cholesky QR twice: two (k x k) Gram matrices and two
+    Returns (V, B) with W = B^T V. A well-conditioned W (smallest singular value above
+    1e-6 of the largest and of ``scale``) goes through Cholesky QR twice: two (k x k) Gram matrices and two
     thin products, where an SVD of the (n x k) block costs several passes over it. Else
     the SVD: directions of W below round-off of ``scale`` are replaced by random
     vectors orthogonal to ``basis`` (rows) and to the rest (their coupling row is 0).
