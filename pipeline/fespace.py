@@ -78,12 +78,28 @@ def build_space(body: BodyMesh, order: int) -> FESpace:
                    sort_t=False)
     if order == 1:
         return FESpace(mesh, 1, body.vertices, body.tetrahedra, np.zeros((0, 2), np.int64), body)
-    edges = mesh.edges.T.astype(np.int64)  # (n_e, 2)
-    t2e = mesh.t2e.T.astype(np.int64)  # (n_t, 6) in skfem's local edge order
+    edges, t2e = edge_numbering(body.tetrahedra, body.n_vertices)
     midpoints = 0.5 * (body.vertices[edges[:, 0]] + body.vertices[edges[:, 1]])
     nodes = np.vstack([body.vertices, midpoints])
     element_nodes = np.hstack([body.tetrahedra, body.n_vertices + t2e])
     return FESpace(mesh, 2, nodes, element_nodes, edges, body)
+
+
+def edge_numbering(tetrahedra: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """skfem's edge numbering of a tetrahedral mesh, computed on integer keys.
+
+    tetrahedra (n_t, 4) vertex indices. Returns (edges (n_e, 2), t2e (n_t, 6)): the
+    vertex pairs, smaller first, in lexicographic order, and each element's edge numbers
+    in the local order ``TET_EDGES``; the same arrays as ``MeshTet.edges.T`` and
+    ``MeshTet.t2e.T``, whose ``np.unique(..., axis=1)`` on vertex pairs takes 1.2 s at
+    1M DOFs against 0.1 s for one ``np.unique`` of the int64 keys v0 * n_v + v1.
+    """
+    t = np.asarray(tetrahedra, dtype=np.int64)
+    a, b = t[:, TET_EDGES[:, 0]], t[:, TET_EDGES[:, 1]]  # (n_t, 6)
+    key = np.minimum(a, b) * n_vertices + np.maximum(a, b)
+    unique, t2e = np.unique(key.ravel(), return_inverse=True)
+    edges = np.stack([unique // n_vertices, unique % n_vertices], axis=1)
+    return edges, t2e.reshape(t.shape[0], 6).astype(np.int64, copy=False)
 
 
 def _edge_ids(space: FESpace, pairs: np.ndarray) -> np.ndarray:

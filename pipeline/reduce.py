@@ -215,8 +215,10 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
         raise SolverError(f"modal basis has shape {Phi.shape}, expected ({K.shape[0]}, "
                           f"{omega2.size}) to match K and omega2")
     n = omega2.size
-    Mr = Phi.T @ (M @ Phi)
-    Kr = Phi.T @ (K @ Phi)
+    from .solvers import sparse_times_dense  # threaded MKL product: 2x scipy's at 1M DOFs
+
+    Mr = Phi.T @ sparse_times_dense(M, Phi)
+    Kr = Phi.T @ sparse_times_dense(K, Phi)
     eM = np.abs(Mr - np.eye(n))
     # stiffness scale: the largest retained omega^2, but never below 1e-6 of the mesh's
     # own eigenvalue scale (diag K / diag M), so rigid-body modes (omega^2 = 0) are judged
@@ -280,8 +282,10 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarra
         raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
                           "(unsupported body?)")
     # a factorisation of a numerically singular K can return finite garbage: check
-    residual = np.linalg.norm(K @ X - Fd, axis=0) / np.maximum(np.linalg.norm(Fd, axis=0),
-                                                               1e-300)
+    from .solvers import sparse_times_dense
+
+    residual = (np.linalg.norm(sparse_times_dense(K, X) - Fd, axis=0)
+                / np.maximum(np.linalg.norm(Fd, axis=0), 1e-300))
     if residual.max() > 1e-6:
         raise SolverError(f"static solve K^-1 F failed (relative residual {residual.max():.2e}): "
                           "K is singular, the body is not fully supported; add supports that "

@@ -68,7 +68,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
-    from .assemble import assemble_stiffness_mass, block_pattern, restrict
+    from .assemble import assemble_blocks, block_pattern, mass_csr, restrict, stiffness_csr
     from .body import body_properties, label_modes, node_volume_weights
     from .fespace import build_space
     from .mesh import mesh_body
@@ -93,15 +93,19 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     with _stage("assemble", times):
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
-            K, M = assemble_stiffness_mass(space, cfg.material, pattern=pattern, progress=update)
-        del pattern
+            kcomp, mblock = assemble_blocks(space, cfg.material, pattern=pattern,
+                                            progress=update)
+        M = mass_csr(pattern, mblock)
+        del mblock
         props = body_properties(M, space.node_points)
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
         # connection-point models need the unsupported body: keep it only then
-        full = (K, M) if cfg.connections else None
-        # in place when nothing else needs the full matrices: never two copies alive
-        K = restrict(K, free, overwrite=full is None)
+        full = (stiffness_csr(pattern, kcomp), M) if cfg.connections else None
+        # K straight onto the free DOFs (the full K is never built for a clamped body);
+        # M restricted in place when nothing else needs it: never two copies alive
+        K = stiffness_csr(pattern, kcomp, free)
+        del kcomp, pattern
         M = restrict(M, free, overwrite=full is None)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
 

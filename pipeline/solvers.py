@@ -350,13 +350,26 @@ class _Pardiso:
         return xt
 
     def release(self) -> None:
-        if self._alive:
-            self._alive = False
+        """Free PARDISO's memory. A factor above 1 GB is freed in a background thread
+        (0.7 s for the 9 GB factor at 1M DOFs, which then overlaps the file writing);
+        the interpreter waits for that thread before it exits."""
+        if not self._alive:
+            return
+        self._alive = False
+
+        def free() -> None:
             try:
                 self._call(-1)
             except SolverError:  # releasing must never mask the real error
                 pass
-        self.a = self.ia = self.ja = np.zeros(1)
+            self.a = self.ia = self.ja = np.zeros(1)
+
+        if self.iparm[16] > 1 << 20:  # KB
+            import threading
+
+            threading.Thread(target=free, name="pardiso-release").start()
+        else:
+            free()
 
     def info(self) -> dict:
         # iparm[16]: memory of numerical factorisation and solution (KB), iparm[17]: nnz

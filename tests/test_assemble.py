@@ -44,6 +44,22 @@ def test_equals_plain_scikit_fem(space, matrices):
     assert _rel(M, M_ref) < 1e-13
 
 
+def test_edge_numbering_is_scikit_fems(space):
+    """fespace numbers the P2 midpoints with integer keys; scikit-fem's MeshTet must agree
+    edge for edge, or the DOF order would differ from skfem's Basis."""
+    from skfem import MeshTet
+
+    from pipeline.fespace import edge_numbering
+
+    body = space.body
+    mesh = MeshTet(body.vertices.T.copy(), body.tetrahedra.T.copy(), validate=False,
+                   sort_t=False)
+    edges, t2e = edge_numbering(body.tetrahedra, body.n_vertices)
+    np.testing.assert_array_equal(edges, mesh.edges.T)
+    np.testing.assert_array_equal(t2e, mesh.t2e.T)
+    assert edges.shape[0] > body.n_vertices  # a real 3D mesh: more edges than vertices
+
+
 def test_chunks_do_not_change_the_result(space, matrices):
     K, M = matrices
     K2, M2 = asm.assemble_stiffness_mass(space, ALUMINIUM, chunk_size=37)
@@ -131,3 +147,32 @@ def test_a_material_without_positive_definite_matrices_is_refused(space, change)
     bad = dataclasses.replace(ALUMINIUM, **change)
     with pytest.raises(SolverError, match=r"material .*expected E > 0, -1 < nu < 0\.5"):
         asm.assemble_stiffness_mass(space, bad)
+
+
+@pytest.mark.parametrize("which", ["whole nodes", "some components", "none fixed"])
+def test_stiffness_straight_onto_free_dofs_equals_restriction(space, matrices, which):
+    """stiffness_csr(..., free) drops fixed nodes' blocks before the CSR expansion when
+    whole nodes are fixed, else restricts the full matrix: both must equal K[free][:, free]
+    exactly (same entries, same order)."""
+    K, _ = matrices
+    pattern = asm.block_pattern(space)
+    kcomp, _ = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
+    x = space.node_points[:, 0]
+    if which == "whole nodes":
+        fixed_nodes = np.flatnonzero(x < x.min() + 0.3 * np.ptp(x))
+        fixed = (3 * fixed_nodes[:, None] + np.arange(3)).ravel()
+    elif which == "some components":
+        fixed = np.union1d(3 * np.flatnonzero(x < x.min() + 1e-9),
+                           3 * np.arange(space.n_nodes) + 2)
+    else:
+        fixed = np.zeros(0, dtype=np.int64)
+    free = np.setdiff1d(np.arange(space.n_dofs), fixed)
+    assert (asm.whole_nodes(free, space.n_nodes) is not None) == (which != "some components")
+    Kf = asm.stiffness_csr(pattern, kcomp, free)
+    ref = K[free][:, free].tocsr()
+    ref.sort_indices()
+    assert Kf.shape == ref.shape and Kf.has_sorted_indices
+    np.testing.assert_array_equal(Kf.indptr, ref.indptr)
+    np.testing.assert_array_equal(Kf.indices, ref.indices)
+    np.testing.assert_array_equal(Kf.data, ref.data)
+    assert Kf.indices.dtype == np.int32
