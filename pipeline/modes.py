@@ -204,16 +204,20 @@ def _rayleigh_ritz(K, M, v: np.ndarray, sigma: float):
     Kr, Mr = v.T @ Kv, v.T @ Mv
     Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
     w, Q = eigh(Kr, Mr)
-    v, Kv, Mv = v @ Q, Kv @ Q, Mv @ Q
-    order = np.argsort(w)
-    w, v, Kv, Mv = w[order], v[:, order], Kv[:, order], Mv[:, order]
+    order = np.argsort(w)  # ordering and signs go into the small Q, not the (n, m) arrays
+    w, Q = w[order], Q[:, order]
+    v = v @ Q
     # sign convention: the largest-magnitude entry of every mode is positive
     idx = np.abs(v).argmax(axis=0)
     signs = np.sign(v[idx, np.arange(v.shape[1])])
     signs[signs == 0] = 1.0
-    v, Kv, Mv = v * signs, Kv * signs, Mv * signs
+    v *= signs
+    Q *= signs
+    Kv, Mv = Kv @ Q, Mv @ Q
     scale = np.maximum(np.linalg.norm(Kv, axis=0), abs(sigma) * np.linalg.norm(Mv, axis=0))
-    residuals = np.linalg.norm(Kv - Mv * w, axis=0) / np.where(scale > 0, scale, 1.0)
+    Mv *= w
+    Kv -= Mv  # K phi - omega^2 M phi, in place
+    residuals = np.linalg.norm(Kv, axis=0) / np.where(scale > 0, scale, 1.0)
     return w, v, residuals
 
 
