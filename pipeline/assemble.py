@@ -244,9 +244,9 @@ def stiffness_csr(pattern: BlockPattern, kcomp: np.ndarray, free: np.ndarray | N
     restricted to the sorted ``free`` DOFs if given (``K[free][:, free]``).
 
     When ``free`` holds whole nodes (a clamped support), the blocks of fixed nodes are
-    dropped before the expansion to CSR, so the full matrix is never built (0.9 s and a
-    second pass over 80M entries saved at 1M DOFs); otherwise the full matrix is built
-    and restricted in place (:func:`restrict`).
+    dropped before the expansion to CSR, so the full matrix is never built and the
+    restriction pass over its 80M entries at 1M DOFs is not needed (0.3-0.5 s saved);
+    otherwise the full matrix is built and restricted in place (:func:`restrict`).
     """
     n_nodes = pattern.n_nodes
     nodes = None if free is None else whole_nodes(free, n_nodes)
