@@ -75,6 +75,8 @@ _MKL_DOMAIN_PARDISO = 4
 # numerical factorisation within noise of it (155-170 s CPU on both), and 15% less CPU
 # than PARDISO's fixed 3x3 BSR input (whose multi-RHS solves were also slower).
 VBSR_THRESHOLD = -80
+# factors above this size (bytes, PARDISO's iparm[16]) are freed in a background thread
+BACKGROUND_RELEASE_BYTES = 1 << 30
 
 
 def usable_cores() -> int:
@@ -364,10 +366,11 @@ class _Pardiso:
                 pass
             self.a = self.ia = self.ja = np.zeros(1)
 
-        if self.iparm[16] > 1 << 20:  # KB
+        if int(self.iparm[16]) * 1024 > BACKGROUND_RELEASE_BYTES:
             import threading
 
-            threading.Thread(target=free, name="pardiso-release").start()
+            self.releasing = threading.Thread(target=free, name="pardiso-release")
+            self.releasing.start()
         else:
             free()
 

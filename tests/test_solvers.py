@@ -144,6 +144,26 @@ def test_factorisation_solves_blocks_of_right_hand_sides(beam, backend):
             fact.solve(B)
 
 
+@pytest.mark.skipif("pardiso" not in BACKENDS, reason="PARDISO (MKL) is not installed")
+def test_large_pardiso_factor_is_freed_in_the_background(beam, monkeypatch):
+    """Factors above BACKGROUND_RELEASE_BYTES are freed by a thread: the handle is dead at
+    once (solves refused), the thread finishes, and a new factorisation still works."""
+    monkeypatch.setattr(solvers, "BACKGROUND_RELEASE_BYTES", 0)
+    K = beam["K"]
+    handle = solvers._Pardiso(K, True)
+    b = np.ones(K.shape[0])
+    x = handle.solve(b)
+    handle.release()
+    with pytest.raises(SolverError, match="released"):
+        handle.solve(b)
+    handle.releasing.join(timeout=60)
+    assert not handle.releasing.is_alive()
+    assert handle.a.size == 1  # the input arrays were dropped by the thread
+    again = solvers.factorize(K, "pardiso")
+    np.testing.assert_allclose(again.solve(b), x, rtol=1e-10)
+    again.release()
+
+
 def test_kept_factorisation_is_reused_for_the_same_matrix_only(beam):
     K, M = beam["K"].copy(), beam["M"]
     solve_modes(K, M, 4)
