@@ -47,7 +47,7 @@ def _peak_mb() -> float:
 def run_pipeline_case(size: float, count: int, workdir: Path) -> dict:
     """One pipeline run; returns stage times, peak memory and the frequencies."""
     sys.path.insert(0, str(ROOT))
-    import pipeline.modes as modes_module
+    import pipeline.solve.eigen as modes_module
     from pipeline.config import load_config
     from pipeline.run import run_pipeline
 
@@ -68,7 +68,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path) -> dict:
     total = time.perf_counter() - t0
     import numpy as np
 
-    from pipeline.solvers import sparse_times_dense
+    from pipeline.solve.factorize import sparse_times_dense
 
     Phi = captured.pop("shapes")
     ortho = float(np.abs(Phi.T @ sparse_times_dense(captured.pop("M"), Phi)
@@ -94,11 +94,11 @@ def run_reference_case(size: float, count: int, workdir: Path) -> dict:
     import numpy as np
     from scipy.sparse.linalg import eigsh
 
-    from pipeline.assemble import assemble_reference
+    from pipeline.fe.assemble import assemble_reference
     from pipeline.config import load_config
-    from pipeline.fespace import build_space
-    from pipeline.mesh import generate_mesh, read_mesh
-    from pipeline.regions import fixed_dofs, free_dofs, resolve_regions
+    from pipeline.fe.space import build_space
+    from pipeline.fe.mesh import generate_mesh, read_mesh
+    from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
     cfg = load_config(CONFIG, [f"mesh.size={size}", f"modes.count={count}"])
     t0 = time.perf_counter()

@@ -10,7 +10,7 @@ chains them and the CLI (``python -m pipeline``) calls the same functions.
 
 __version__ = "0.1.0"
 
-from .errors import (  # noqa: E402
+from pipeline.errors import (  # noqa: E402
     ConfigError,
     FileFormatError,
     MeshError,
@@ -23,8 +23,8 @@ from .errors import (  # noqa: E402
 
 
 def load_model(path):
-    """Load a reduced model from an HDF5 file (see :func:`pipeline.loader.load_model`)."""
-    from .loader import load_model as _load
+    """Load a reduced model from an HDF5 file (see :func:`pipeline.store.read.load_model`)."""
+    from pipeline.store.read import load_model as _load
 
     return _load(path)
 

@@ -16,8 +16,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .config import Config, config_to_yaml
-from .h5tree import Dataset
+from pipeline.config import Config, config_to_yaml
+from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +68,13 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
-    from .assemble import assemble_blocks, block_pattern, mass_csr, restrict, stiffness_csr
-    from .body import body_properties, label_modes, node_volume_weights
-    from .fespace import build_space
-    from .mesh import mesh_body
-    from .modes import solve_modes
-    from .regions import fixed_dofs, free_dofs, resolve_regions
-    from .resources import check_memory
+    from pipeline.fe.assemble import assemble_blocks, block_pattern, mass_csr, restrict, stiffness_csr
+    from pipeline.fe.body import body_properties, label_modes, node_volume_weights
+    from pipeline.fe.space import build_space
+    from pipeline.fe.mesh import mesh_body
+    from pipeline.solve.eigen import solve_modes
+    from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+    from pipeline.fe.resources import check_memory
 
     progress = progress or _no_progress
     times: dict[str, float] = {}
@@ -125,7 +125,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     extras: dict[str, Any] = {}
     with _stage("reduce", times):
         if cfg.reduction is not None or cfg.lumped is not None:
-            from .models import build_models
+            from pipeline.reduce.build import build_models
 
             model_tree, model_attrs, extras = build_models(cfg, space, regions, K, M, free,
                                                            modes, props, labels)
@@ -133,7 +133,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
             group_attrs.update(model_attrs)
         del K, M
         if full is not None:
-            from .models import build_connection_models
+            from pipeline.reduce.build import build_connection_models
 
             conn_tree, lines = build_connection_models(cfg, space, regions, *full, modes, shapes)
             tree.update(conn_tree)
@@ -150,7 +150,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
         group_attrs["run"] = {f"{k}_s": v for k, v in times.items()}
         group_attrs["run"]["peak_memory_mb"] = peak_memory_mb()
         group_attrs["run"]["solver"] = modes.backend
-        from .store import write_file
+        from pipeline.store.h5file import write_file
 
         write_file(output, tree, group_attrs, {"name": cfg.name,
                                                "config_yaml": config_to_yaml(cfg)})

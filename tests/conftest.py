@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.assemble import assemble_stiffness_mass, restrict
+from pipeline.fe.assemble import assemble_stiffness_mass, restrict
 from pipeline.config import Geometry, Material, MeshSpec, Support
-from pipeline.fespace import FESpace, build_space
-from pipeline.mesh import generate_mesh, read_mesh
-from pipeline.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.space import FESpace, build_space
+from pipeline.fe.mesh import generate_mesh, read_mesh
+from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)

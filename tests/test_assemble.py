@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from pipeline import assemble as asm
+from pipeline.fe import assemble as asm
 from pipeline.config import Geometry, Material, MeshSpec
-from pipeline.fespace import build_space
-from pipeline.mesh import generate_mesh, read_mesh
+from pipeline.fe.space import build_space
+from pipeline.fe.mesh import generate_mesh, read_mesh
 
 ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
 
@@ -49,7 +49,7 @@ def test_edge_numbering_is_scikit_fems(space):
     edge for edge, or the DOF order would differ from skfem's Basis."""
     from skfem import MeshTet
 
-    from pipeline.fespace import edge_numbering
+    from pipeline.fe.space import edge_numbering
 
     body = space.body
     mesh = MeshTet(body.vertices.T.copy(), body.tetrahedra.T.copy(), validate=False,

@@ -1,4 +1,4 @@
-"""Batch runs (pipeline.batch, pipeline.report) on tiny cantilever meshes.
+"""Batch runs (pipeline.apps.batch, pipeline.apps.report) on tiny cantilever meshes.
 
 Every case here is the reference cantilever at mesh.size >= 0.01 (~11-17k DOFs, about
 2 s), 4 modes and a 1-input reduced model, so a batch of three takes seconds. The
@@ -29,7 +29,7 @@ import pytest
 
 pytest.importorskip("distributed", reason="the batch extra (dask[distributed]) is not installed")
 
-from pipeline.batch import (  # noqa: E402
+from pipeline.apps.batch import (  # noqa: E402
     Case,
     load_batch,
     main,
@@ -40,7 +40,7 @@ from pipeline.batch import (  # noqa: E402
     _plan_local_workers,
 )
 from pipeline.errors import ConfigError  # noqa: E402
-from pipeline.store import open_verified  # noqa: E402
+from pipeline.store.h5file import open_verified  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DASK = Path(sys.executable).with_name("dask")
@@ -176,7 +176,7 @@ batch: {base: base.yaml, combine: zip,
 def test_key_follows_a_geometry_file_and_the_cli_parser(tmp_path):
     import argparse
 
-    from pipeline.batch import add_batch_parser, cmd_batch
+    from pipeline.apps.batch import add_batch_parser, cmd_batch
 
     text = BASE.replace("geometry: {kind: box, length: 0.5, height: 0.02, depth: 0.05}",
                         "geometry: {kind: geo, path: part.geo}")
@@ -189,7 +189,7 @@ def test_key_follows_a_geometry_file_and_the_cli_parser(tmp_path):
     assert first.label == "base" and first.memory_bytes is None   # unknown before meshing
     write(folder / "part.geo", "// version 2\n")
     assert load_batch(path).cases[0].key != first.key             # new geometry, new key
-    # the subcommand as pipeline/cli.py registers it
+    # the subcommand as pipeline.cli registers it
     parser = argparse.ArgumentParser()
     parser.add_argument("-v", "--verbose", action="count", default=0)
     add_batch_parser(parser.add_subparsers(dest="command", required=True))
@@ -360,7 +360,7 @@ batch:
 """)
     spec = load_batch(path)
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.batch", str(path), "--workers", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.apps.batch", str(path), "--workers", "1",
                              "-o", str(out)], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     try:
@@ -495,7 +495,7 @@ def test_existing_scheduler_gives_the_same_results(local_run, tmp_path):
 
 def test_results_sent_back_when_the_worker_cannot_see_the_folder(local_run, tmp_path):
     """A worker on another machine sends the file's bytes; the client writes it."""
-    from pipeline.batch import run_case_task
+    from pipeline.apps.batch import run_case_task
 
     path, local = local_run
     case = load_batch(path).cases[0]

@@ -45,7 +45,7 @@ def test_errors_exit_non_zero_with_one_message(args, code, message):
 def test_mesh_failure_is_an_error_not_a_crash(tmp_path):
     from pipeline.config import Geometry, MeshSpec
     from pipeline.errors import MeshError
-    from pipeline.mesh import generate_mesh, read_mesh
+    from pipeline.fe.mesh import generate_mesh, read_mesh
 
     with pytest.raises(MeshError, match="gmsh could not mesh"):
         generate_mesh(Geometry("box", 0.0, 0.02, 0.05), MeshSpec(size=0.01), tmp_path / "x.msh")
@@ -61,7 +61,7 @@ def test_degenerate_and_non_tetrahedral_meshes_are_refused(tmp_path):
     import numpy as np
 
     from pipeline.errors import MeshError
-    from pipeline.mesh import read_mesh
+    from pipeline.fe.mesh import read_mesh
 
     pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 0.5, 0.0]], float)
     flat = tmp_path / "flat.vtu"
@@ -76,7 +76,7 @@ def test_degenerate_and_non_tetrahedral_meshes_are_refused(tmp_path):
 
 def test_stale_mesh_temporaries_of_dead_processes_are_removed(tmp_path):
     from pipeline.config import Geometry, MeshSpec
-    from pipeline.mesh import generate_mesh
+    from pipeline.fe.mesh import generate_mesh
 
     dead = tmp_path / ".box.999999999.tmp.msh"  # no such pid
     dead.write_text("partial")

@@ -25,14 +25,14 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from conftest import ALUMINIUM, build_model
-from pipeline.body import rigid_body_modes, skew
-from pipeline.connection import (check_interface, check_residual_mass, connection_datasets, connection_model,
+from pipeline.fe.body import rigid_body_modes, skew
+from pipeline.reduce.connection import (check_interface, check_residual_mass, connection_datasets, connection_model,
                                  connection_model_from_modes, connection_statespace,
                                  effective_mass_table, interface_transformation,
                                  make_interface, make_interfaces, project, rbe3_matrix,
                                  rigid_properties_at, twist_transform)
 from pipeline.errors import RegionError, SolverError
-from pipeline.modes import solve_modes
+from pipeline.solve.eigen import solve_modes
 
 L, H, W = 0.5, 0.02, 0.05
 
@@ -157,8 +157,8 @@ def test_truncated_model_and_refusal_of_a_non_spd_residual_mass(beam):
 # --------------------------------------------------------------------------- 6x6 model
 def test_statespace_dc_gain_is_D_P_and_poles_are_the_clamped_modes(beam):
     from pipeline.config import Support
-    from pipeline.assemble import restrict
-    from pipeline.regions import fixed_dofs, free_dofs
+    from pipeline.fe.assemble import restrict
+    from pipeline.fe.regions import fixed_dofs, free_dofs
 
     root = make_interface(beam.space, beam.regions, "root", "root", [0, 0.01, 0.025])
     cm = connection_model(beam.space, beam.K_full, beam.M_full, [root], 8, backend="superlu")
@@ -281,13 +281,13 @@ def test_datasets_carry_units_and_the_table_prints(beam):
 
 def test_one_call_builders_write_a_valid_file(beam, tmp_path):
     """The integration entry points with the config's Connection records: every dataset
-    they return is written by pipeline.store and carries its units."""
+    they return is written by pipeline.store.h5file and carries its units."""
     from pipeline.config import Connection
-    from pipeline.connection import build_connection_model
-    from pipeline.craig_bampton import build_craig_bampton
-    from pipeline.ffrf import build_ffrf
-    from pipeline.reduce import DampingSpec
-    from pipeline.store import open_verified, write_file
+    from pipeline.reduce.connection import build_connection_model
+    from pipeline.reduce.craig_bampton import build_craig_bampton
+    from pipeline.reduce.ffrf import build_ffrf
+    from pipeline.reduce.modal import DampingSpec
+    from pipeline.store.h5file import open_verified, write_file
 
     conns = (Connection("root", "root", (0.0, 0.0, 0.0), "rigid"),
              Connection("tip", "tip", (L, 0.01, 0.025), "distributing"))

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 
 from conftest import build_model
-from pipeline.body import rigid_body_modes
-from pipeline.connection import make_interfaces
-from pipeline.craig_bampton import craig_bampton, craig_bampton_datasets
+from pipeline.fe.body import rigid_body_modes
+from pipeline.reduce.connection import make_interfaces
+from pipeline.reduce.craig_bampton import craig_bampton, craig_bampton_datasets
 from pipeline.errors import RegionError
-from pipeline.modes import solve_modes
+from pipeline.solve.eigen import solve_modes
 
 L, H, W = 0.5, 0.02, 0.05
 
@@ -44,9 +44,9 @@ def beam(tmp_path_factory):
 @pytest.fixture(scope="module")
 def clamped(tmp_path_factory, beam):
     """The same mesh with the root clamped through the pipeline's supports."""
-    from pipeline.assemble import restrict
+    from pipeline.fe.assemble import restrict
     from pipeline.config import Support
-    from pipeline.regions import fixed_dofs, free_dofs
+    from pipeline.fe.regions import fixed_dofs, free_dofs
 
     fixed = fixed_dofs(beam.space, beam.regions, [Support("root")], False)
     free = free_dofs(beam.space.n_dofs, fixed)
@@ -116,8 +116,8 @@ def test_distributing_interfaces_are_softer_than_rigid_ones(beam):
 
 
 def test_ill_posed_interface_sets_are_refused_before_any_solve(beam, monkeypatch):
-    import pipeline.connection as connection
-    import pipeline.modes as modes
+    import pipeline.reduce.connection as connection
+    import pipeline.solve.eigen as modes
 
     def boom(*a, **k):
         raise AssertionError("an eigen-solve ran before the interfaces were checked")

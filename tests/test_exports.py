@@ -20,7 +20,7 @@ import pytest
 
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.export_cli import add_export_parser, formats, run_export
+from pipeline.cli.export import add_export_parser, formats, run_export
 from pipeline.run import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]

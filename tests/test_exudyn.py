@@ -24,12 +24,12 @@ import pytest
 
 from conftest import build_model
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.exports import EXPORTERS, csr_datasets, default_output, export, read_csr
-from pipeline.exports.exudyn import (boundary_faces, export_exudyn, exudyn_datasets,
+from pipeline.apps.exports import EXPORTERS, csr_datasets, default_output, export, read_csr
+from pipeline.apps.exports.exudyn import (boundary_faces, export_exudyn, exudyn_datasets,
                                      region_node_weights)
-from pipeline.h5tree import Dataset
-from pipeline.modes import solve_modes
-from pipeline.store import content_digest, write_file
+from pipeline.store.tree import Dataset
+from pipeline.solve.eigen import solve_modes
+from pipeline.store.h5file import content_digest, write_file
 
 try:  # the integration test needs Exudyn itself
     import exudyn  # noqa: F401
@@ -151,10 +151,10 @@ def test_boundary_faces_and_region_weights(small_file):
 def cantilever_file(tmp_path_factory):
     """configs/cantilever.yaml at mesh.size 0.01 through run_pipeline, plus the datasets
     the Exudyn export needs (exudyn_datasets), as the integrated run will write them."""
-    from pipeline.assemble import assemble_stiffness_mass
+    from pipeline.fe.assemble import assemble_stiffness_mass
     from pipeline.config import load_config
-    from pipeline.fespace import build_space
-    from pipeline.mesh import read_mesh
+    from pipeline.fe.space import build_space
+    from pipeline.fe.mesh import read_mesh
     from pipeline.run import run_pipeline
 
     tmp = tmp_path_factory.mktemp("cantilever")
@@ -179,8 +179,8 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
                                       MarkerSuperElementPosition, MarkerSuperElementRigid,
                                       ObjectGround, SensorMarker, VGenericJoint)
 
-    from pipeline.ffrf import ffrf_invariants
-    from pipeline.store import read_strings
+    from pipeline.reduce.ffrf import ffrf_invariants
+    from pipeline.store.h5file import read_strings
 
     h5_path, K, M = cantilever_file
     out = export(h5_path, "exudyn", tmp_path / "cantilever.hdf5")
@@ -232,7 +232,7 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
     assert abs(f_exudyn[0] / f_ours[0] - 1) < 0.02, (f_exudyn[:3], f_ours[:3])
     np.testing.assert_allclose(f_exudyn[:10], f_ours[:10], rtol=1e-6)
 
-    # Exudyn's own inertia invariants against ours (pipeline.ffrf), same basis
+    # Exudyn's own inertia invariants against ours (pipeline.reduce.ffrf), same basis
     Psi = fem.modeBasis["matrix"]
     inv = ffrf_invariants(M, points, Psi, K)
     n = Psi.shape[1]
@@ -263,8 +263,8 @@ def test_craig_bampton_basis_is_exported_without_the_reference_interface(small_f
     modes of the first interface (the frame follows it), as Exudyn's own HCB modes do."""
     from types import SimpleNamespace
 
-    from pipeline.connection import make_interfaces
-    from pipeline.craig_bampton import craig_bampton, craig_bampton_datasets
+    from pipeline.reduce.connection import make_interfaces
+    from pipeline.reduce.craig_bampton import craig_bampton, craig_bampton_datasets
 
     m, _, _, path = small_file
     ifs = make_interfaces(m.space, m.regions, [

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from conftest import ALUMINIUM, build_model
-from pipeline.body import rigid_body_modes
-from pipeline.connection import make_interfaces
-from pipeline.craig_bampton import craig_bampton
-from pipeline.ffrf import (craig_bampton_basis, ffrf_datasets, ffrf_invariants,
+from pipeline.fe.body import rigid_body_modes
+from pipeline.reduce.connection import make_interfaces
+from pipeline.reduce.craig_bampton import craig_bampton
+from pipeline.reduce.ffrf import (craig_bampton_basis, ffrf_datasets, ffrf_invariants,
                            free_free_basis)
-from pipeline.modes import solve_modes
+from pipeline.solve.eigen import solve_modes
 
 L, H, W = 0.5, 0.02, 0.05
 

@@ -1,4 +1,4 @@
-"""Tests of pipeline.filters on a fixed-free spring-mass chain reduced by pipeline.reduce.
+"""Tests of pipeline.reduce.filters on a fixed-free spring-mass chain reduced by pipeline.reduce.modal.
 
 The chain (6 masses of 1 kg, springs 1e4 N/m, fixed at one end) is reduced to its 3
 lowest modes (3.8, 11.3, 18.1 Hz); two force inputs and two displacement outputs, residual
@@ -20,14 +20,14 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError
-from pipeline.filters import (
+from pipeline.reduce.filters import (
     filter_datasets,
     filter_group_attrs,
     filtered_model,
     first_order_filter,
     third_order_position_filter,
 )
-from pipeline.reduce import DampingSpec, reduce_model
+from pipeline.reduce.modal import DampingSpec, reduce_model
 
 N_MASS, K_SPRING = 6, 1e4
 CUTOFF_HZ = 200.0  # > 5 x 18.1 Hz, the highest retained mode
@@ -194,10 +194,10 @@ def test_cutoff_must_be_positive(plant):
 
 def test_low_cutoff_warns(plant, caplog):
     f_max = plant.statespace.frequencies_hz.max()
-    with caplog.at_level(logging.WARNING, logger="pipeline.filters"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.reduce.filters"):
         filtered_model(plant, "third_order", 5.0 * f_max * 1.01)
     assert not caplog.records
-    with caplog.at_level(logging.WARNING, logger="pipeline.filters"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.reduce.filters"):
         filtered_model(plant, "first_order", 4.0 * f_max)
     assert any("filter.cutoff_hz" in r.message for r in caplog.records)
 

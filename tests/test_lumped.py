@@ -1,4 +1,4 @@
-"""Tests of the lumped-parameter beam model (pipeline.lumped, METHODS sections 7 and 8).
+"""Tests of the lumped-parameter beam model (pipeline.reduce.lumped, METHODS sections 7 and 8).
 
 Reference body: the aluminium cantilever of METHODS section 1 (L = 0.5 m, height 20 mm
 along y, depth 50 mm along z, E = 69 GPa, nu = 0.33, rho = 2700 kg/m^3).
@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import lumped as lp
+from pipeline.reduce import lumped as lp
 from pipeline.errors import ConfigError
-from pipeline.h5tree import Dataset
+from pipeline.store.tree import Dataset
 
 L, H, W = 0.5, 0.02, 0.05
 E, NU, RHO = 69.0e9, 0.33, 2700.0

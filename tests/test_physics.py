@@ -15,10 +15,10 @@ import pytest
 import scipy.linalg as sla
 
 from conftest import ALUMINIUM, build_model
-from pipeline.body import body_properties, label_modes
+from pipeline.fe.body import body_properties, label_modes
 from pipeline.config import Port, Ports
-from pipeline.modes import solve_modes
-from pipeline.ports import port_matrices
+from pipeline.solve.eigen import solve_modes
+from pipeline.fe.ports import port_matrices
 
 BETA_L = (1.875104, 4.694091, 7.854757)
 BETA_L_FREE = 4.730041
@@ -69,7 +69,7 @@ def test_eigsh_matches_dense_eigh(tmp_path):
                        subset_by_index=[0, 5])
     # both iterative paths (block Lanczos on the PARDISO factor, ARPACK shift-invert),
     # never the dense shortcut the stage takes for tiny systems
-    from pipeline.solvers import available_backends
+    from pipeline.solve.factorize import available_backends
 
     runs = [("arpack", "superlu")] + ([("lanczos", "pardiso")]
                                       if "pardiso" in available_backends() else [])

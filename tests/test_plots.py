@@ -14,7 +14,7 @@ import pytest
 
 from pipeline.config import load_config
 from pipeline.errors import FileFormatError
-from pipeline.plots import add_plot_parser, boundary_surface, is_slender, plot_file, read_modes
+from pipeline.apps.plots import add_plot_parser, boundary_surface, is_slender, plot_file, read_modes
 from pipeline.run import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,8 +113,8 @@ def test_boundary_surface_of_a_tetrahedron_and_of_a_meshed_box(tmp_path):
     assert (outward > 0).all()
 
     from pipeline.config import Geometry, MeshSpec
-    from pipeline.fespace import build_space
-    from pipeline.mesh import generate_mesh, read_mesh
+    from pipeline.fe.space import build_space
+    from pipeline.fe.mesh import generate_mesh, read_mesh
 
     path = generate_mesh(Geometry("box", 0.3, 0.1, 0.05), MeshSpec(order=2, size=0.05,
                                                                     algorithm="delaunay"),

@@ -9,7 +9,7 @@ import pytest
 from conftest import build_model
 from pipeline.config import Port, Ports, config_from_dict
 from pipeline.errors import ConfigError, RegionError
-from pipeline.ports import port_matrices
+from pipeline.fe.ports import port_matrices
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_bad_ports_are_refused_at_load(ports, message):
 
 def test_empty_selector_region_is_refused(model):
     from pipeline.config import RegionSelector
-    from pipeline.regions import resolve_regions
+    from pipeline.fe.regions import resolve_regions
 
     far = {"patch": RegionSelector("sphere", point=(5.0, 5.0, 5.0), radius=0.01)}
     with pytest.raises(RegionError, match="regions.patch.*matches no boundary facet"):

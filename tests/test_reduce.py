@@ -1,4 +1,4 @@
-"""Tests of pipeline.reduce on a small real FE model: a clamped aluminium cantilever.
+"""Tests of pipeline.reduce.modal on a small real FE model: a clamped aluminium cantilever.
 
 The system is built here with scikit-fem (quadratic tetrahedra, 8 x 1 x 2 hexahedra
 split into tetrahedra, 630 free DOFs) and solved densely, so the modes are exact to
@@ -18,7 +18,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
-from pipeline.reduce import (
+from pipeline.reduce.modal import (
     DampingSpec,
     check_modal_basis,
     damping_ratios,
@@ -294,7 +294,7 @@ def test_augment_keeps_the_retained_frequencies_and_adds_high_ones(beam):
 
 def test_augment_drops_a_dependent_static_shape(beam, caplog):
     F = np.column_stack([beam.F[:, 0], 2 * beam.F[:, 0]])  # the same load twice
-    with caplog.at_level(logging.WARNING, logger="pipeline.reduce"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.reduce.modal"):
         m = reduce_model(beam.K, beam.M, beam.Phi, beam.omega2, F, beam.T, 3,
                          DampingSpec("uniform", ratio=0.02), "augment", ["a", "b"], PORTS)
     assert m.n_basis == 4

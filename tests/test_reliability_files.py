@@ -32,8 +32,8 @@ from pipeline import load_model
 from pipeline.config import load_config
 from pipeline.errors import FileFormatError
 from pipeline.run import run_pipeline
-from pipeline.store import content_digest, open_verified
-from pipeline.summary import summarize
+from pipeline.store.h5file import content_digest, open_verified
+from pipeline.apps.summary import summarize
 
 COUNTS: Counter = Counter()
 

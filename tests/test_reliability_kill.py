@@ -12,7 +12,7 @@ Afterwards:
 - the mesh under its final name, if any, is a complete mesh;
 - a re-run succeeds, and leaves no temporary file of the killed writer behind.
 
-The batch test (``reliability`` only; it needs ``pipeline/batch.py`` and dask) kills
+The batch test (``reliability`` only; it needs dask) kills
 ``python -m pipeline batch`` mid-run several times; after every kill each case file
 under its final name verifies, each case recorded as finished has a verified file, and
 the final resumed batch serves no broken case: a truncated case file and a case file
@@ -40,7 +40,7 @@ from pipeline import load_model
 from pipeline.config import load_config
 from pipeline.errors import FileFormatError
 from pipeline.run import run_pipeline
-from pipeline.store import open_verified
+from pipeline.store.h5file import open_verified
 
 CONFIG = ROOT / "configs/cantilever.yaml"
 SETS = ["mesh.size=0.02"]
@@ -99,7 +99,7 @@ def run_and_kill(out: Path, mesh_dir: Path, *, stage: str | None = None,
 
 def check_after_kill(out: Path, mesh_dir: Path, previous: bytes | None) -> str:
     """Whatever is under the final names is complete; returns what was found."""
-    from pipeline.mesh import read_mesh
+    from pipeline.fe.mesh import read_mesh
 
     mesh = mesh_dir / "cantilever.msh"
     if mesh.exists():
@@ -175,8 +175,8 @@ def test_stale_partial_of_a_dead_writer_is_removed_live_one_kept(tmp_path):
     of the same file on this host; a running writer's (a live pid) is not touched."""
     import numpy as np
 
-    from pipeline.h5tree import Dataset
-    from pipeline.store import _host, write_file
+    from pipeline.store.tree import Dataset
+    from pipeline.store.h5file import _host, write_file
 
     target = tmp_path / "m.h5"
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -215,8 +215,6 @@ batch:
 
 
 def _batch_available() -> str | None:
-    if not (ROOT / "pipeline" / "batch.py").exists():
-        return "pipeline/batch.py does not exist (the batch engineer's)"
     import importlib.util
 
     if importlib.util.find_spec("distributed") is None:
@@ -252,7 +250,7 @@ def test_kill_batch_never_caches_a_broken_case(tmp_path):
     reason = _batch_available()
     if reason:
         pytest.skip(reason)
-    from pipeline.batch import load_batch, run_batch
+    from pipeline.apps.batch import load_batch, run_batch
 
     (tmp_path / "base.yaml").write_text(BATCH_BASE)
     path = tmp_path / "batch.yaml"

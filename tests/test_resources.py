@@ -9,11 +9,11 @@ import numpy as np
 
 import pytest
 
-from pipeline import resources
+from pipeline.fe import resources
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ResourceError
-from pipeline.fespace import build_space
-from pipeline.mesh import generate_mesh, read_mesh
+from pipeline.fe.space import build_space
+from pipeline.fe.mesh import generate_mesh, read_mesh
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_available_memory_is_positive():
 
 
 def test_pardiso_checks_the_exact_factor_size_before_factorising(monkeypatch):
-    from pipeline import solvers
+    from pipeline.solve import factorize as solvers
 
     if "pardiso" not in solvers.available_backends():
         pytest.skip("needs MKL PARDISO")

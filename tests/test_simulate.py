@@ -1,8 +1,8 @@
-"""The reference stepper (pipeline.simulate) on a small real model file.
+"""The reference stepper (pipeline.apps.simulate) on a small real model file.
 
 One coarse cantilever file (mesh.size 0.02, ~2 s) is built per session and reused. The
 stepper reads only that file; the references below are computed here from the file's
-matrices (pipeline.loader.load_model), independently of the stepper's own algebra.
+matrices (pipeline.store.read.load_model), independently of the stepper's own algebra.
 
 Tolerances:
 - steady state 1e-4 (issue): Aitken extrapolation of the half-cycle extremes is exact for
@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.simulate import (add_simulate_parser, decay_damping_ratio,
+from pipeline.apps.simulate import (add_simulate_parser, decay_damping_ratio,
                                load_scenarios, parse_scenarios, simulate, steady_state,
                                zero_crossing_frequency)
 
@@ -55,7 +55,7 @@ def model_file(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def loaded(model_file):
-    from pipeline.loader import load_model
+    from pipeline.store.read import load_model
 
     return load_model(model_file)
 
@@ -237,7 +237,7 @@ def test_spring_mount_two_modes_and_statics(model_file):
     assert run.predicted["theta_steady"] == pytest.approx(theta, rel=1e-6)
     assert run.measured["theta_steady"] == pytest.approx(theta, rel=1e-3)
     # the mass displacement = rotation x arm + elastic deflection under the weight
-    from pipeline.loader import load_model
+    from pipeline.store.read import load_model
 
     dc = float(load_model(model_file).static_compliance[0, 0])
     assert run.predicted["steady_state"] == pytest.approx(0.5 * theta + dc * 20 * 9.81,
@@ -279,7 +279,7 @@ def test_outputs_and_cli(model_file, tmp_path, capsys):
     assert args.func(args) == 0
     printed = capsys.readouterr().out
     assert "steady deflection" in printed and "wrote" in printed
-    from pipeline.store import open_verified, read_strings
+    from pipeline.store.h5file import open_verified, read_strings
 
     with open_verified(out) as h5:
         assert h5.attrs["content"] == "simulation results"
@@ -294,11 +294,11 @@ def test_outputs_and_cli(model_file, tmp_path, capsys):
 
 def test_reads_only_the_file(model_file):
     """No mesh or FE module is imported to step a model (fresh interpreter)."""
-    code = ("import sys; from pipeline.simulate import simulate, parse_scenarios; "
+    code = ("import sys; from pipeline.apps.simulate import simulate, parse_scenarios; "
             f"simulate({str(model_file)!r}, parse_scenarios({{'kind': 'step_load', "
             "'force': 1.0, 'duration': 0.05, 'output_rate': 2000, 'lumped': False}));"
-            "bad = [m for m in ('skfem', 'gmsh', 'meshio', 'pipeline.assemble', "
-            "'pipeline.mesh', 'pipeline.fespace', 'pipeline.modes', 'pipeline.run') "
+            "bad = [m for m in ('skfem', 'gmsh', 'meshio', 'pipeline.fe.assemble', "
+            "'pipeline.fe.mesh', 'pipeline.fe.space', 'pipeline.solve.eigen', 'pipeline.run') "
             "if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 

@@ -8,14 +8,14 @@ import pytest
 import scipy.sparse as sp
 from scipy.linalg import eigh
 
-from pipeline import solvers
-from pipeline.assemble import assemble_stiffness_mass, restrict
+from pipeline.solve import factorize as solvers
+from pipeline.fe.assemble import assemble_stiffness_mass, restrict
 from pipeline.config import Geometry, Material, MeshSpec, Support
 from pipeline.errors import ConfigError, SolverError
-from pipeline.fespace import build_space
-from pipeline.mesh import generate_mesh, read_mesh
-from pipeline.modes import block_lanczos, solve_modes
-from pipeline.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.space import build_space
+from pipeline.fe.mesh import generate_mesh, read_mesh
+from pipeline.solve.eigen import block_lanczos, solve_modes
+from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
 ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
 BACKENDS = solvers.available_backends()
@@ -217,7 +217,7 @@ def test_block_lanczos_images_follow_the_ritz_vectors():
 
 
 def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
-    from pipeline.modes import _orthonormal_block
+    from pipeline.solve.eigen import _orthonormal_block
 
     rng = np.random.default_rng(4)
     W = rng.standard_normal((4, 500))
@@ -228,7 +228,7 @@ def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
 
 
 def test_default_tolerance_is_tighter_below_the_round_off_floor():
-    from pipeline.modes import default_tolerance
+    from pipeline.solve.eigen import default_tolerance
 
     assert default_tolerance(20_000) == 1e-10
     assert default_tolerance(1_000_000) == 1e-8

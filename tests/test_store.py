@@ -11,10 +11,10 @@ from conftest import ROOT
 from pipeline import load_model
 from pipeline.config import load_config
 from pipeline.errors import FileFormatError
-from pipeline.h5tree import Dataset
+from pipeline.store.tree import Dataset
 from pipeline.run import run_pipeline
-from pipeline.store import SCHEMA, open_verified, write_file
-from pipeline.summary import summarize
+from pipeline.store.h5file import SCHEMA, open_verified, write_file
+from pipeline.apps.summary import summarize
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +44,9 @@ def test_file_holds_what_was_computed(result):
 
 def test_mode_shapes_are_m_orthonormal_in_the_file(result):
     """The stored shapes (per mesh point) are M-orthonormal with the FE mass matrix."""
-    from pipeline.assemble import assemble_stiffness_mass
-    from pipeline.fespace import build_space
-    from pipeline.mesh import read_mesh
+    from pipeline.fe.assemble import assemble_stiffness_mass
+    from pipeline.fe.space import build_space
+    from pipeline.fe.mesh import read_mesh
 
     with h5py.File(result.output, "r") as h5:
         shapes = h5["modes/shapes"][()]
@@ -82,7 +82,7 @@ def test_loader_gives_back_the_model_bit_for_bit(result):
 
 
 def test_interrupted_write_leaves_nothing_under_the_final_name(tmp_path, monkeypatch):
-    import pipeline.store as store
+    import pipeline.store.h5file as store
 
     target = tmp_path / "model.h5"
     tree = {f"g/d{i}": Dataset(np.arange(10.0) * i, "m") for i in range(5)}

@@ -1,0 +1,299 @@
+"""Export to Exudyn: a file that ``exudyn.FEM.FEMinterface().LoadFromFile(path)`` reads.
+
+What Exudyn's FEMinterface holds, and where it comes from in our HDF5 file:
+
+===================  ==========================================================  ===================
+FEMinterface         content                                                     our file
+===================  ==========================================================  ===================
+nodes['Position']    (n_points, 3) m, one 3-DOF node per mesh point              /mesh/points
+                     (P2 edge nodes included), DOF 3*node + component
+elements[0]          {'Name': 'body', 'Tet10' | 'Tet4': connectivity}            /mesh/cells/tetra10
+                     (Exudyn's Tet10 order = meshio's: corners, 01 12 02 03 13 23)
+massMatrix           scipy CSR (3 n_points)^2 kg, unsupported body               /fe/mass_matrix
+stiffnessMatrix      scipy CSR (3 n_points)^2 N/m, unsupported body              /fe/stiffness_
+                                                                                 matrix
+surface[0]           {'Name': 'boundary', 'Trigs', 'Trigs6'}: outward boundary   from the cells
+                     triangles (and their 6-node form for P2)
+nodeSets             one per region: {'Name', 'NodeNumbers', 'NodeWeights'},     /mesh/regions/*
+                     weights = consistent area weights, normalised to sum 1
+modeBasis            {'matrix': (3 n_points, n), 'type': 'NormalModes' |         /modes/shapes or
+                     'HCBmodes'}                                                 /craig_bampton/
+                                                                                 shapes
+eigenValues          (n,) rad^2/s^2 of the basis' own (K, M) projection
+metaData             source, file, basis description
+===================  ==========================================================  ===================
+
+The mode basis (``basis`` argument of :func:`export_exudyn`):
+
+- ``modes``: /modes/shapes without the rigid-body modes. For a body supported on a
+  region (the cantilever clamped at its root), these are the modes clamped there, which
+  is what Exudyn's Hurty-Craig-Bampton procedure gives with that region as the single
+  interface: the floating frame then moves with the clamp.
+- ``craig_bampton``: /craig_bampton/shapes without the six static modes of the first
+  interface (Exudyn's ``excludeRigidBodyMotion``: the frame follows that interface).
+- ``auto`` (default): ``craig_bampton`` when the file has it, else ``modes``.
+
+Exudyn computes everything else it needs (reduced M and K, the FFRF inertia invariants)
+from these entries. The file format is HDF5 tagged the way Exudyn's loader expects:
+every group and dataset carries ``datatype`` (``dict``, ``list``, ``csr_matrix``,
+``ndarray``, ``str``, ``int``); lists are groups of ``item_<i>``; and the file name must end
+in ``.hdf5``.
+
+Our HDF5 file holds M and K only when the run added :func:`exudyn_datasets`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.errors import FileFormatError
+from pipeline.store.tree import Dataset
+from pipeline.apps.exports import csr_datasets, read_csr
+
+log = logging.getLogger(__name__)
+
+__all__ = ["exudyn_datasets", "export_exudyn", "boundary_faces", "region_node_weights",
+           "write_tagged_hdf5"]
+
+BASES = ("auto", "modes", "craig_bampton")
+# local edges of a tetra10, in column order 4..9
+_TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
+
+
+def exudyn_datasets(K_full: sp.spmatrix, M_full: sp.spmatrix) -> dict[str, Dataset]:
+    """What the export needs beyond the core file: the assembled M and K of the
+    unsupported body (before support condensation), as upper-triangle CSR arrays
+    ``fe/mass_matrix/*`` (kg) and ``fe/stiffness_matrix/*`` (N/m)."""
+    tree = csr_datasets(M_full, "fe/mass_matrix", "kg",
+                        "consistent mass matrix of the unsupported body, DOF 3*node+c")
+    tree.update(csr_datasets(K_full, "fe/stiffness_matrix", "N/m",
+                             "stiffness matrix of the unsupported body, DOF 3*node+c"))
+    return tree
+
+
+# --------------------------------------------------------------------------- mesh helpers
+def _edge_midnodes(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(sorted keys, mid node per key, key base) of every tet edge of a tetra10 mesh."""
+    n = int(cells.max()) + 1
+    pairs = np.concatenate([cells[:, list(e)] for e in _TET_EDGES])
+    mids = np.concatenate([cells[:, 4 + i] for i in range(6)])
+    pairs.sort(axis=1)
+    keys = pairs[:, 0].astype(np.int64) * n + pairs[:, 1]
+    keys, idx = np.unique(keys, return_index=True)
+    return keys, mids[idx], n
+
+
+def _mid_of(edge_map, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    keys, mids, n = edge_map
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    q = lo.astype(np.int64) * n + hi
+    pos = np.searchsorted(keys, q).clip(max=keys.size - 1)
+    if not np.all(keys[pos] == q):
+        raise FileFormatError("mesh: a boundary triangle edge is not an edge of any element")
+    return mids[pos]
+
+
+def boundary_faces(points: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(Trigs (n_f, 3), Trigs6 (n_f, 6) or None): the boundary triangles of a tetrahedral
+    mesh, oriented with outward normals; Trigs6 adds the edge nodes 01, 12, 20 (tetra10)."""
+    corners = cells[:, :4]
+    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+    faces = corners[:, local].reshape(-1, 3)
+    opposite = corners.reshape(-1)  # face i of a tet is opposite its vertex i
+    key = np.sort(faces, axis=1).astype(np.int64)
+    n = int(corners.max()) + 1
+    code = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+    _, inverse, counts = np.unique(code, return_inverse=True, return_counts=True)
+    boundary = counts[inverse] == 1
+    faces, opposite = faces[boundary], opposite[boundary]
+    a, b, c = (points[faces[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    inward = np.einsum("ij,ij->i", normal, points[opposite] - a) > 0
+    faces[inward] = faces[inward][:, [0, 2, 1]]
+    if cells.shape[1] != 10:
+        return faces, None
+    em = _edge_midnodes(cells)
+    mids = np.stack([_mid_of(em, faces[:, 0], faces[:, 1]), _mid_of(em, faces[:, 1], faces[:, 2]),
+                     _mid_of(em, faces[:, 2], faces[:, 0])], axis=1)
+    return faces, np.hstack([faces, mids])
+
+
+def region_node_weights(points: np.ndarray, cells: np.ndarray, triangles: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes, weights) of a region given by vertex triangles: every node of the region
+    (vertices, and edge nodes for tetra10) with its consistent area weight (area/3 per
+    edge node for P2, per vertex for P1), normalised to sum 1."""
+    tri = np.asarray(triangles, dtype=np.int64)
+    a, b, c = (points[tri[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if cells.shape[1] == 10:
+        em = _edge_midnodes(cells)
+        carriers = np.stack([_mid_of(em, tri[:, 0], tri[:, 1]), _mid_of(em, tri[:, 1], tri[:, 2]),
+                             _mid_of(em, tri[:, 2], tri[:, 0])], axis=1)
+        all_nodes = np.concatenate([tri.ravel(), carriers.ravel()])
+    else:
+        carriers = tri
+        all_nodes = tri.ravel()
+    nodes = np.unique(all_nodes)
+    weights = np.zeros(nodes.size)
+    np.add.at(weights, np.searchsorted(nodes, carriers.ravel()), np.repeat(area / 3.0, 3))
+    total = weights.sum()
+    return nodes, weights / total if total > 0 else weights
+
+
+# --------------------------------------------------------------------------- writer
+def _write(group, key: str, value: Any) -> None:
+    """One entry in Exudyn's tagged-HDF5 convention."""
+    import h5py
+
+    if isinstance(value, dict):
+        sub = group.create_group(key)
+        sub.attrs["datatype"] = "dict"
+        for k, v in value.items():
+            _write(sub, k, v)
+    elif isinstance(value, list):
+        sub = group.create_group(key)
+        sub.attrs["datatype"] = "list"
+        for i, v in enumerate(value):
+            _write(sub, f"item_{i}", v)
+    elif sp.issparse(value):
+        A = sp.csr_matrix(value)
+        sub = group.create_group(key)
+        sub.attrs["datatype"] = "csr_matrix"
+        for part, arr in (("data", A.data), ("indices", A.indices), ("indptr", A.indptr),
+                          ("shape", np.array(A.shape))):
+            sub.create_dataset(part, data=arr)
+            sub[part].attrs["datatype"] = "ndarray"  # Exudyn ignores it here; tagged anyway
+    elif isinstance(value, np.ndarray):
+        group.create_dataset(key, data=value)
+        group[key].attrs["datatype"] = "ndarray"
+    elif isinstance(value, str):
+        group.create_dataset(key, data=value, dtype=h5py.string_dtype("utf-8"))
+        group[key].attrs["datatype"] = "str"
+    elif isinstance(value, (bool, int, float)):
+        group.create_dataset(key, data=value)
+        group[key].attrs["datatype"] = type(value).__name__
+    else:
+        raise TypeError(f"exudyn export: cannot write {key!r} of type {type(value).__name__}")
+
+
+def write_tagged_hdf5(path: Path, data: dict[str, Any]) -> Path:
+    """Write ``data`` (nested dict / list / ndarray / csr / str / int / float) to ``path``
+    atomically (temporary file, then rename)."""
+    import os
+
+    import h5py
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with h5py.File(tmp, "w") as h5:
+            for key, value in data.items():
+                _write(h5, key, value)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+# --------------------------------------------------------------------------- export
+def _basis(h5, basis: str, n_dofs: int) -> tuple[np.ndarray, str, str]:
+    """(matrix (n_dofs, n), Exudyn type, description)."""
+    from pipeline.store.h5file import read_strings
+
+    if basis == "auto":
+        basis = "craig_bampton" if "craig_bampton/shapes" in h5 else "modes"
+    if basis == "craig_bampton":
+        if "craig_bampton/shapes" not in h5:
+            raise FileFormatError(f"file '{h5.filename}': has no /craig_bampton/shapes; expected "
+                                  "a run with a craig_bampton section (or use basis='modes')")
+        S = h5["craig_bampton/shapes"][()].reshape(n_dofs, -1)
+        names = read_strings(h5["craig_bampton/coordinate_names"])
+        first = read_strings(h5["craig_bampton/interface_names"])[0]
+        keep = [i for i, nm in enumerate(names) if not nm.startswith(first + ".")]
+        return (S[:, keep], "HCBmodes",
+                f"Craig-Bampton basis without the static modes of interface '{first}' "
+                "(the floating frame follows it): " + ", ".join(names[i] for i in keep))
+    if basis != "modes":
+        raise FileFormatError(f"exudyn export: basis {basis!r} is not one of {', '.join(BASES)}")
+    S = h5["modes/shapes"][()].reshape(n_dofs, -1)
+    omega2 = h5["modes/omega2"][()]
+    n_rigid = int(h5["modes"].attrs.get("n_rigid", 0))
+    keep = np.arange(n_rigid, omega2.size)
+    fixed = h5["mesh/fixed_dofs"][()] if "mesh/fixed_dofs" in h5 else np.zeros(0)
+    what = ("modes of the supported body (zero on its supports)" if fixed.size
+            else "elastic free-free modes (rigid-body modes dropped)")
+    return S[:, keep], "NormalModes", what
+
+
+def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto") -> Path:
+    """Write the Exudyn FEMinterface file ``out_path`` (must end in ``.hdf5``) from our
+    HDF5 file ``h5_path``. Returns ``out_path``. See the module docstring."""
+    from pipeline import __version__
+    from pipeline.store.h5file import open_verified
+
+    out = Path(out_path)
+    if out.suffix.lower() != ".hdf5":
+        raise FileFormatError(f"exudyn export: output '{out}' must end in '.hdf5' (Exudyn "
+                              "loads HDF5 only from that ending; '.h5' is read as NumPy)")
+    with open_verified(h5_path) as h5:
+        for need in ("fe/mass_matrix", "fe/stiffness_matrix"):
+            if need not in h5:
+                raise FileFormatError(
+                    f"file '{h5_path}': has no /{need}, which Exudyn needs (it computes its "
+                    "reduced matrices and inertia invariants from the full M and K); re-run "
+                    "with the Exudyn datasets (pipeline.apps.exports.exudyn.exudyn_datasets)")
+        points = h5["mesh/points"][()].astype(float)
+        cell_key = "tetra10" if "mesh/cells/tetra10" in h5 else "tetra"
+        cells = h5[f"mesh/cells/{cell_key}"][()].astype(np.int64)
+        n_dofs = 3 * points.shape[0]
+        M = read_csr(h5, "fe/mass_matrix")
+        K = read_csr(h5, "fe/stiffness_matrix")
+        if M.shape != (n_dofs, n_dofs) or K.shape != (n_dofs, n_dofs):
+            raise FileFormatError(f"file '{h5_path}': /fe matrices are {M.shape}, {K.shape}; "
+                                  f"expected ({n_dofs}, {n_dofs}) for {points.shape[0]} points")
+        Psi, kind, what = _basis(h5, basis, n_dofs)
+        regions = {name: h5[f"mesh/regions/{name}"][()] for name in h5.get("mesh/regions", {})}
+        name = h5.attrs.get("name", Path(h5_path).stem)
+        name = name.decode() if isinstance(name, bytes) else str(name)
+    Kr = Psi.T @ (K @ Psi)
+    Mr = Psi.T @ (M @ Psi)
+    import scipy.linalg as sla
+
+    eig = sla.eigh(0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T), eigvals_only=True)
+    trigs, trigs6 = boundary_faces(points, cells)
+    surface: dict[str, Any] = {"Name": "boundary", "Trigs": trigs.astype(np.int64)}
+    if trigs6 is not None:
+        surface["Trigs6"] = trigs6.astype(np.int64)
+    node_sets = []
+    for rname, tris in regions.items():
+        nodes, weights = region_node_weights(points, cells, tris)
+        node_sets.append({"Name": str(rname), "NodeNumbers": nodes.astype(np.int64),
+                          "NodeWeights": weights})
+    data = {
+        "metaData": {"source": f"fe-reduced-body {__version__}", "file": str(h5_path),
+                     "name": name, "basis": what, "units": "SI (m, kg, s, N)"},
+        "nodes": {"Position": points},
+        "elements": [{"Name": "body", "Tet10" if cell_key == "tetra10" else "Tet4": cells}],
+        "massMatrix": M,
+        "stiffnessMatrix": K,
+        "surface": [surface],
+        "nodeSets": node_sets,
+        "elementSets": [],
+        "modeBasis": {"matrix": np.ascontiguousarray(Psi), "type": kind},
+        "eigenValues": np.abs(eig),
+        "postProcessingModes": {},
+        "fileVersion": 4,
+        "type": "FEMinterface",
+    }
+    write_tagged_hdf5(out, data)
+    log.info("wrote Exudyn FEMinterface file %s (%d nodes, %d %s)", out, points.shape[0],
+             Psi.shape[1], kind)
+    return out

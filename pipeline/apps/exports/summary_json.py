@@ -1,0 +1,191 @@
+"""Export a small JSON summary for scripts and dashboards.
+
+``python -m pipeline export FILE.h5 --to json`` writes (SI units)::
+
+    {"format": "fe-reduced-body summary", "version": 1,
+     "name", "source_file", "created_utc", "pipeline_version",
+     "body": {"mass_kg", "center_of_mass_m"},
+     "mesh": {"points", "cells", "cell_type", "dofs"},
+     "modes": [{"mode": 1, "frequency_hz": ..., "label": ...}, ...],
+     "ports": {"inputs": [{"name", "region", "kind", "direction", "unit"}],
+               "outputs": [...]},                  # from the run's config
+     "reduced_model": {"states", "retained_modes", "damping_ratios", "static_correction",
+                       "inputs", "outputs",
+                       "dc_gain": {input: {position output: value}},
+                       "dc_gain_full_fe": {...}},  # T K^-1 F of the full FE model
+     "filtered_model": {"states", "filter_kind", "cutoff_hz", "dc_gain"} | null,
+     "lumped_model": {"states", "frequencies_hz"} | null}
+
+DC gains are ``D - C A^-1 B`` of each state space, for the position outputs; ``null``
+where the model has no static gain (a free body keeps rigid modes: A is singular).
+Everything not finite is written as ``null``, so any JSON parser reads the file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.store.h5file import open_verified, read_strings
+
+log = logging.getLogger(__name__)
+
+__all__ = ["export", "summary", "FORMAT", "VERSION"]
+
+FORMAT = "fe-reduced-body summary"
+VERSION = 1
+
+
+def _clean(value: Any) -> Any:
+    """Plain JSON types; NaN/inf -> None."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    if isinstance(value, (np.bool_,)):
+        return bool(value)
+    return value
+
+
+def _names(grp, key: str) -> list[str]:
+    if key in grp:
+        return read_strings(grp[key])
+    return read_strings(grp["A"].attrs.get(key, []))
+
+
+def _dc_gain(grp) -> np.ndarray | None:
+    A, B, C, D = (np.atleast_2d(np.array(grp[k][()], dtype=float)) for k in "ABCD")
+    try:
+        if np.linalg.cond(A) > 1e14:
+            return None
+        return D - C @ np.linalg.solve(A, B)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _gain_table(gain: np.ndarray | None, inputs: list[str], outputs: list[str]) -> dict | None:
+    if gain is None:
+        return None
+    pos = [i for i, n in enumerate(outputs) if n.endswith("/position")] or range(len(outputs))
+    return {inp: {outputs[o]: gain[o, c] for o in pos} for c, inp in enumerate(inputs)}
+
+
+def _ports(config_yaml: str | None, units: tuple[list[str], list[str]]) -> dict:
+    if not config_yaml:
+        return {"inputs": [], "outputs": []}
+    import yaml
+
+    try:
+        raw = yaml.safe_load(config_yaml) or {}
+    except yaml.YAMLError:
+        return {"inputs": [], "outputs": []}
+    ports = raw.get("ports") or {}
+    out = {}
+    for side, unit_list in (("inputs", units[0]), ("outputs", units[1])):
+        items = []
+        for i, p in enumerate(ports.get(side) or []):
+            item = {k: p.get(k) for k in ("name", "region", "kind", "direction")}
+            if i < len(unit_list):
+                item["unit"] = unit_list[i]
+            items.append(item)
+        out[side] = items
+    return out
+
+
+def summary(h5_path: str | Path) -> dict:
+    """The summary of ``h5_path`` (verified read) as a dict of plain JSON types."""
+    h5_path = Path(h5_path)
+    with open_verified(h5_path) as h5:
+        a = h5.attrs
+        freqs = np.array(h5["modes/frequencies_hz"][()], dtype=float)
+        labels = read_strings(h5["modes/labels"])
+        cells_group = h5["mesh/cells"]
+        kind = next(iter(cells_group))
+        mesh_attrs = h5["mesh"].attrs
+        units: tuple[list[str], list[str]] = ([], [])
+        reduced = filtered = lumped = None
+        if "statespace" in h5:
+            ss = h5["statespace"]
+            units = (read_strings(ss.attrs["input_units"]) if "input_units" in ss.attrs else [],
+                     read_strings(ss.attrs["output_units"]) if "output_units" in ss.attrs else [])
+            inputs, outputs = _names(ss, "input_names"), _names(ss, "output_names")
+            damping = np.array(ss["damping_ratios"][()]) if "damping_ratios" in ss else []
+            compliance = (np.atleast_2d(np.array(ss["static_compliance"][()]))
+                          if "static_compliance" in ss else None)
+            fe_gain = None
+            if compliance is not None:
+                pos = [o for o in outputs if o.endswith("/position")] or outputs
+                fe_gain = {inp: {pos[o]: compliance[o, c] for o in range(min(len(pos),
+                                                                             compliance.shape[0]))}
+                           for c, inp in enumerate(inputs) if c < compliance.shape[1]}
+            reduced = {
+                "states": int(ss["A"].shape[0]),
+                "retained_modes": int(len(damping)),
+                "damping_ratios": damping,
+                "static_correction": str(ss.attrs.get("static_correction", "")),
+                "inputs": inputs,
+                "outputs": outputs,
+                "dc_gain": _gain_table(_dc_gain(ss), inputs, outputs),
+                "dc_gain_full_fe": fe_gain,
+            }
+            if "statespace_filtered" in h5:
+                fs = h5["statespace_filtered"]
+                f_out = _names(fs, "output_names")
+                filtered = {
+                    "states": int(fs["A"].shape[0]),
+                    "filter_kind": str(fs.attrs.get("filter_kind", "")),
+                    "cutoff_hz": float(fs.attrs["cutoff_hz"]) if "cutoff_hz" in fs.attrs else None,
+                    "dc_gain": _gain_table(_dc_gain(fs), _names(fs, "input_names"), f_out),
+                }
+        if "lumped/statespace" in h5:
+            lumped = {"states": int(h5["lumped/statespace/A"].shape[0])}
+            if "lumped/frequencies_hz" in h5:
+                lumped["frequencies_hz"] = np.array(h5["lumped/frequencies_hz"][()])[:10]
+        data = {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": str(a.get("name", h5_path.stem)),
+            "source_file": str(h5_path),
+            "created_utc": str(a.get("created_utc", "")),
+            "pipeline_version": str(a.get("pipeline_version", "")),
+            "body": {"mass_kg": float(h5["body/mass"][()]),
+                     "center_of_mass_m": np.array(h5["body/center_of_mass"][()])},
+            "mesh": {"points": int(h5["mesh/points"].shape[0]),
+                     "cells": int(cells_group[kind].shape[0]), "cell_type": kind,
+                     "dofs": int(mesh_attrs.get("n_dofs", 3 * h5["mesh/points"].shape[0]))},
+            "modes": [{"mode": i + 1, "frequency_hz": f,
+                       "label": labels[i] if i < len(labels) else ""} for i, f in enumerate(freqs)],
+            "ports": _ports(a.get("config_yaml"), units),
+            "reduced_model": reduced,
+            "filtered_model": filtered,
+            "lumped_model": lumped,
+        }
+    return _clean(data)
+
+
+def export(h5_path: str | Path, out_path: str | Path) -> Path:
+    """Write the JSON summary of ``h5_path`` to ``out_path``; returns it."""
+    out_path = Path(out_path)
+    text = json.dumps(summary(h5_path), indent=2, allow_nan=False) + "\n"
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(f".{out_path.name}.partial")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(out_path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    log.info("wrote %s", out_path)
+    return out_path

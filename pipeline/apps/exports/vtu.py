@@ -1,0 +1,145 @@
+"""Export the mesh and every mode shape for ParaView: VTU (``.vtu``) or XDMF (``.xdmf``).
+
+``python -m pipeline export FILE.h5 --to vtu`` (or ``--to xdmf``) writes, with meshio:
+
+- the mesh: /mesh/points and the /mesh/cells (``tetra10``: ParaView draws the quadratic
+  cells; or ``tetra``);
+- point data ``mode_NN_<f>Hz`` (n_points x 3): the M-orthonormal shape of mode NN,
+  one array per mode (in ParaView: *Warp By Vector* with that array, and colour by it);
+- point data ``fixed_components`` (0..3: how many displacement components the supports
+  fix at each point) and ``region_<name>`` (1 on the points of each named region);
+- the frequencies: in the VTU as field data ``frequencies_hz`` (all modes, Hz) and
+  ``mode_numbers`` (meshio does not write field data, so it is added to the XML here);
+  XDMF has no field data that meshio and ParaView both read, so there the frequencies
+  are in the array names and in the dataset ``/frequencies_hz`` of the sidecar file.
+
+XDMF keeps its arrays in a sidecar HDF5 file named like the ``.xdmf`` with ``.h5``:
+that is why the default name is ``<stem>.modes.xdmf`` (sidecar ``<stem>.modes.h5``),
+and an output whose sidecar would overwrite the input file is refused.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.store.h5file import open_verified, read_strings
+
+log = logging.getLogger(__name__)
+
+__all__ = ["export", "export_vtu", "export_xdmf", "mode_mesh", "mode_array_name"]
+
+
+def mode_array_name(index: int, frequency_hz: float) -> str:
+    """Point-data name of mode ``index`` (0-based), e.g. ``mode_01_65.75Hz``."""
+    f = f"{frequency_hz:.1f}" if abs(frequency_hz) >= 100 else f"{frequency_hz:.4g}"
+    return f"mode_{index + 1:02d}_{f}Hz"
+
+
+def mode_mesh(h5_path: str | Path):
+    """A :class:`meshio.Mesh` of ``h5_path`` (verified) with every mode as point data."""
+    import meshio
+
+    with open_verified(h5_path) as h5:
+        points = np.array(h5["mesh/points"][()], dtype=np.float64)
+        cells_group = h5["mesh/cells"]
+        kind = "tetra10" if "tetra10" in cells_group else next(iter(cells_group))
+        cells = np.array(cells_group[kind][()], dtype=np.int64)
+        shapes = np.array(h5["modes/shapes"][()], dtype=np.float64)
+        freqs = np.array(h5["modes/frequencies_hz"][()], dtype=np.float64)
+        labels = read_strings(h5["modes/labels"])
+        fixed = (np.array(h5["mesh/fixed_dofs"][()], dtype=np.int64)
+                 if "mesh/fixed_dofs" in h5 else np.zeros(0, np.int64))
+        regions = {name: np.array(h5[f"mesh/regions/{name}"][()], dtype=np.int64)
+                   for name in (h5["mesh/regions"] if "mesh/regions" in h5 else [])}
+    point_data: dict[str, np.ndarray] = {}
+    for i, f in enumerate(freqs):
+        point_data[mode_array_name(i, f)] = np.ascontiguousarray(shapes[:, :, i])
+    point_data["fixed_components"] = np.bincount(fixed // 3, minlength=points.shape[0]
+                                                 ).astype(np.int32)[:points.shape[0]]
+    for name, tris in regions.items():
+        mask = np.zeros(points.shape[0], dtype=np.int32)
+        mask[np.unique(tris)] = 1
+        point_data[f"region_{name}"] = mask
+    log.debug("mode labels: %s", ", ".join(labels))
+    return meshio.Mesh(points, [(kind, cells)], point_data=point_data,
+                       field_data={"frequencies_hz": freqs,
+                                   "mode_numbers": np.arange(1, freqs.size + 1, dtype=np.int32)})
+
+
+def export_vtu(h5_path: str | Path, out_path: str | Path) -> Path:
+    """Write a VTU file (binary, zlib-compressed) of ``h5_path``; returns its path."""
+    import meshio
+
+    out_path = Path(out_path)
+    mesh = mode_mesh(h5_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(f".{out_path.stem}.{os.getpid()}.partial.vtu")
+    try:
+        meshio.write(tmp, mesh, file_format="vtu", binary=True, compression="zlib")
+        _add_field_data(tmp, mesh.field_data)
+        tmp.replace(out_path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    log.info("wrote %s (%d points, %d modes)", out_path, len(mesh.points),
+             len(mesh.field_data["frequencies_hz"]))
+    return out_path
+
+
+def _add_field_data(path: Path, field_data: dict[str, np.ndarray]) -> None:
+    """Insert ``<FieldData>`` (ASCII arrays) into a VTU file written by meshio."""
+    arrays = []
+    for name, data in field_data.items():
+        data = np.asarray(data).ravel()
+        if data.dtype.kind == "f":
+            vtk_type, text = "Float64", " ".join(f"{v:.17g}" for v in data)
+        else:
+            vtk_type, text = "Int32", " ".join(str(int(v)) for v in data)
+        arrays.append(f'<DataArray type="{vtk_type}" Name="{name}" NumberOfTuples="{data.size}" '
+                      f'format="ascii">{text}</DataArray>')
+    block = ("<FieldData>" + "".join(arrays) + "</FieldData>").encode()
+    raw = path.read_bytes()
+    tag = b"<UnstructuredGrid>"
+    at = raw.find(tag)
+    if at < 0:  # pragma: no cover - meshio always writes it
+        raise RuntimeError(f"'{path}': no <UnstructuredGrid> element to add field data to")
+    at += len(tag)
+    path.write_bytes(raw[:at] + block + raw[at:])
+
+
+def export_xdmf(h5_path: str | Path, out_path: str | Path) -> Path:
+    """Write an XDMF file (+ its ``<stem>.h5`` sidecar) of ``h5_path``; returns the .xdmf."""
+    import meshio
+
+    out_path = Path(out_path)
+    if out_path.suffix.lower() != ".xdmf":
+        raise ConfigError(f"export output: got '{out_path}', expected a name ending in .xdmf")
+    sidecar = out_path.with_suffix(".h5")
+    if sidecar.resolve() == Path(h5_path).resolve():
+        raise ConfigError(f"export output: '{out_path}' would write its data to '{sidecar}', "
+                          "the input file itself; expected another name (the default is "
+                          "<stem>.modes.xdmf)")
+    mesh = mode_mesh(h5_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    meshio.write(out_path, mesh, file_format="xdmf")
+    import h5py
+
+    with h5py.File(sidecar, "a") as side:
+        side.create_dataset("frequencies_hz", data=mesh.field_data["frequencies_hz"])
+    log.info("wrote %s and %s", out_path, sidecar)
+    return out_path
+
+
+def export(h5_path: str | Path, out_path: str | Path) -> Path:
+    """VTU or XDMF by the ending of ``out_path`` (.vtu | .xdmf)."""
+    suffix = Path(out_path).suffix.lower()
+    if suffix == ".xdmf":
+        return export_xdmf(h5_path, out_path)
+    if suffix == ".vtu":
+        return export_vtu(h5_path, out_path)
+    raise ConfigError(f"export output: got '{out_path}', expected a name ending in .vtu or .xdmf")

@@ -1,0 +1,632 @@
+"""Pictures of an HDF5 result: ``python -m pipeline plot FILE.h5 [-o DIR]``.
+
+Reads only the HDF5 file (verified: schema, version, checksum) and writes, into
+``DIR`` (default: ``<FILE stem>_plots`` next to the file):
+
+- ``mode_NN.png``: mode NN, the deformed body (boundary surface coloured by the
+  displacement magnitude, lit) over the undeformed outline (feature edges), with its
+  frequency and label in the title; quadratic elements are drawn with their
+  edge-midpoint nodes, so bending looks curved, not faceted;
+- ``modes.png``: all modes (up to 12) side by side, small;
+- ``frequencies.png`` and ``frequencies.csv``: the frequency table (mode, Hz, label,
+  and for the modes kept in the reduced model their damping ratio);
+- where the file holds a reduced model (``/statespace``): ``bode.png``, the magnitude
+  of every input -> position output of the plant (and of the filtered model, dashed),
+  and ``step.png``, the response of every position output to a unit step of every
+  input (via :func:`pipeline.store.read.load_model` and python-control).
+
+Only matplotlib's object API is used (no pyplot, no global backend switch), so this
+module is safe to call from a library or a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.store.h5file import open_verified, read_strings
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ModeData", "read_modes", "boundary_surface", "plot_mode", "plot_modes_overview",
+           "plot_frequency_table", "plot_bode", "plot_step", "plot_file", "add_plot_parser"]
+
+#: Largest deformation drawn, as a fraction of the body's largest dimension.
+DEFORMATION_FRACTION = 0.12
+#: Feature edges: boundary edges whose two faces meet at more than this angle (degrees).
+FEATURE_ANGLE_DEG = 40.0
+#: Subdivide quadratic faces (4 flat triangles each) while the surface has fewer faces.
+SUBDIVIDE_BELOW = 6000
+CMAP = "turbo"
+DPI = 130
+
+# faces of a tetrahedron (local corner indices; the fourth corner is opposite)
+_TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+_TET_OPPOSITE = np.array([0, 1, 2, 3])
+# local node of the midpoint of corner edge (i, j) in meshio's tetra10 order
+_TET10_EDGE = {(0, 1): 4, (1, 2): 5, (0, 2): 6, (0, 3): 7, (1, 3): 8, (2, 3): 9}
+
+
+@dataclass(frozen=True)
+class ModeData:
+    """What the pictures need from the file."""
+
+    name: str
+    points: np.ndarray            # (n_p, 3) m
+    cells: np.ndarray             # (n_t, 4 | 10) node indices, meshio order
+    shapes: np.ndarray            # (n_p, 3, n_m)
+    frequencies_hz: np.ndarray    # (n_m,)
+    labels: tuple[str, ...]
+    fixed_nodes: np.ndarray       # nodes with at least one constrained DOF
+    retained_damping: np.ndarray  # damping ratios of the modes kept in /statespace (or empty)
+    has_statespace: bool
+
+
+def read_modes(path: str | Path) -> ModeData:
+    """The mesh, modes and labels of an HDF5 result file (verified)."""
+    with open_verified(path) as h5:
+        cells_group = h5["mesh/cells"]
+        kind = "tetra10" if "tetra10" in cells_group else next(iter(cells_group))
+        fixed = np.array(h5["mesh/fixed_dofs"][()]) if "mesh/fixed_dofs" in h5 else np.zeros(0)
+        damping = (np.array(h5["statespace/damping_ratios"][()])
+                   if "statespace/damping_ratios" in h5 else np.zeros(0))
+        return ModeData(
+            name=str(h5.attrs.get("name", Path(path).stem)),
+            points=np.array(h5["mesh/points"][()], dtype=float),
+            cells=np.array(cells_group[kind][()], dtype=np.int64),
+            shapes=np.array(h5["modes/shapes"][()], dtype=float),
+            frequencies_hz=np.array(h5["modes/frequencies_hz"][()], dtype=float),
+            labels=tuple(read_strings(h5["modes/labels"])),
+            fixed_nodes=np.unique(fixed.astype(np.int64) // 3),
+            retained_damping=damping,
+            has_statespace="statespace" in h5,
+        )
+
+
+# --------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class Surface:
+    """The boundary of a tetrahedral mesh, for drawing.
+
+    triangles: (n_f, 3) corner node indices, outward oriented.
+    drawn: (n_d, 3) node indices of the triangles to draw (the corner triangles, or
+        four per corner triangle through the edge midpoints of quadratic cells).
+    feature_edges: (n_e, k) node chains of the outline (k = 2, or 3 through the
+        midpoint for quadratic cells).
+    """
+
+    triangles: np.ndarray
+    drawn: np.ndarray
+    feature_edges: np.ndarray
+
+
+def boundary_surface(points: np.ndarray, cells: np.ndarray,
+                     feature_angle_deg: float = FEATURE_ANGLE_DEG,
+                     subdivide_below: int = SUBDIVIDE_BELOW) -> Surface:
+    """Outward boundary triangles, what to draw, and the feature edges."""
+    corners = cells[:, :4]
+    faces = corners[:, _TET_FACES].reshape(-1, 3)                      # (4 n_t, 3)
+    opposite = corners[:, _TET_OPPOSITE].reshape(-1)
+    key = np.sort(faces, axis=1)
+    _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    outer = first[counts == 1]
+    tri = faces[outer].copy()
+    # orient outward: the normal points away from the opposite corner
+    a, b, c = (points[tri[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    inward = np.einsum("ij,ij->i", normal, points[opposite[outer]] - a) > 0
+    tri[inward] = tri[inward][:, [0, 2, 1]]
+
+    quadratic = cells.shape[1] == 10
+    mid = None
+    if quadratic:
+        table = np.zeros((4, 4), dtype=np.int64)
+        for (p, q), node in _TET10_EDGE.items():
+            table[p, q] = node
+        elem = outer // 4
+        # midpoint node of each face edge (ab, bc, ca), looked up in the element
+        mid = np.empty((tri.shape[0], 3), dtype=np.int64)
+        cell_rows = cells[elem]
+        for k, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+            ni, nj = tri[:, i], tri[:, j]
+            li = np.argmax(cell_rows[:, :4] == ni[:, None], axis=1)
+            lj = np.argmax(cell_rows[:, :4] == nj[:, None], axis=1)
+            lo, hi = np.minimum(li, lj), np.maximum(li, lj)
+            mid[:, k] = cell_rows[np.arange(len(elem)), table[lo, hi]]
+    if quadratic and tri.shape[0] < subdivide_below:
+        ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+        drawn = np.concatenate([np.stack([tri[:, 0], ab, ca], 1), np.stack([ab, tri[:, 1], bc], 1),
+                                np.stack([ca, bc, tri[:, 2]], 1), np.stack([ab, bc, ca], 1)])
+    else:
+        drawn = tri
+
+    # feature edges: where the outward normals of the two faces differ by more than the angle
+    n = normal * np.where(inward, -1.0, 1.0)[:, None]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    owner = np.tile(np.arange(tri.shape[0]), 3)
+    emid = mid.T.reshape(-1) if mid is not None else None
+    ekey = np.sort(edges, axis=1)
+    order = np.lexsort((ekey[:, 1], ekey[:, 0]))
+    ekey, owner, edges = ekey[order], owner[order], edges[order]
+    if emid is not None:
+        emid = emid[order]
+    same = np.all(ekey[1:] == ekey[:-1], axis=1)
+    pair = np.flatnonzero(same)                       # edge i and i+1 are one edge
+    cos = np.einsum("ij,ij->i", n[owner[pair]], n[owner[pair + 1]])
+    sharp = pair[cos < np.cos(np.radians(feature_angle_deg))]
+    lonely = np.ones(len(ekey), dtype=bool)
+    lonely[pair] = False
+    lonely[pair + 1] = False                          # an open edge (should not happen)
+    pick = np.concatenate([sharp, np.flatnonzero(lonely)])
+    if emid is not None:
+        feature = np.stack([ekey[pick, 0], emid[pick], ekey[pick, 1]], axis=1)
+    else:
+        feature = ekey[pick]
+    return Surface(tri, drawn, feature)
+
+
+def _deformation_scale(points: np.ndarray, u: np.ndarray) -> float:
+    extent = float(np.ptp(points, axis=0).max())
+    peak = float(np.linalg.norm(u, axis=1).max())
+    return DEFORMATION_FRACTION * extent / peak if peak > 0 else 0.0
+
+
+# --------------------------------------------------------------------------- mode pictures
+#: A body whose longest side exceeds this many times the next one is drawn as a side view.
+SLENDER_RATIO = 8.0
+
+
+def is_slender(points: np.ndarray) -> bool:
+    """Long and thin: drawn as a 2D side view (a 3D view would show a line)."""
+    e = np.sort(np.ptp(points, axis=0))[::-1]
+    return bool(e[0] > SLENDER_RATIO * max(e[1], 1e-12))
+
+
+def _side_axes(points: np.ndarray, u: np.ndarray) -> tuple[int, int, int]:
+    """(long axis, the transverse axis the mode moves most along, the other one)."""
+    long_axis = int(np.argmax(np.ptp(points, axis=0)))
+    others = [i for i in range(3) if i != long_axis]
+    motion = [float(np.abs(u[:, i]).max()) for i in others]
+    trans = others[int(np.argmax(motion))] if max(motion) > 0 else others[0]
+    depth = [i for i in others if i != trans][0]
+    return long_axis, trans, depth
+
+
+def _face_colours(mag: np.ndarray, drawn: np.ndarray):
+    import matplotlib
+
+    peak = mag.max() if mag.max() > 0 else 1.0
+    return matplotlib.colormaps[CMAP](mag[drawn].mean(axis=1) / peak)
+
+
+def _draw_mode_2d(ax, data: ModeData, surface: Surface, mode: int, *, colorbar_fig=None,
+                  small=False) -> None:
+    """Side view of a slender body: long axis across, the mode's main transverse axis up."""
+    from matplotlib import cm, colors
+    import matplotlib
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    u = data.shapes[:, :, mode]
+    scale = _deformation_scale(data.points, u)
+    moved = data.points + scale * u
+    i, j, k = _side_axes(data.points, u)
+    mag = np.linalg.norm(u, axis=1)
+    rgba = _face_colours(mag, surface.drawn)
+    order = np.argsort(moved[surface.drawn][:, :, k].mean(axis=1))  # far faces first
+    polys = moved[surface.drawn[order]][:, :, [i, j]]
+    ax.add_collection(PolyCollection(polys, facecolors=rgba[order], edgecolors=rgba[order],
+                                     linewidths=0.3))
+    if surface.feature_edges.size:
+        ax.add_collection(LineCollection(data.points[surface.feature_edges][:, :, [i, j]],
+                                         colors="0.55", linewidths=0.8))
+        ax.add_collection(LineCollection(moved[surface.feature_edges][:, :, [i, j]],
+                                         colors="black", linewidths=0.4, alpha=0.8))
+    both = np.vstack([data.points, moved])[:, [i, j]]
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    pad = 0.05 * (hi - lo) + 1e-12
+    ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
+    ax.set_ylim(lo[1] - 3 * pad[1], hi[1] + 3 * pad[1])
+    names = "xyz"
+    ax.set_xlabel(f"{names[i]} (m)", fontsize=8 if small else 10)
+    ax.set_ylabel(f"{names[j]} (m)", fontsize=8 if small else 10)
+    ax.tick_params(labelsize=7 if small else 9)
+    ax.grid(alpha=0.25)
+    if colorbar_fig is not None:
+        mappable = cm.ScalarMappable(norm=colors.Normalize(0, 1),
+                                     cmap=matplotlib.colormaps[CMAP])
+        bar = colorbar_fig.colorbar(mappable, ax=ax, shrink=0.8, pad=0.02)
+        bar.set_label("|u| / max |u|")
+
+
+def _draw_mode(ax, data: ModeData, surface: Surface, mode: int, *, light=True, outline=True,
+               colorbar_fig=None) -> None:
+    import matplotlib
+    from matplotlib import cm, colors
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+
+    u = data.shapes[:, :, mode]
+    scale = _deformation_scale(data.points, u)
+    moved = data.points + scale * u
+    mag = np.linalg.norm(u, axis=1)
+    peak = mag.max() if mag.max() > 0 else 1.0
+    norm = colors.Normalize(0.0, 1.0)
+    cmap = matplotlib.colormaps[CMAP]
+    face_value = mag[surface.drawn].mean(axis=1) / peak
+    rgba = cmap(norm(face_value))
+    if light:
+        a, b, c = (moved[surface.drawn[:, i]] for i in range(3))
+        nrm = np.cross(b - a, c - a)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True) + 1e-300
+        to_light = np.array([-0.4, -0.5, 0.75])
+        to_light /= np.linalg.norm(to_light)
+        shade = 0.55 + 0.45 * np.abs(nrm @ to_light)
+        rgba[:, :3] *= shade[:, None]
+    poly = Poly3DCollection(moved[surface.drawn], facecolors=rgba, edgecolors="none",
+                            linewidths=0.0, antialiased=False)
+    ax.add_collection3d(poly)
+    if outline and surface.feature_edges.size:
+        undeformed = Line3DCollection(data.points[surface.feature_edges], colors="0.35",
+                                      linewidths=0.7, linestyles="-", alpha=0.75)
+        ax.add_collection3d(undeformed)
+        deformed = Line3DCollection(moved[surface.feature_edges], colors="black",
+                                    linewidths=0.5, alpha=0.9)
+        ax.add_collection3d(deformed)
+    both = np.vstack([data.points, moved])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    span = np.maximum(hi - lo, 1e-3 * (hi - lo).max())
+    centre = 0.5 * (lo + hi)
+    ax.set_xlim(centre[0] - span[0] / 2, centre[0] + span[0] / 2)
+    ax.set_ylim(centre[1] - span[1] / 2, centre[1] + span[1] / 2)
+    ax.set_zlim(centre[2] - span[2] / 2, centre[2] + span[2] / 2)
+    ax.set_box_aspect(tuple(np.maximum(span / span.max(), 0.02)), zoom=1.15)
+    ax.view_init(elev=24, azim=-58)
+    ax.set_axis_off()
+    if colorbar_fig is not None:
+        mappable = cm.ScalarMappable(norm=norm, cmap=cmap)
+        bar = colorbar_fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02)
+        bar.set_label("|u| / max |u|")
+
+
+def _fmt_hz(f: float) -> str:
+    return f"{f:.1f}" if abs(f) >= 100 else f"{f:.4g}"
+
+
+def _title(data: ModeData, mode: int) -> str:
+    label = data.labels[mode] if mode < len(data.labels) else ""
+    return f"mode {mode + 1}: {_fmt_hz(data.frequencies_hz[mode])} Hz" + (
+        f"  ({label})" if label else "")
+
+
+def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
+    """One mode (0-based index) as a PNG."""
+    from matplotlib.figure import Figure
+
+    surface = surface or boundary_surface(data.points, data.cells)
+    slender = is_slender(data.points)
+    fig = Figure(figsize=(9.0, 4.8) if slender else (8.0, 6.0), dpi=DPI, facecolor="white")
+    if slender:
+        ax = fig.add_subplot()
+        fig.subplots_adjust(left=0.1, right=0.98, top=0.86, bottom=0.2)
+        _draw_mode_2d(ax, data, surface, mode, colorbar_fig=fig)
+        view = "side view, not to scale across"
+    else:
+        ax = fig.add_subplot(projection="3d", computed_zorder=False)
+        _draw_mode(ax, data, surface, mode, colorbar_fig=fig)
+        view = "3D view"
+    fig.suptitle(_title(data, mode), fontsize=14, fontweight="bold", y=0.96)
+    extent = np.ptp(data.points, axis=0)
+    fig.text(0.5, 0.025, f"{data.name}: body {' x '.join(f'{e * 1e3:.4g}' for e in extent)} mm, "
+             f"{view}; deformation exaggerated to {DEFORMATION_FRACTION:.0%} of the largest "
+             "dimension; grey: undeformed outline", ha="center", fontsize=8, color="0.3")
+    out = Path(out)
+    fig.savefig(out, dpi=DPI, facecolor="white")
+    return out
+
+
+def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None = None,
+                        max_modes: int = 12) -> Path:
+    """Small multiples of the first ``max_modes`` modes."""
+    from matplotlib.figure import Figure
+
+    n = min(data.frequencies_hz.size, max_modes)
+    surface = surface or boundary_surface(data.points, data.cells, subdivide_below=0)
+    slender = is_slender(data.points)
+    cols = min(n, 2 if slender else 4)
+    rows = int(np.ceil(n / cols))
+    size = (5.0 * cols, 2.4 * rows + 0.7) if slender else (3.4 * cols, 3.0 * rows + 0.6)
+    fig = Figure(figsize=size, dpi=DPI, facecolor="white")
+    for k in range(n):
+        if slender:
+            ax = fig.add_subplot(rows, cols, k + 1)
+            _draw_mode_2d(ax, data, surface, k, small=True)
+        else:
+            ax = fig.add_subplot(rows, cols, k + 1, projection="3d", computed_zorder=False)
+            _draw_mode(ax, data, surface, k, outline=True, light=True)
+        ax.set_title(_title(data, k), fontsize=9)
+    fig.suptitle(f"{data.name}: {n} modes", fontsize=13, fontweight="bold")
+    if slender:
+        fig.tight_layout(rect=(0, 0, 1, 0.95))
+    else:
+        fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.08)
+    out = Path(out)
+    fig.savefig(out, dpi=DPI, facecolor="white")
+    return out
+
+
+# --------------------------------------------------------------------------- table
+def frequency_rows(data: ModeData) -> list[dict]:
+    rows = []
+    for i, f in enumerate(data.frequencies_hz):
+        damping = data.retained_damping[i] if i < data.retained_damping.size else None
+        rows.append({"mode": i + 1, "frequency_hz": float(f),
+                     "label": data.labels[i] if i < len(data.labels) else "",
+                     "in_reduced_model": damping is not None,
+                     "damping_ratio": None if damping is None else float(damping)})
+    return rows
+
+
+def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
+    out = Path(out)
+    with open(out, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["mode", "frequency_hz", "label", "in_reduced_model", "damping_ratio"])
+        for r in frequency_rows(data):
+            writer.writerow([r["mode"], f"{r['frequency_hz']:.9g}", r["label"],
+                             int(r["in_reduced_model"]),
+                             "" if r["damping_ratio"] is None else f"{r['damping_ratio']:.6g}"])
+    return out
+
+
+def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
+    """The frequencies as a chart (left) and a table (right)."""
+    from matplotlib.figure import Figure
+
+    rows = frequency_rows(data)
+    n = len(rows)
+    fig = Figure(figsize=(11.0, max(3.2, 0.8 + 0.32 * n)), dpi=DPI, facecolor="white")
+    ax = fig.add_axes((0.07, 0.14, 0.38, 0.72))
+    families = sorted({r["label"].rstrip("_0123456789") or "mode" for r in rows})
+    palette = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf",
+               "#7f7f7f"]
+    colour = {fam: palette[i % len(palette)] for i, fam in enumerate(families)}
+    freqs = np.array([r["frequency_hz"] for r in rows])
+    modes = np.arange(1, n + 1)
+    fam_of = [r["label"].rstrip("_0123456789") or "mode" for r in rows]
+    for fam in families:
+        sel = [i for i, f in enumerate(fam_of) if f == fam]
+        ax.bar(modes[sel], freqs[sel], color=colour[fam], label=fam, width=0.7)
+    positive = freqs[freqs > 0]
+    if positive.size and positive.max() / positive.min() > 30:
+        ax.set_yscale("log")
+    ax.set_xlabel("mode")
+    ax.set_ylabel("frequency (Hz)")
+    ax.set_xticks(modes)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=8, frameon=False)
+    ax.set_title(f"{data.name}: natural frequencies", fontsize=12, fontweight="bold")
+    tab = fig.add_axes((0.5, 0.04, 0.48, 0.86))
+    tab.set_axis_off()
+    cells = [[str(r["mode"]), f"{r['frequency_hz']:.6g}", r["label"],
+              "" if r["damping_ratio"] is None else f"{r['damping_ratio']:.3g}"] for r in rows]
+    table = tab.table(cellText=cells, colLabels=["mode", "f (Hz)", "label", "damping ratio*"],
+                      colWidths=[0.12, 0.26, 0.36, 0.26], loc="upper center", cellLoc="center")
+    tab.text(0.5, 0.0, "* of the modes kept in the reduced model", ha="center", va="bottom",
+             fontsize=8, color="0.35", transform=tab.transAxes)
+    table.auto_set_font_size(False)
+    table.set_fontsize(9)
+    table.scale(1.0, 1.25)
+    for (row, col), cell in table.get_celld().items():
+        cell.set_edgecolor("0.8")
+        if row == 0:
+            cell.set_facecolor("0.9")
+            cell.set_text_props(fontweight="bold")
+        elif row % 2 == 0:
+            cell.set_facecolor("#f6f6f6")
+    out = Path(out)
+    fig.savefig(out, dpi=DPI, facecolor="white")
+    return out
+
+
+# --------------------------------------------------------------------------- reduced model
+def _position_outputs(names: tuple[str, ...]) -> list[int]:
+    pos = [i for i, n in enumerate(names) if n.endswith("/position")]
+    return pos or list(range(len(names)))
+
+
+def _units(path) -> tuple[list[str], list[str]]:
+    with open_verified(path, verify_checksum=False) as h5:
+        attrs = h5["statespace"].attrs
+        ins = read_strings(attrs["input_units"]) if "input_units" in attrs else []
+        outs = read_strings(attrs["output_units"]) if "output_units" in attrs else []
+    return ins, outs
+
+
+def _ratio_unit(units: tuple[list[str], list[str]], r: int, c: int) -> str:
+    """Unit of position output port ``r`` per unit of input ``c``."""
+    ins, outs = units
+    if c < len(ins) and r < len(outs):
+        return f"{outs[r]}/{ins[c]}"
+    return "output/input"
+
+
+def _margins(fig, rows: int, cols: int) -> None:
+    """Fixed margins (tight_layout on log axes costs seconds)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.9 / w, right=1 - 0.25 / w, bottom=0.6 / h, top=1 - 0.9 / h,
+                        wspace=0.75 / (w / cols), hspace=0.55 / (h / rows))
+
+
+def _grid(fig, rows: int, cols: int):
+    return fig.subplots(rows, cols, squeeze=False, sharex=True)
+
+
+def _magnitude(sys, f: np.ndarray) -> np.ndarray:
+    """|G(j 2 pi f)| (p, m, n_f) of a python-control StateSpace, all frequencies at once.
+
+    The same as ``sys.frequency_response(2 pi f).magnitude``, which evaluates one
+    frequency at a time (seconds for a few thousand points); here one batched solve.
+    """
+    A, B, C, D = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C, sys.D))
+    s = 2j * np.pi * f
+    eye = np.eye(A.shape[0])
+    X = np.linalg.solve(s[:, None, None] * eye - A, np.broadcast_to(B, (f.size, *B.shape)))
+    G = C @ X + D                                   # (n_f, p, m)
+    return np.abs(np.moveaxis(G, 0, -1))
+
+
+def plot_bode(path: str | Path, out: str | Path) -> Path:
+    """Bode magnitude of every input -> position output (plant solid, filtered dashed)."""
+    from matplotlib.figure import Figure
+
+    from pipeline.store.read import load_model
+
+    model = load_model(path)
+    units = _units(path)
+    outs = _position_outputs(model.output_names)
+    n_in = len(model.input_names)
+    retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])
+    f_lo = max(retained.min() / 20.0, 1e-6) if retained.size else 0.1
+    f_hi = retained.max() * 10.0 if retained.size else 1e4
+    if model.cutoff_hz:
+        f_hi = max(f_hi, 3.0 * model.cutoff_hz)
+    zeta = model.damping_ratios if model.damping_ratios.size else np.full(retained.size, 0.02)
+    near = [fr * (1.0 + np.linspace(-5, 5, 61) * max(z, 1e-3)) for fr, z in zip(retained, zeta)]
+    f = np.unique(np.concatenate([np.logspace(np.log10(f_lo), np.log10(f_hi), 800), *near]))
+    f = f[(f >= f_lo) & (f <= f_hi)]
+    plant = _magnitude(model.ss, f)
+    filt = _magnitude(model.ss_filtered, f) if model.ss_filtered is not None else None
+    fig = Figure(figsize=(max(7.5, 4.6 * n_in + 1.0), 2.9 * len(outs) + 1.2), dpi=DPI,
+                 facecolor="white")
+    axes = _grid(fig, len(outs), n_in)
+    for r, o in enumerate(outs):
+        for c in range(n_in):
+            ax = axes[r][c]
+            ax.loglog(f, plant[o, c], color="#1f4e9c", lw=1.6, label="reduced model")
+            if filt is not None:
+                ax.loglog(f, filt[o, c], color="#d62728", lw=1.1, ls="--",
+                          label=f"filtered ({model.filter_kind}, {model.cutoff_hz:g} Hz)")
+            for fr in retained:
+                ax.axvline(fr, color="0.6", lw=0.6, ls=":")
+            ax.grid(which="both", alpha=0.25)
+            ax.set_title(f"{model.input_names[c]} -> {model.output_names[o]}", fontsize=9)
+            if c == 0:
+                ax.set_ylabel(f"|G| ({_ratio_unit(units, r, c)})")
+            if r == len(outs) - 1:
+                ax.set_xlabel("frequency (Hz)")
+    axes[0][0].legend(fontsize=8, frameon=False, loc="lower left")
+    fig.suptitle(f"{Path(path).stem}: Bode magnitude", fontsize=12, fontweight="bold")
+    fig.text(0.5, 1 - 0.45 / fig.get_size_inches()[1], "dotted: natural frequencies of the "
+             "retained modes", ha="center", fontsize=8, color="0.35")
+    _margins(fig, len(outs), n_in)
+    out = Path(out)
+    fig.savefig(out, dpi=DPI, facecolor="white")
+    return out
+
+
+def plot_step(path: str | Path, out: str | Path) -> Path:
+    """Response of every position output to a unit step of every input."""
+    import control
+    from matplotlib.figure import Figure
+
+    from pipeline.store.read import load_model
+
+    model = load_model(path)
+    units = _units(path)
+    outs = _position_outputs(model.output_names)
+    n_in = len(model.input_names)
+    retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])
+    f1 = float(retained[retained > 0].min()) if (retained > 0).any() else 1.0
+    zeta = float(np.clip(model.damping_ratios.min(), 0.005, 0.5)) if model.damping_ratios.size \
+        else 0.02
+    t_end = min(5.0 / (zeta * 2 * np.pi * f1), 60.0 / f1)
+    t = np.linspace(0.0, t_end, 3000)
+    fig = Figure(figsize=(max(7.5, 4.6 * n_in + 1.0), 2.7 * len(outs) + 1.2), dpi=DPI,
+                 facecolor="white")
+    axes = _grid(fig, len(outs), n_in)
+    dc = None
+    try:
+        dc = np.atleast_2d(control.dcgain(model.ss))
+    except Exception:  # a free body (rigid modes kept) has no DC gain
+        pass
+    for c in range(n_in):
+        resp = control.step_response(model.ss, t, input=c)
+        y = np.asarray(resp.outputs).reshape(len(model.output_names), -1)
+        yf = None
+        if model.ss_filtered is not None:
+            rf = control.step_response(model.ss_filtered, t, input=c)
+            yf = np.asarray(rf.outputs).reshape(len(model.ss_filtered.output_labels), -1)
+        for r, o in enumerate(outs):
+            ax = axes[r][c]
+            ax.plot(t, y[o], color="#1f4e9c", lw=1.2, label="reduced model")
+            if yf is not None:
+                ax.plot(t, yf[o], color="#d62728", lw=0.9, ls="--", label="filtered")
+            if dc is not None and np.isfinite(dc[o, c]):
+                ax.axhline(dc[o, c], color="0.4", lw=0.8, ls=":", label="static (DC gain)")
+            ax.grid(alpha=0.25)
+            unit = units[0][c] if c < len(units[0]) else ""
+            ax.set_title(f"step 1 {unit} {model.input_names[c]} -> {model.output_names[o]}",
+                         fontsize=9)
+            if r == len(outs) - 1:
+                ax.set_xlabel("time (s)")
+            if c == 0:
+                ax.set_ylabel(f"response ({_ratio_unit(units, r, c).split('/')[0]})")
+    axes[0][0].legend(fontsize=8, frameon=False)
+    fig.suptitle(f"{Path(path).stem}: step response", fontsize=11, fontweight="bold")
+    _margins(fig, len(outs), n_in)
+    out = Path(out)
+    fig.savefig(out, dpi=DPI, facecolor="white")
+    return out
+
+
+# --------------------------------------------------------------------------- all of it
+def plot_file(path: str | Path, out_dir: str | Path | None = None,
+              modes: int | None = None) -> list[Path]:
+    """Every picture of ``path`` into ``out_dir``; the files written."""
+    path = Path(path)
+    out_dir = Path(out_dir) if out_dir else path.with_name(f"{path.stem}_plots")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = read_modes(path)
+    n = data.frequencies_hz.size if modes is None else min(modes, data.frequencies_hz.size)
+    surface = boundary_surface(data.points, data.cells)
+    written = []
+    for k in range(n):
+        written.append(plot_mode(data, k, out_dir / f"mode_{k + 1:02d}.png", surface))
+        log.info("wrote %s", written[-1])
+    if n > 1:
+        coarse = boundary_surface(data.points, data.cells, subdivide_below=0)
+        written.append(plot_modes_overview(data, out_dir / "modes.png", coarse,
+                                           max_modes=min(n, 12)))
+    written.append(plot_frequency_table(data, out_dir / "frequencies.png"))
+    written.append(write_frequency_csv(data, out_dir / "frequencies.csv"))
+    if data.has_statespace:
+        written.append(plot_bode(path, out_dir / "bode.png"))
+        written.append(plot_step(path, out_dir / "step.png"))
+    return written
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    for p in plot_file(args.file, args.output_dir, args.modes):
+        print(p)
+    return 0
+
+
+def add_plot_parser(subparsers) -> argparse.ArgumentParser:
+    """``plot FILE.h5 [-o DIR] [--modes N]`` on the CLI's subparsers."""
+    p = subparsers.add_parser("plot", help="PNG pictures of the modes, frequency table, Bode "
+                              "and step response of an HDF5 file",
+                              description="Write a PNG per mode, an overview, a frequency table "
+                              "(PNG and CSV) and, where the file holds a reduced model, its Bode "
+                              "magnitude and step response. Reads only the HDF5 file.")
+    p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
+    p.add_argument("-o", "--output-dir", help="folder for the pictures (default: "
+                   "<FILE stem>_plots next to the file)")
+    p.add_argument("--modes", type=int, default=None, metavar="N",
+                   help="draw only the first N modes (default: all)")
+    p.set_defaults(func=cmd_plot)
+    return p

@@ -1,0 +1,132 @@
+"""Memory awareness: estimate what a mesh will need before assembling it.
+
+The pipeline's peak is the eigensolve: K and M (CSR), the upper triangle handed to the
+sparse Cholesky, the factor itself, the Lanczos basis and the mode shapes, on top of
+the mesh. The factor dominates from 100k DOFs on; its size under nested dissection
+grows like n^(4/3) in 3D. The constants below are calibrated on the cantilever with
+``make bench`` (docs/performance.md): at 977k DOFs the PARDISO factor is 8.99 GB and
+the whole run peaks at 11.7 GB; the estimate gives 9.1 and 12.1 GB. A compact body
+(a casting rather than a beam) fills in more: there the exact factor size, known after
+PARDISO's analysis and before its factorisation, is checked again
+(:func:`check_factor_memory`, called by :mod:`pipeline.solve.factorize`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from pipeline.errors import ResourceError
+
+log = logging.getLogger(__name__)
+
+# bytes of the Cholesky factor per n_dofs^(4/3) (PARDISO, METIS ordering; cantilever:
+# 0.38 GB at 101k DOFs, 8.99 GB at 977k DOFs, i.e. 82 and 93 B)
+FACTOR_BYTES_COEFF = 93.0
+# node blocks (3x3) per node of the node-pair pattern (measured: P2 25.0 at 101k DOFs,
+# 26.9 at 1.03M; P1 about 14)
+BLOCKS_PER_NODE = {1: 15.0, 2: 27.0}
+# bytes per node block while the eigensolve runs: K (9 entries of 8 B value + 4 B index),
+# M (3 entries), the upper triangle of K for the factorisation (about 5 entries)
+BYTES_PER_BLOCK = 12 * (9 + 3 + 5)
+# bytes per node for the mesh, the FE space and region data, and per node during
+# assembly (pattern, element factors, both matrices: 2.45 GB measured at 345k nodes)
+MESH_BYTES_PER_NODE = 600
+ASSEMBLY_BYTES_PER_NODE = 7200
+BASELINE_BYTES = 250e6  # interpreter, numpy, scipy, scikit-fem, gmsh, MKL
+HEADROOM = 0.9  # use at most this fraction of the available memory
+
+
+def available_memory_bytes() -> int:
+    """Memory this process may use: MemAvailable, capped by a cgroup limit if any."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if avail is None:
+        avail = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    for cg in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = open(cg).read().strip()
+            if text.isdigit():
+                avail = min(avail, int(text))
+        except OSError:
+            continue
+    return int(avail)
+
+
+def factor_bytes(n_dofs: int) -> float:
+    """Estimated bytes of the sparse Cholesky factor of an n_dofs stiffness matrix."""
+    return FACTOR_BYTES_COEFF * float(n_dofs) ** (4.0 / 3.0)
+
+
+def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int) -> int:
+    """Peak bytes of the whole pipeline for a mesh of this size (see the module doc)."""
+    n = 3 * n_nodes
+    mesh = MESH_BYTES_PER_NODE * n_nodes + 64 * n_elements
+    blocks = BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
+    matrices = BYTES_PER_BLOCK * blocks
+    block = 4 if n_modes <= 4 else 8
+    # the Lanczos basis and its images F^-T v (kept so the Ritz vectors need no final solve)
+    lanczos = 2 * 8.0 * n * (max(3 * n_modes + 4 * block, n_modes + 8 * block) + block)
+    shapes = 8.0 * n * n_modes * 4  # Ritz vectors, K and M times them, full-size shapes
+    assembly = ASSEMBLY_BYTES_PER_NODE * n_nodes + 400 * n_elements
+    eigensolve = matrices + factor_bytes(n) + lanczos + shapes
+    return int(BASELINE_BYTES + mesh + max(assembly, eigensolve))
+
+
+def typical_edge_length(space) -> float:
+    """Edge length (m) of a regular tetrahedron of the mesh's mean element volume."""
+    v = space.body.vertices
+    t = space.body.tetrahedra
+    a = v[t[:, 0]]
+    vol6 = np.abs(np.einsum("ij,ij->i", np.cross(v[t[:, 1]] - a, v[t[:, 2]] - a),
+                            v[t[:, 3]] - a))
+    return float((np.sqrt(2.0) * vol6.mean()) ** (1.0 / 3.0))
+
+
+def _scale_to_fit(need: float, have: float, exponent: float = 4.0) -> float:
+    """Factor on the element size that brings ``need`` within the usable memory.
+
+    DOFs scale like size^-3 and the dominant factor like DOFs^(4/3), so memory like
+    size^-4.
+    """
+    return max(1.0, (need / (HEADROOM * have)) ** (1.0 / exponent)) * 1.05
+
+
+def check_memory(space, n_modes: int, available: int | None = None) -> int:
+    """Refuse a mesh whose estimate exceeds the available memory (ResourceError).
+
+    Returns the estimate in bytes. The message gives both figures and the element size
+    (mesh.size, m) that would fit, scaling memory like size^-4.
+    """
+    need = estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra, space.order, n_modes)
+    have = available_memory_bytes() if available is None else int(available)
+    log.info("memory estimate %.2f GB of %.2f GB available", need / 1e9, have / 1e9)
+    if need > HEADROOM * have:
+        h = typical_edge_length(space)
+        factor = _scale_to_fit(need, have)
+        raise ResourceError(
+            f"mesh with {space.n_dofs} DOFs needs about {need / 1e9:.1f} GB, but only "
+            f"{have / 1e9:.1f} GB is available; a mesh.size of about {h * factor:.3g} m "
+            f"(now about {h:.3g} m, i.e. {factor:.2f} times larger) would fit")
+    return need
+
+
+def check_factor_memory(factor_bytes_exact: float, n_dofs: int,
+                        available: int | None = None) -> None:
+    """Refuse to factorise when the factor (known after the analysis) will not fit."""
+    have = available_memory_bytes() if available is None else int(available)
+    if factor_bytes_exact > HEADROOM * have:
+        factor = _scale_to_fit(factor_bytes_exact, have)
+        raise ResourceError(
+            f"the sparse factorisation of the {n_dofs}-DOF stiffness matrix needs "
+            f"{factor_bytes_exact / 1e9:.1f} GB, but only {have / 1e9:.1f} GB is available; "
+            f"a mesh.size about {factor:.2f} times larger would fit")

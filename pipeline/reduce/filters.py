@@ -1,0 +1,214 @@
+"""Output filters that break the algebraic loop of a force-in, motion-out model.
+
+METHODS section 4. The plant's acceleration output depends on its force input at the
+same instant (D != 0); coupling it to a joint whose reaction force is fed back forms an
+algebraic loop. A low-pass filter with cutoff K (rad/s) in series removes the direct
+feedthrough:
+
+- ``first_order``: every output through H(s) = K / (s + K);
+- ``third_order``: only the positions, through K^3 / (s + K)^3, which yields consistent
+  position, velocity and acceleration p = K^3/(s+K)^3 y, v = s p, a = s^2 p.
+
+The series connection filter * plant is built here with numpy block matrices (no
+python-control at run time):
+
+    x' = [[A_p, 0], [B_f C_p, A_f]] x + [[B_p], [B_f D_p]] u
+    y  = [D_f C_p, C_f] x + D_f D_p u          (D_f = 0, so D = 0)
+
+Realisation of the third-order filter (one per port). METHODS writes it as
+w''' = -3K w'' - 3K^2 w' - K^3 w + y, (p, v, a) = K^3 (w, w', w''). Here the states are
+that realisation scaled by diag(K^3, K^2, K): z = (K^3 w, K^2 w', K w'') = (p, v/K, a/K^2),
+all in the unit of the position output, so
+
+    z' = K [[0, 1, 0], [0, 0, 1], [-1, -3, -3]] z + K [0, 0, 1]^T y,
+    (p, v, a) = (z1, K z2, K^2 z3).
+
+Same transfer functions; the state magnitudes stay comparable (K^3 w would be ~1e-12 of
+the signal for K ~ 1e4 rad/s, which breaks the absolute tolerances of a variable-step
+integrator downstream).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.store.tree import Dataset
+from pipeline.reduce.modal import ReducedModel, StateSpaceModel, _statespace_tree
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "FILTER_KINDS",
+    "CUTOFF_MARGIN",
+    "FilterMatrices",
+    "first_order_filter",
+    "third_order_position_filter",
+    "filtered_model",
+    "filter_datasets",
+    "filter_group_attrs",
+]
+
+FILTER_KINDS = ("none", "first_order", "third_order")
+
+#: The cutoff should be at least this many times the highest retained mode frequency.
+CUTOFF_MARGIN = 5.0
+
+
+class FilterMatrices(NamedTuple):
+    """State-space matrices (A, B, C, D) of a filter; unpacks as a 4-tuple."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+
+
+def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
+    K = float(cutoff_rad_s)
+    if not math.isfinite(K) or K <= 0:
+        raise ValueError(f"filter cutoff must be a positive finite rad/s value, "
+                         f"got {cutoff_rad_s!r}")
+    return K
+
+
+def first_order_filter(n_channels: int, cutoff_rad_s: float) -> FilterMatrices:
+    """n_channels independent filters K / (s + K), K in rad/s.
+
+    A = -K I, B = K I, C = I, D = 0 (all n_channels x n_channels); state i is the
+    filtered channel i (same unit as the channel). Unit DC gain.
+    """
+    K = _check_cutoff_rad_s(cutoff_rad_s)
+    I = np.eye(n_channels)
+    return FilterMatrices(-K * I, K * I, I.copy(), np.zeros((n_channels, n_channels)))
+
+
+def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> FilterMatrices:
+    """Third-order filter K^3/(s+K)^3 on n_ports position signals, giving p, v, a.
+
+    Inputs: the n_ports position signals y. Outputs (3 n_ports): all filtered
+    positions p, then velocities v = p', then accelerations a = p'' (same order as the
+    plant's outputs). States: per port (z1, z2, z3) = (K^3 w, K^2 w', K w'') of METHODS'
+    w''' = -3K w'' - 3K^2 w' - K^3 w + y (see the module docstring). Shapes: A (3n x 3n),
+    B (3n x n), C (3n x 3n), D = 0 (3n x n). DC gain: 1 on positions, 0 on v and a.
+    """
+    K = _check_cutoff_rad_s(cutoff_rad_s)
+    n = int(n_ports)
+    a1 = K * np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -3.0, -3.0]])
+    A = np.kron(np.eye(n), a1)
+    B = np.zeros((3 * n, n))
+    C = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        B[3 * i + 2, i] = K
+        C[i, 3 * i] = 1.0               # p = z1
+        C[n + i, 3 * i + 1] = K         # v = K z2
+        C[2 * n + i, 3 * i + 2] = K * K  # a = K^2 z3
+    return FilterMatrices(A, B, C, np.zeros((3 * n, n)))
+
+
+def _series(plant: StateSpaceModel, filt: FilterMatrices, rows: slice) -> tuple[np.ndarray, ...]:
+    """filter * plant, the filter fed by the plant outputs ``rows``."""
+    Ap, Bp, Cp, Dp = plant.A, plant.B, plant.C[rows], plant.D[rows]
+    Af, Bf, Cf, Df = filt
+    nf = Af.shape[0]
+    A = np.block([[Ap, np.zeros((Ap.shape[0], nf))], [Bf @ Cp, Af]])
+    B = np.vstack([Bp, Bf @ Dp])
+    C = np.hstack([Df @ Cp, Cf])
+    D = Df @ Dp
+    return A, B, C, D
+
+
+def _validate(kind: str, cutoff_hz) -> float | None:
+    if kind not in FILTER_KINDS:
+        raise ConfigError(f"filter.kind: got {kind!r}, expected one of " + ", ".join(FILTER_KINDS))
+    if kind == "none":
+        return None
+    number = (int, float, np.integer, np.floating)
+    if isinstance(cutoff_hz, bool) or not isinstance(cutoff_hz, number) \
+            or not math.isfinite(float(cutoff_hz)) or float(cutoff_hz) <= 0:
+        raise ConfigError(f"filter.cutoff_hz: got {cutoff_hz!r}, expected a positive "
+                          f"frequency in Hz for filter kind {kind}")
+    return float(cutoff_hz)
+
+
+def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None
+                   ) -> StateSpaceModel:
+    """The series connection filter * plant as a new :class:`StateSpaceModel`.
+
+    ``kind``: ``"none"`` (returns the plant unchanged), ``"first_order"`` (every output
+    through K/(s+K)) or ``"third_order"`` (the position outputs through K^3/(s+K)^3; its
+    p, v, a replace all plant outputs, so velocity and acceleration are the exact time
+    derivatives of the position). K = 2 pi ``cutoff_hz`` (Hz). D = 0 for both filters;
+    output names are unchanged; states are the plant's followed by
+    ``filter/<output>`` (first order) or ``filter/<port>/w``, ``.../w_dot``,
+    ``.../w_ddot`` (third order, scaled as in the module docstring).
+
+    Logs a warning when the cutoff is below CUTOFF_MARGIN x the highest retained mode
+    frequency (the filter then distorts the dynamics). ``cutoff_hz`` <= 0 ->
+    :class:`ConfigError` naming ``filter.cutoff_hz``.
+    """
+    plant = model.statespace if isinstance(model, ReducedModel) else model
+    f_c = _validate(kind, cutoff_hz)
+    if f_c is None:
+        return plant
+    if plant.filter_kind != "none":
+        raise ValueError(f"model is already filtered ({plant.filter_kind})")
+    K = 2.0 * math.pi * f_c
+    f_ret = plant.frequencies_hz[: plant.n_retained]
+    f_max = float(f_ret.max()) if f_ret.size else 0.0
+    if f_c < CUTOFF_MARGIN * f_max:
+        log.warning("filter.cutoff_hz = %g Hz is below %g x the highest retained mode "
+                    "(%.6g Hz): the %s filter will distort the dynamics; raise the cutoff to "
+                    "at least %.6g Hz", f_c, CUTOFF_MARGIN, f_max, kind.replace("_", "-"),
+                    CUTOFF_MARGIN * f_max)
+    n_out = len(plant.output_names)
+    if kind == "first_order":
+        filt = first_order_filter(n_out, K)
+        A, B, C, D = _series(plant, filt, slice(0, n_out))
+        extra = tuple(f"filter/{name}" for name in plant.output_names)
+    else:
+        ports = plant.port_names
+        filt = third_order_position_filter(len(ports), K)
+        A, B, C, D = _series(plant, filt, plant.output_rows("position"))
+        extra = tuple(f"filter/{p}/{s}" for p in ports for s in ("w", "w_dot", "w_ddot"))
+    return StateSpaceModel(A, B, C, D, plant.state_names + extra, plant.input_names,
+                           plant.output_names, plant.omega2, plant.damping_ratios,
+                           n_retained=plant.n_retained, filter_kind=kind, cutoff_hz=f_c)
+
+
+def filter_group_attrs(kind: str, cutoff_hz: float | None,
+                       group: str = "statespace_filtered") -> dict[str, dict]:
+    """Group attributes ``{group: {"filter_kind": kind, "cutoff_hz": Hz}}`` (NaN: none)."""
+    f_c = _validate(kind, cutoff_hz)
+    return {group: {"filter_kind": kind, "cutoff_hz": float("nan") if f_c is None else f_c}}
+
+
+def filter_datasets(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None,
+                    group: str = "statespace_filtered") -> dict[str, Dataset]:
+    """HDF5 datasets of the filtered model, keyed ``"<group>/<name>"``.
+
+    ``model`` is the plant (a :class:`ReducedModel` or its ``statespace``; it is
+    filtered here with :func:`filtered_model`) or a model :func:`filtered_model`
+    already returned with this same kind and cutoff. Datasets: A, B, C, D, the names,
+    ``damping_ratios`` and ``frequencies_hz`` as in
+    :func:`pipeline.reduce.modal.statespace_datasets`, plus ``cutoff_hz`` (Hz, NaN for
+    none); A, B, C, D carry the attributes ``filter_kind`` and ``cutoff_hz``. The same
+    two values as group attributes: :func:`filter_group_attrs`.
+    """
+    ss = model.statespace if isinstance(model, ReducedModel) else model
+    f_c = _validate(kind, cutoff_hz)
+    if ss.filter_kind == "none":
+        ss = filtered_model(ss, kind, f_c)
+    elif ss.filter_kind != kind or not math.isclose(ss.cutoff_hz, f_c or 0.0, rel_tol=1e-12):
+        raise ValueError(f"model was filtered with {ss.filter_kind} at {ss.cutoff_hz} Hz, "
+                         f"not {kind} at {cutoff_hz} Hz")
+    stored = float("nan") if f_c is None else f_c
+    tree = _statespace_tree(ss, group, {"filter_kind": kind, "cutoff_hz": stored})
+    tree[f"{group}/cutoff_hz"] = Dataset(np.float64(stored), "Hz",
+                                         f"cutoff of the {kind} output filter (NaN: no filter)")
+    return tree
+

@@ -1,0 +1,646 @@
+"""Reduction stage: modal damping, static correction and the modal state-space model.
+
+Pure functions on plain arrays (METHODS sections 2 and 3). Inputs come from the FE
+stages, already restricted to the free degrees of freedom:
+
+- ``K``, ``M``: scipy.sparse (n_s x n_s), symmetric; K in N/m, M in kg.
+- ``Phi``: (n_s x n_m) mode shapes, M-orthonormal (Phi^T M Phi = I, units kg^-1/2);
+  ``omega2``: (n_m,) ascending squared circular frequencies in rad^2/s^2.
+- ``F``: (n_s x n_u) load distribution, column j = nodal forces (N) of a unit input j.
+- ``T``: (n_y x n_s) sensor matrix, row i = output i as a linear combination of DOFs.
+
+With s = Phi eta the equations of motion become n_m independent damped oscillators
+
+    eta'' + 2 Gamma eta' + Omega2 eta = Sigma u,   Sigma = Phi^T F,  Theta = T Phi,
+
+and the model stacks position, velocity and acceleration of every output:
+
+    A = [[0, I], [-Omega2, -2 Gamma]]                        (2 n_m x 2 n_m)
+    B = [[0], [Sigma]]                                        (2 n_m x n_u)
+    C = [[Theta, 0], [0, Theta], [-Theta Omega2, -2 Theta Gamma]]   (3 n_y x 2 n_m)
+    D = [[R], [0], [Theta Sigma]]                             (3 n_y x n_u)
+
+R = 0, or the residual flexibility T K^-1 F - Theta Omega2^-1 Sigma with
+``static_correction="residual"``. ``"augment"`` instead adds the static shapes K^-1 F to
+the basis and re-solves the small eigenproblem (a Ritz basis), so the DC gain is exact
+without any feedthrough on the position output.
+
+Nothing here imports python-control; the loader builds ``control.ss`` from the arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from pipeline.errors import ConfigError, SolverError
+from pipeline.store.tree import Dataset
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "DAMPING_KINDS",
+    "STATIC_CORRECTIONS",
+    "RIGID_OMEGA2",
+    "DampingSpec",
+    "StateSpaceModel",
+    "ReducedModel",
+    "damping_ratios",
+    "check_modal_basis",
+    "default_factorize",
+    "static_shapes",
+    "static_compliance",
+    "modal_statespace",
+    "reduce_model",
+    "statespace_datasets",
+]
+
+DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
+STATIC_CORRECTIONS = ("none", "residual", "augment")
+
+#: Squared circular frequency (rad^2/s^2) below which a mode counts as a rigid-body mode
+#: (omega < 2 pi * 0.01 Hz). No supported structure of interest is that soft, and the
+#: zero eigenvalues of a free body come out of a shift-invert solve far below it.
+RIGID_OMEGA2 = (2.0 * math.pi * 0.01) ** 2
+
+#: A static shape whose M-norm falls below this fraction of its initial M-norm after
+#: M-orthogonalisation against the basis is numerically dependent and dropped.
+AUGMENT_DROP_TOL = 1e-8
+
+Solve = Callable[[np.ndarray], np.ndarray]
+
+
+# --------------------------------------------------------------------------- damping
+def _bad(key: str, value, expected: str) -> ConfigError:
+    return ConfigError(f"{key}: got {value!r}, expected {expected}")
+
+
+def _finite_number(key: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise _bad(key, value, "a number")
+    x = float(value)
+    if not math.isfinite(x):
+        raise _bad(key, value, "a finite number")
+    return x
+
+
+def _ratio(key: str, value) -> float:
+    x = _finite_number(key, value)
+    if x < 0.0 or x >= 1.0:
+        raise _bad(key, value, "a damping ratio in [0, 1) (underdamped modes)")
+    return x
+
+
+def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=None
+                   ) -> np.ndarray:
+    """Modal damping ratio xi_i (dimensionless) of every mode.
+
+    Parameters
+    ----------
+    omega : (n_m,) circular frequencies in rad/s (not squared), >= 0.
+    kind : ``"uniform"`` (one ``ratio`` for every mode), ``"per_mode"`` (``ratios``,
+        a list with exactly one entry per mode of ``omega``) or ``"rayleigh"``
+        (C = alpha M + beta K with ``alpha`` in 1/s and ``beta`` in s, giving
+        xi_i = alpha / (2 omega_i) + beta omega_i / 2).
+
+    Returns (n_m,) float array. Every ratio must lie in [0, 1): the model is built for
+    underdamped modes (its poles are -xi w +/- i w sqrt(1 - xi^2)). Anything else is
+    refused with :class:`ConfigError` naming the key (``damping.kind``,
+    ``damping.ratio``, ``damping.ratios``, ``damping.alpha``, ``damping.beta``) and the
+    value received.
+    """
+    omega = np.asarray(omega, dtype=float).reshape(-1)
+    n = omega.size
+    if kind == "uniform":
+        if ratio is None:
+            raise _bad("damping.ratio", ratio, "a damping ratio in [0, 1) for kind uniform")
+        return np.full(n, _ratio("damping.ratio", ratio))
+    if kind == "per_mode":
+        if ratios is None or isinstance(ratios, (str, bytes)) or not hasattr(ratios, "__len__"):
+            raise _bad("damping.ratios", ratios, f"a list of {n} damping ratios (one per mode)")
+        if len(ratios) != n:
+            raise _bad("damping.ratios", list(ratios),
+                       f"a list of {n} damping ratios (one per retained mode), "
+                       f"not {len(ratios)}")
+        return np.array([_ratio(f"damping.ratios[{i}]", r) for i, r in enumerate(ratios)],
+                        dtype=float)
+    if kind == "rayleigh":
+        a = _finite_number("damping.alpha", 0.0 if alpha is None else alpha)
+        b = _finite_number("damping.beta", 0.0 if beta is None else beta)
+        if alpha is None and beta is None:
+            raise _bad("damping.alpha", alpha, "alpha (1/s) and/or beta (s) for kind rayleigh")
+        if a < 0:
+            raise _bad("damping.alpha", alpha, "alpha >= 0 (1/s)")
+        if b < 0:
+            raise _bad("damping.beta", beta, "beta >= 0 (s)")
+        xi = np.empty(n)
+        for i, w in enumerate(omega):
+            if w <= 0.0:
+                if a > 0.0:
+                    raise _bad("damping.alpha", alpha,
+                               f"alpha = 0: mode {i + 1} has zero frequency (rigid-body "
+                               "mode) and mass-proportional damping would be infinite")
+                xi[i] = 0.0
+            else:
+                xi[i] = a / (2.0 * w) + b * w / 2.0
+        over = np.flatnonzero(xi >= 1.0)
+        if over.size:
+            i = int(over[0])
+            key = "damping.alpha" if a / (2.0 * omega[i]) >= b * omega[i] / 2.0 else "damping.beta"
+            raise _bad(key, alpha if key == "damping.alpha" else beta,
+                       f"Rayleigh damping below critical: mode {i + 1} "
+                       f"(omega = {omega[i]:.6g} rad/s) gets xi = {xi[i]:.6g} >= 1")
+        return xi
+    raise _bad("damping.kind", kind, "one of " + ", ".join(DAMPING_KINDS))
+
+
+@dataclass(frozen=True)
+class DampingSpec:
+    """A damping rule, to be evaluated at whatever frequencies the basis ends up with.
+
+    ``kind`` uniform | per_mode | rayleigh; ``ratio`` (uniform), ``ratios`` (per_mode,
+    one per retained mode), ``alpha`` (1/s) and ``beta`` (s) (rayleigh).
+
+    With ``static_correction="augment"`` the model has more modes than were retained:
+    the first n_modes Ritz modes are the retained modes (same frequencies), the extra
+    high-frequency ones get ``ratio`` (uniform), the Rayleigh formula at their own
+    frequency (rayleigh) or the last listed ratio (per_mode).
+    """
+
+    kind: str
+    ratio: float | None = None
+    ratios: tuple[float, ...] | None = None
+    alpha: float | None = None
+    beta: float | None = None
+
+    def ratios_for(self, omega, n_listed: int | None = None) -> np.ndarray:
+        """xi (n,) at ``omega`` (rad/s). ``n_listed``: how many of ``omega`` the
+        per_mode list covers (the rest get its last entry); default all."""
+        omega = np.asarray(omega, dtype=float).reshape(-1)
+        if self.kind == "per_mode" and n_listed is not None and n_listed < omega.size:
+            head = damping_ratios(omega[:n_listed], "per_mode", ratios=self.ratios)
+            return np.concatenate([head, np.full(omega.size - n_listed, head[-1])])
+        return damping_ratios(omega, self.kind, ratio=self.ratio, ratios=self.ratios,
+                              alpha=self.alpha, beta=self.beta)
+
+
+# --------------------------------------------------------------------------- checks
+def _omega(omega2: np.ndarray) -> np.ndarray:
+    """Circular frequencies (rad/s) from omega^2, with round-off negatives set to 0."""
+    return np.sqrt(np.maximum(np.asarray(omega2, dtype=float), 0.0))
+
+
+def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, float]:
+    """Verify that ``Phi`` is an M-orthonormal eigenbasis with eigenvalues ``omega2``.
+
+    Checks  max |Phi^T M Phi - I|                       <= tol   (dimensionless), and
+            max |Phi^T K Phi - diag(omega2)| / max|omega2| <= tol   (relative to the
+            largest eigenvalue, i.e. to the norm of the projected stiffness).
+
+    ``omega2`` must be the squared circular frequencies (rad^2/s^2); passing omega (or a
+    basis scaled so that Phi^T K Phi = diag(omega)) fails the check. Raises
+    :class:`SolverError` naming the worst entry (row, column, value, expected value).
+    Returns the two measured errors (M, K) on success.
+    """
+    Phi = np.asarray(Phi, dtype=float)
+    omega2 = np.asarray(omega2, dtype=float).reshape(-1)
+    if Phi.ndim != 2 or Phi.shape[1] != omega2.size or Phi.shape[0] != K.shape[0]:
+        raise SolverError(f"modal basis has shape {Phi.shape}, expected ({K.shape[0]}, "
+                          f"{omega2.size}) to match K and omega2")
+    n = omega2.size
+    from pipeline.solve.factorize import sparse_times_dense  # threaded MKL product: 2x scipy's at 1M DOFs
+
+    Mr = Phi.T @ sparse_times_dense(M, Phi)
+    Kr = Phi.T @ sparse_times_dense(K, Phi)
+    eM = np.abs(Mr - np.eye(n))
+    # stiffness scale: the largest retained omega^2, but never below 1e-6 of the mesh's
+    # own eigenvalue scale (diag K / diag M), so rigid-body modes (omega^2 = 0) are judged
+    # against round-off of K, not against 1 rad^2/s^2
+    floor = 1e-6 * float(np.median(np.abs(K.diagonal()) / np.abs(M.diagonal()))) \
+        if K.shape[0] else 0.0
+    scale = max(float(np.max(np.abs(omega2))) if n else 0.0, floor)
+    scale = scale if scale > 0 else 1.0
+    eK = np.abs(Kr - np.diag(omega2)) / scale
+    errM, errK = float(eM.max(initial=0.0)), float(eK.max(initial=0.0))
+    if errM > tol:
+        i, j = np.unravel_index(int(np.argmax(eM)), eM.shape)
+        raise SolverError(
+            f"mode shapes are not M-orthonormal: (Phi^T M Phi)[{i + 1},{j + 1}] = "
+            f"{Mr[i, j]:.9g}, expected {float(i == j):g} (max error {errM:.3g} > tol {tol:g})")
+    if errK > tol:
+        i, j = np.unravel_index(int(np.argmax(eK)), eK.shape)
+        expected = omega2[i] if i == j else 0.0
+        raise SolverError(
+            f"Phi^T K Phi is not diag(omega^2): entry [{i + 1},{j + 1}] = {Kr[i, j]:.9g} "
+            f"rad^2/s^2, expected {expected:.9g} (error {errK:.3g} of max omega^2 "
+            f"{scale:.6g} > tol {tol:g}); omega^2, not omega, belongs on the diagonal")
+    log.debug("modal basis check: |Phi^T M Phi - I| = %.3g, |Phi^T K Phi - Omega2|/max = %.3g",
+              errM, errK)
+    return errM, errK
+
+
+# --------------------------------------------------------------------------- statics
+def default_factorize(K) -> Solve:
+    """Sparse LU of K (SuperLU, MMD on A^T + A); returns b -> K^-1 b. Singular -> SolverError."""
+    try:
+        lu = spla.splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError as exc:  # "Factor is exactly singular"
+        raise SolverError(f"stiffness matrix K ({K.shape[0]} DOFs) could not be factorised: "
+                          f"{exc}; is the body supported?") from exc
+    return lu.solve
+
+
+def _solver(K, solve: Solve | None, factorize: Callable[[object], Solve] | None) -> Solve:
+    if solve is not None:
+        return solve
+    return (factorize or default_factorize)(K)
+
+
+def _dense(X) -> np.ndarray:
+    return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
+
+
+def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarray:
+    """Static deflection shapes X = K^-1 F (n_s x n_u), in m per unit input.
+
+    ``solve``: a ready solver b -> K^-1 b; else ``factorize(K)`` gives one (default
+    :func:`default_factorize`). Raises :class:`SolverError` if the result is not finite.
+    """
+    Fd = _dense(F)
+    if Fd.ndim == 1:
+        Fd = Fd[:, None]
+    X = np.asarray(_solver(K, solve, factorize)(np.asfortranarray(Fd)),
+                   dtype=float).reshape(Fd.shape)
+    if not np.all(np.isfinite(X)):
+        raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
+                          "(unsupported body?)")
+    # a factorisation of a numerically singular K can return finite garbage: check
+    from pipeline.solve.factorize import sparse_times_dense
+
+    residual = (np.linalg.norm(sparse_times_dense(K, X) - Fd, axis=0)
+                / np.maximum(np.linalg.norm(Fd, axis=0), 1e-300))
+    if residual.max() > 1e-6:
+        raise SolverError(f"static solve K^-1 F failed (relative residual {residual.max():.2e}): "
+                          "K is singular, the body is not fully supported; add supports that "
+                          "remove every rigid-body motion, or use static_correction: none")
+    return X
+
+
+def static_compliance(K, F, T, solve: Solve | None = None, factorize=None) -> np.ndarray:
+    """Exact FE static compliance T K^-1 F (n_y x n_u), e.g. m/N for force -> displacement.
+
+    This is the DC gain every reduced position output should reproduce.
+    """
+    return np.asarray(T @ static_shapes(K, F, solve, factorize), dtype=float)
+
+
+# --------------------------------------------------------------------------- models
+def _ro(a) -> np.ndarray:
+    a = np.array(a, dtype=float)  # copy
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class StateSpaceModel:
+    """A continuous-time LTI model x' = A x + B u, y = C x + D u (SI units).
+
+    A (n_x x n_x), B (n_x x n_u), C (n_out x n_x), D (n_out x n_u), read-only arrays.
+    For the modal model n_x = 2 n_m (state [eta; eta'], ``eta_i`` in m kg^1/2) and
+    n_out = 3 n_y, rows ordered: every port's position, then every port's velocity, then
+    every port's acceleration, named ``"<port>/position"``, ``"<port>/velocity"``,
+    ``"<port>/acceleration"``. ``omega2`` (rad^2/s^2) and ``damping_ratios`` are those of
+    the structural modes in the model; ``n_retained`` of them are modes the user asked
+    for (the rest are the high Ritz modes of an augmented basis). ``filter_kind`` and
+    ``cutoff_hz`` describe an output filter in series (``"none"`` for the plant).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    omega2: np.ndarray
+    damping_ratios: np.ndarray
+    n_retained: int | None = None
+    filter_kind: str = "none"
+    cutoff_hz: float | None = None
+
+    def __post_init__(self):
+        for name in ("A", "B", "C", "D", "omega2", "damping_ratios"):
+            object.__setattr__(self, name, _ro(getattr(self, name)))
+        for name in ("state_names", "input_names", "output_names"):
+            object.__setattr__(self, name, tuple(str(s) for s in getattr(self, name)))
+        nx, nu, ny = len(self.state_names), len(self.input_names), len(self.output_names)
+        for name, shape in (("A", (nx, nx)), ("B", (nx, nu)), ("C", (ny, nx)), ("D", (ny, nu))):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"StateSpaceModel.{name} has shape {getattr(self, name).shape}, "
+                                 f"expected {shape} from the names")
+        if self.omega2.shape != self.damping_ratios.shape:
+            raise ValueError("omega2 and damping_ratios differ in length")
+        if self.n_retained is None:
+            object.__setattr__(self, "n_retained", int(self.omega2.size))
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def port_names(self) -> tuple[str, ...]:
+        """Output port names (the output names up to ``/position``)."""
+        n = len(self.output_names) // 3
+        return tuple(s.rsplit("/", 1)[0] for s in self.output_names[:n])
+
+    @property
+    def frequencies_hz(self) -> np.ndarray:
+        """Undamped natural frequencies of the structural modes, Hz."""
+        return _omega(self.omega2) / (2.0 * math.pi)
+
+    def output_rows(self, quantity: str) -> slice:
+        """Row slice of ``"position"``, ``"velocity"`` or ``"acceleration"`` outputs."""
+        n = len(self.output_names) // 3
+        k = ("position", "velocity", "acceleration").index(quantity)
+        return slice(k * n, (k + 1) * n)
+
+
+def output_names_for(ports: Sequence[str]) -> tuple[str, ...]:
+    """``"<port>/position"`` for every port, then velocities, then accelerations."""
+    return tuple(f"{p}/{q}" for q in ("position", "velocity", "acceleration") for p in ports)
+
+
+def modal_statespace(omega2, xi, Sigma, Theta, residual=None, input_names=None,
+                     output_names=None, n_retained: int | None = None) -> StateSpaceModel:
+    """The modal state-space model of METHODS section 3.
+
+    omega2 (n_m,) rad^2/s^2; xi (n_m,) damping ratios; Sigma = Phi^T F (n_m x n_u);
+    Theta = T Phi (n_y x n_m); ``residual`` (n_y x n_u), if given, is added to the
+    position rows of D (residual flexibility, m per unit input). ``input_names``
+    (n_u) and ``output_names`` (n_y port names) default to ``u1..`` and ``y1..``.
+    State names: ``eta_1..eta_n`` then ``eta_dot_1..eta_dot_n``.
+    """
+    omega2 = np.asarray(omega2, dtype=float).reshape(-1)
+    xi = np.asarray(xi, dtype=float).reshape(-1)
+    Sigma = np.atleast_2d(np.asarray(Sigma, dtype=float))
+    Theta = np.atleast_2d(np.asarray(Theta, dtype=float))
+    n = omega2.size
+    if xi.size != n or Sigma.shape[0] != n or Theta.shape[1] != n:
+        raise ValueError(f"inconsistent sizes: omega2 {n}, xi {xi.size}, Sigma {Sigma.shape}, "
+                         f"Theta {Theta.shape}")
+    n_u, n_y = Sigma.shape[1], Theta.shape[0]
+    gamma2 = 2.0 * xi * _omega(omega2)  # 2 Gamma, 1/s
+    Z, I = np.zeros((n, n)), np.eye(n)
+    A = np.block([[Z, I], [-np.diag(omega2), -np.diag(gamma2)]])
+    B = np.vstack([np.zeros((n, n_u)), Sigma])
+    C = np.block([[Theta, np.zeros((n_y, n))],
+                  [np.zeros((n_y, n)), Theta],
+                  [-Theta * omega2, -Theta * gamma2]])
+    D = np.vstack([np.zeros((n_y, n_u)), np.zeros((n_y, n_u)), Theta @ Sigma])
+    if residual is not None:
+        residual = np.asarray(residual, dtype=float)
+        if residual.shape != (n_y, n_u):
+            raise ValueError(f"residual has shape {residual.shape}, expected {(n_y, n_u)}")
+        D[:n_y] += residual
+    inputs = (tuple(input_names) if input_names is not None
+              else tuple(f"u{j + 1}" for j in range(n_u)))
+    ports = (tuple(output_names) if output_names is not None
+             else tuple(f"y{i + 1}" for i in range(n_y)))
+    if len(inputs) != n_u or len(ports) != n_y:
+        raise ValueError(f"{len(inputs)} input names for {n_u} inputs or {len(ports)} output "
+                         f"names for {n_y} outputs")
+    states = tuple(f"eta_{i + 1}" for i in range(n)) + tuple(f"eta_dot_{i + 1}" for i in range(n))
+    return StateSpaceModel(A, B, C, D, states, inputs, output_names_for(ports), omega2, xi,
+                           n_retained=n if n_retained is None else n_retained)
+
+
+@dataclass(frozen=True, eq=False)
+class ReducedModel:
+    """The reduced model and what it was built from.
+
+    statespace: the :class:`StateSpaceModel` (plant, unfiltered).
+    static_compliance: (n_y x n_u) exact FE T K^-1 F (m/N for force -> displacement),
+        or None for a free body (no statics).
+    omega2: (n_b,) squared frequencies of the basis used (rad^2/s^2): the retained modes,
+        plus the high Ritz modes for ``augment``.
+    n_basis: n_b, the number of basis vectors (n_modes, or n_modes + kept static shapes).
+    n_modes: the number of retained eigenmodes asked for.
+    static_correction: none | residual | augment.
+    residual: (n_y x n_u) residual flexibility added to D (``residual``), else None.
+    basis: (n_s x n_b) the M-orthonormal basis actually used (Phi, or the Ritz vectors).
+    """
+
+    statespace: StateSpaceModel
+    static_compliance: np.ndarray | None
+    omega2: np.ndarray
+    n_basis: int
+    n_modes: int
+    static_correction: str
+    residual: np.ndarray | None
+    basis: np.ndarray
+
+    @property
+    def dc_gain_position(self) -> np.ndarray:
+        """Static gain of the position outputs, -C_pos A^-1 B + D_pos (n_y x n_u)."""
+        ss = self.statespace
+        rows = ss.output_rows("position")
+        return ss.D[rows] - ss.C[rows] @ np.linalg.solve(ss.A, ss.B)
+
+
+def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, int]:
+    """Ritz basis of span[Phi, X]: (omega2 (n_b,), Psi (n_s x n_b) M-orthonormal, n kept).
+
+    Each static shape is M-orthogonalised against Phi and the shapes kept before it
+    (classical Gram-Schmidt, applied twice for round-off); a shape left with less than
+    AUGMENT_DROP_TOL of its M-norm is dependent and dropped with a warning.
+    """
+    kept: list[np.ndarray] = []
+    for j in range(X.shape[1]):
+        x = X[:, j].copy()
+        norm0 = math.sqrt(max(float(x @ (M @ x)), 0.0))
+        if norm0 == 0.0:
+            log.warning("static correction augment: input %r produces no static deflection; "
+                        "its static shape is not added", input_names[j])
+            continue
+        for _ in range(2):
+            x -= Phi @ (Phi.T @ (M @ x))
+            for q in kept:
+                x -= q * float(q @ (M @ x))
+        norm = math.sqrt(max(float(x @ (M @ x)), 0.0))
+        if norm <= AUGMENT_DROP_TOL * norm0:
+            log.warning("static correction augment: the static shape of input %r is "
+                        "numerically dependent on the basis (%.2e of its M-norm left); "
+                        "dropped", input_names[j], norm / norm0)
+            continue
+        kept.append(x / norm)
+    V = np.column_stack([Phi] + kept) if kept else Phi
+    Kr = V.T @ (K @ V)
+    Mr = V.T @ (M @ V)
+    Kr = 0.5 * (Kr + Kr.T)
+    Mr = 0.5 * (Mr + Mr.T)
+    try:
+        w2, Z = sla.eigh(Kr, Mr)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise SolverError(f"projected eigenproblem of the augmented basis failed: {exc}") from exc
+    return w2, V @ Z, len(kept)
+
+
+def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
+                 input_names: Sequence[str], output_names: Sequence[str],
+                 solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6
+                 ) -> ReducedModel:
+    """Build the reduced state-space model from the FE matrices and modes.
+
+    Parameters
+    ----------
+    K, M : sparse (n_s x n_s) stiffness (N/m) and mass (kg) on the free DOFs.
+    Phi, omega2 : (n_s x n_c) M-orthonormal modes and (n_c,) ascending omega^2
+        (rad^2/s^2), n_c >= n_modes. Checked with :func:`check_modal_basis` (``basis_tol``).
+    F : (n_s x n_u) load distribution; T : (n_y x n_s) sensors.
+    n_modes : number of lowest modes to keep (config ``reduction.modes``).
+    xi : a :class:`DampingSpec` (evaluated at the final frequencies, see there) or an
+        array of n_modes ratios (treated as per_mode).
+    static_correction : ``"none"``, ``"residual"`` (D_pos += T K^-1 F - Theta
+        Omega2^-1 Sigma) or ``"augment"`` (Ritz basis of [Phi, K^-1 F]).
+    input_names, output_names : n_u input and n_y output port names.
+    solve / factorize : K^-1 solver, see :func:`static_shapes`.
+
+    The static compliance T K^-1 F is always computed, except for a body with rigid-body
+    modes (omega^2 < RIGID_OMEGA2) and no correction, where it is None (with a warning);
+    residual and augment need a supported body.
+    """
+    omega2 = np.asarray(omega2, dtype=float).reshape(-1)
+    Phi = np.asarray(Phi, dtype=float)
+    n_avail = omega2.size
+    if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) \
+            or not 1 <= n_modes <= n_avail:
+        raise _bad("reduction.modes", n_modes,
+                   f"an integer from 1 to {n_avail} (the number of computed modes, modes.count)")
+    n_modes = int(n_modes)
+    if static_correction not in STATIC_CORRECTIONS:
+        raise _bad("reduction.static_correction", static_correction,
+                   "one of " + ", ".join(STATIC_CORRECTIONS))
+    input_names, output_names = list(input_names), list(output_names)
+    Fd = _dense(F)
+    if Fd.ndim == 1:
+        Fd = Fd[:, None]
+    if Fd.shape != (K.shape[0], len(input_names)):
+        raise ValueError(f"F has shape {Fd.shape}, expected ({K.shape[0]}, {len(input_names)})")
+    if T.shape != (len(output_names), K.shape[0]):
+        raise ValueError(f"T has shape {T.shape}, expected ({len(output_names)}, {K.shape[0]})")
+    if Phi.shape != (K.shape[0], n_avail):
+        raise ValueError(f"Phi has shape {Phi.shape}, expected ({K.shape[0]}, {n_avail})")
+
+    Phi_r, w2_r = Phi[:, :n_modes], omega2[:n_modes]
+    check_modal_basis(K, M, Phi_r, w2_r, tol=basis_tol)
+    spec = xi if isinstance(xi, DampingSpec) else DampingSpec(
+        "per_mode", ratios=tuple(np.asarray(xi, dtype=float).reshape(-1)))
+
+    n_rigid = int(np.count_nonzero(w2_r < RIGID_OMEGA2))
+    X = None
+    G = None
+    if n_rigid:
+        if static_correction != "none":
+            raise _bad("reduction.static_correction", static_correction,
+                       f"none: the body has {n_rigid} rigid-body mode(s) among the retained "
+                       "ones, so it has no static compliance to correct towards")
+        log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
+    else:
+        X = static_shapes(K, Fd, solve, factorize)
+        G = np.asarray(T @ X, dtype=float)
+
+    residual = None
+    if static_correction == "augment":
+        w2, basis, n_kept = _augment_basis(K, M, Phi_r, X, input_names)
+        if np.any(np.abs(w2[:n_modes] - w2_r) > 1e-6 * np.abs(w2_r)):
+            log.warning("augmented basis moved a retained frequency by more than 1e-6 "
+                        "relative (max %.3g); are the modes converged?",
+                        float(np.max(np.abs(w2[:n_modes] / w2_r - 1))))
+        log.info("augmented basis: %d modes + %d static shapes; extra Ritz frequencies %s Hz",
+                 n_modes, n_kept, np.array2string(_omega(w2[n_modes:]) / (2 * math.pi),
+                                                  precision=1))
+    else:
+        w2, basis = w2_r, Phi_r
+    xi_all = spec.ratios_for(_omega(w2), n_listed=n_modes)
+    Sigma = basis.T @ Fd
+    Theta = np.asarray(T @ basis, dtype=float)
+    if static_correction == "residual":
+        residual = G - Theta @ (Sigma / w2[:, None])
+    ss = modal_statespace(w2, xi_all, Sigma, Theta, residual=residual,
+                          input_names=input_names, output_names=output_names,
+                          n_retained=n_modes)
+    model = ReducedModel(ss, None if G is None else _ro(G), _ro(w2), int(w2.size), n_modes,
+                         static_correction, None if residual is None else _ro(residual),
+                         _ro(basis))
+    if G is not None:
+        rel = np.linalg.norm(model.dc_gain_position - G) / max(np.linalg.norm(G), 1e-300)
+        log.info("reduced model: %d states, static correction %s, DC gain error %.3g "
+                 "(relative to T K^-1 F)", ss.n_states, static_correction, rel)
+    return model
+
+
+# --------------------------------------------------------------------------- HDF5
+_NAMES_NOTE = ("inputs in the unit of each input port (N for a force, N m for a moment); "
+               "outputs position/velocity/acceleration in m, m/s, m/s^2 for a displacement "
+               "port (rad, rad/s, rad/s^2 for a rotation); modal states eta in m kg^1/2, "
+               "eta_dot in m kg^1/2/s (mode shapes are M-orthonormal, kg^-1/2)")
+
+
+def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | None = None
+                     ) -> dict[str, Dataset]:
+    attrs = dict(extra_attrs or {})
+    note = {"units_note": _NAMES_NOTE, **attrs}
+    tree = {
+        f"{group}/A": Dataset(ss.A, "mixed", "state matrix A of x' = A x + B u", note),
+        f"{group}/B": Dataset(ss.B, "mixed", "input matrix B of x' = A x + B u", note),
+        f"{group}/C": Dataset(ss.C, "mixed", "output matrix C of y = C x + D u; rows: "
+                              "positions, velocities, accelerations of every port", note),
+        f"{group}/D": Dataset(ss.D, "mixed", "feedthrough matrix D of y = C x + D u", note),
+        f"{group}/input_names": Dataset(list(ss.input_names), "",
+                                        "name of each input (columns of B, D)"),
+        f"{group}/output_names": Dataset(list(ss.output_names), "",
+                                         "name of each output (rows of C, D)"),
+        f"{group}/state_names": Dataset(list(ss.state_names), "", "name of each state (rows of A)"),
+        f"{group}/damping_ratios": Dataset(ss.damping_ratios, "1",
+                                           "modal damping ratio of every mode in the model"),
+        f"{group}/frequencies_hz": Dataset(ss.frequencies_hz, "Hz",
+                                           "undamped natural frequency of every mode in the model",
+                                           {"n_retained": int(ss.n_retained)}),
+    }
+    return tree
+
+
+def statespace_datasets(model: ReducedModel, group: str = "statespace",
+                        compliance_units: str = "m/N") -> dict[str, Dataset]:
+    """HDF5 datasets of the (unfiltered) reduced model, keyed ``"<group>/<name>"``.
+
+    A, B, C, D (units ``"mixed"``, attribute ``units_note`` says which), the names
+    (string datasets), ``damping_ratios`` (1), ``frequencies_hz`` (Hz) and
+    ``static_compliance`` (n_y x n_u, ``compliance_units``; "m/N" for force inputs and
+    displacement outputs, pass "mixed" otherwise) when the body has statics; for
+    ``residual`` also ``residual_flexibility``. A carries ``static_correction``,
+    ``n_modes`` and ``n_basis`` as attributes.
+    """
+    ss = model.statespace
+    tree = _statespace_tree(ss, group)
+    a = tree[f"{group}/A"]
+    tree[f"{group}/A"] = Dataset(a.data, a.units, a.description,
+                                 {**a.attrs, "static_correction": model.static_correction,
+                                  "n_modes": int(model.n_modes), "n_basis": int(model.n_basis)})
+    if model.static_compliance is not None:
+        tree[f"{group}/static_compliance"] = Dataset(
+            model.static_compliance, compliance_units,
+            "exact FE static compliance T K^-1 F (outputs x inputs), full solve",
+            {"rows": list(ss.port_names), "columns": list(ss.input_names)})
+    if model.residual is not None:
+        tree[f"{group}/residual_flexibility"] = Dataset(
+            model.residual, compliance_units,
+            "T K^-1 F - Theta Omega2^-1 Sigma, added to the position rows of D")
+    return tree

@@ -1,0 +1,2 @@
+"""Solvers: sparse factorisations (PARDISO, CHOLMOD, SuperLU) and the shift-invert
+eigensolver that returns M-orthonormal modes."""

@@ -1,0 +1,419 @@
+"""Modes stage: the lowest eigenpairs of K phi = omega^2 M phi.
+
+Shift-invert around sigma (0 for a supported body, slightly negative for a free one):
+the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solve.factorize`.
+
+- With a symmetric factor A = F F^T (PARDISO), a **block Lanczos** method with full
+  re-orthogonalisation and thick restarts finds the largest eigenvalues
+  theta = 1/(omega^2 - sigma) of the symmetric operator S = F^-1 M F^-T. Every step
+  applies S to a whole block of vectors: one backward and one forward substitution
+  with many right-hand sides, which reads the factor once for the block instead of
+  once per vector (the factor is gigabytes at 1M DOFs, and reading it dominates a
+  single-vector solve). The inner products are plain dot products, so the mass
+  matrix is applied once per step.
+- Otherwise (SuperLU), scipy's ``eigsh`` (ARPACK) in shift-invert mode with the
+  factorisation as its ``OPinv``.
+
+Either way the Ritz vectors are then re-orthonormalised by a small dense Rayleigh-Ritz
+step with K and M, so that Phi^T M Phi = I and Phi^T K Phi = diag(omega^2) hold to
+round-off even for repeated frequencies, and residuals are measured, not estimated.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.errors import SolverError
+
+log = logging.getLogger(__name__)
+
+# Lanczos stopping test: ||S y - theta y|| <= tol * theta for every wanted Ritz pair;
+# tol is modes.tolerance when given, else default_tolerance(n).
+DEFAULT_TOLERANCE = 1e-10
+LARGE_TOLERANCE = 1e-8
+LARGE_SYSTEM = 100_000  # free DOFs from which LARGE_TOLERANCE is the default
+DENSE_MAX = 600  # below this many free DOFs, a dense generalized eigh
+
+
+@dataclass(frozen=True)
+class ModeSet:
+    """Modes of the constrained body.
+
+    omega2: (n_m,) rad^2/s^2, ascending (rigid modes clipped to >= 0).
+    frequencies_hz: (n_m,) Hz.
+    shapes: (n_free, n_m) M-orthonormal mode shapes on the free DOFs.
+    residuals: (n_m,) ||K phi - omega^2 M phi|| / ||K phi|| (rigid: / ||M phi|| |shift|).
+    n_rigid: number of zero-frequency (rigid-body) modes found.
+    backend: the factorisation used; shift: the shift sigma (rad^2/s^2).
+    seconds: wall time of the whole stage; stats: what the solver did (method, solves,
+    steps, factor size...).
+    """
+
+    omega2: np.ndarray
+    frequencies_hz: np.ndarray
+    shapes: np.ndarray
+    residuals: np.ndarray
+    n_rigid: int
+    backend: str
+    shift: float
+    seconds: float
+    stats: dict | None = None
+
+
+def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
+    """Shift: 0 for a supported body, a small negative value for a free one.
+
+    For a free body K is singular; K - sigma M with sigma < 0 is positive definite.
+    |sigma| is 1e-7 of the median diagonal ratio K_ii / M_ii (a stiffness scale of
+    the finest element), far below any elastic eigenvalue of the meshes we solve and far
+    above round-off of the rigid-body modes.
+    """
+    if supported:
+        return 0.0
+    ratio = np.median(K.diagonal() / M.diagonal())
+    return -1e-7 * float(ratio)
+
+
+def default_tolerance(n: int) -> float:
+    """Default Lanczos tolerance for n free DOFs: 1e-10, or 1e-8 from 100k DOFs on.
+
+    Eigenvalue errors go as tol^2 / gap, and from 100k DOFs on the residual measured after
+    Rayleigh-Ritz is set by round-off in K phi, not by the Lanczos test: on the cantilever
+    (20 modes) 1e-8 and 1e-10 both leave 5.0e-8 at 101k DOFs and 1.5e-7 at 312k, with
+    frequencies equal to 4.5e-11 and 8e-11 relative, and 1e-8 takes 16 block steps
+    instead of 17-18. On small meshes the residual floor is ~1e-12, and 1e-10 shows.
+    """
+    return LARGE_TOLERANCE if n >= LARGE_SYSTEM else DEFAULT_TOLERANCE
+
+
+def default_block_size(count: int, supported: bool = True) -> int:
+    """Lanczos block size: 4 for a supported body, 8 for a free one.
+
+    A block of b vectors costs one pass over the factor plus b vectors' arithmetic;
+    larger blocks need more vectors in all before the wanted modes converge (20 modes
+    of the cantilever: b = 4: 68 vectors in 17 blocks; 8: 104 in 13; 20: 180 in 9), so
+    small blocks win as soon as the arithmetic per vector dominates, which it does at
+    100k DOFs and more. A free body needs b >= 7: its six rigid-body modes share one
+    eigenvalue, and a block Krylov space holds at most b copies of one eigenvalue.
+    """
+    return int(min(max(count, 1), 4)) if supported else 8
+
+
+def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
+                backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
+                progress=None, method: str = "auto", block_size: int | None = None,
+                max_basis: int | None = None, keep: bool = True) -> ModeSet:
+    """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
+
+    ``supported``: False for a free body (then the shift is negative, see
+    :func:`default_shift`). ``tolerance``: relative residual of the shift-inverted
+    problem at which a mode counts as converged (0: :func:`default_tolerance` for
+    Lanczos, machine precision for ARPACK). ``method``: ``auto`` (block Lanczos when the
+    backend offers a symmetric factor, else ARPACK), ``lanczos``, ``arpack`` or
+    ``dense``. ``progress``, if given, is called with the number of right-hand sides
+    of every solve. ``keep``: for a supported body, keep the factorisation of K for a
+    later :func:`pipeline.solve.factorize.factorize` of the same K object (the static
+    correction), see :func:`pipeline.solve.factorize.keep_factorization`.
+    """
+    from pipeline.solve.factorize import check_factorization, factorize, keep_factorization, resolve_backend
+
+    t0 = time.perf_counter()
+    n = K.shape[0]
+    if count >= n - 1:
+        raise SolverError(f"config key 'modes.count': got {count}, expected fewer than the "
+                          f"{n - 1} free degrees of freedom of this mesh (refine the mesh)")
+    if method not in ("auto", "lanczos", "arpack", "dense"):
+        raise ValueError(f"method '{method}': expected auto, lanczos, arpack or dense")
+    K_given = K
+    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
+    M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
+    sigma = default_shift(K, M, supported) if shift is None else float(shift)
+    stats: dict = {"n": n, "count": count}
+    if method == "dense" or (method == "auto" and n <= DENSE_MAX):
+        backend_name = f"dense ({resolve_backend(backend)} not needed)"
+        v = _dense_modes(K, M, count, sigma)
+        stats["method"] = "dense"
+    else:
+        shifted = K - sigma * M if sigma != 0.0 else K
+        t1 = time.perf_counter()
+        fact = factorize(shifted, backend, positive_definite=True, check=False)
+        try:
+            check_factorization(shifted, fact)
+        except SolverError:
+            fact.release()
+            raise
+        del shifted
+        t2 = time.perf_counter()
+        stats.update(backend=fact.backend, factor_seconds=t2 - t1,
+                     **{k: v for k, v in fact.info.items() if not callable(v)})
+        log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", n,
+                 fact.backend, t2 - t1, sigma, fact.info.get("factor_bytes", 0) / 1e9)
+        backend_name = fact.backend
+        use_lanczos = method == "lanczos" or (method == "auto" and fact.forward is not None)
+        try:
+            if use_lanczos:
+                if fact.forward is None:
+                    raise SolverError(f"method 'lanczos' needs a symmetric factor; backend "
+                                      f"'{fact.backend}' has none (use method 'arpack')")
+                v, lstats = _lanczos_modes(fact, M, count, tolerance,
+                                           block_size or default_block_size(count, supported),
+                                           max_basis, progress)
+            else:
+                v, lstats = _arpack_modes(fact, K, M, count, sigma, tolerance, progress)
+        except BaseException:
+            fact.release()
+            raise
+        if sigma == 0.0 and keep:
+            keep_factorization(K_given, fact)  # the static correction solves with this K
+        else:
+            fact.release()
+        stats.update(lstats)
+        stats["eigensolver_seconds"] = time.perf_counter() - t2
+        log.info("%s: %d solves (%d calls) in %.2f s", stats["method"], stats["solves"],
+                 stats["calls"], stats["eigensolver_seconds"])
+    t3 = time.perf_counter()
+    w, v, residuals = _rayleigh_ritz(K, M, v, sigma)
+    stats["rayleigh_ritz_seconds"] = time.perf_counter() - t3
+    rigid = np.zeros(w.size, dtype=bool)
+    if not supported:
+        rigid = np.abs(w) < 1e-6 * abs(sigma)
+    w = np.where(rigid, 0.0, w)
+    if (w < 0).any():
+        raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness matrix is "
+                          "indefinite; check the material (E > 0, -1 < nu < 0.5)")
+    seconds = time.perf_counter() - t0
+    return ModeSet(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
+                   residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
+                   shift=sigma, seconds=seconds, stats=stats)
+
+
+# --------------------------------------------------------------------------- post-processing
+def _rayleigh_ritz(K, M, v: np.ndarray, sigma: float):
+    """Exact M-orthonormality and diagonal K in span(v); sorted; sign convention."""
+    from scipy.linalg import eigh
+
+    from pipeline.solve.factorize import sparse_times_dense
+
+    v = np.ascontiguousarray(v)
+    Kv, Mv = sparse_times_dense(K, v), sparse_times_dense(M, v)
+    Kr, Mr = v.T @ Kv, v.T @ Mv
+    Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
+    w, Q = eigh(Kr, Mr)
+    order = np.argsort(w)  # ordering and signs go into the small Q, not the (n, m) arrays
+    w, Q = w[order], Q[:, order]
+    v = v @ Q
+    # sign convention: the largest-magnitude entry of every mode is positive
+    idx = np.abs(v).argmax(axis=0)
+    signs = np.sign(v[idx, np.arange(v.shape[1])])
+    signs[signs == 0] = 1.0
+    v *= signs
+    Q *= signs
+    Kv, Mv = Kv @ Q, Mv @ Q
+    scale = np.maximum(np.linalg.norm(Kv, axis=0), abs(sigma) * np.linalg.norm(Mv, axis=0))
+    Mv *= w
+    Kv -= Mv  # K phi - omega^2 M phi, in place
+    residuals = np.linalg.norm(Kv, axis=0) / np.where(scale > 0, scale, 1.0)
+    return w, v, residuals
+
+
+def _dense_modes(K, M, count: int, sigma: float) -> np.ndarray:
+    from scipy.linalg import eigh
+
+    Kd, Md = K.toarray(), M.toarray()
+    Kd, Md = 0.5 * (Kd + Kd.T), 0.5 * (Md + Md.T)
+    try:
+        _, v = eigh(Kd - sigma * Md, Md, subset_by_index=[0, count - 1])
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"dense eigensolver failed on the {K.shape[0]}-DOF problem ({exc}); "
+                          "the mass matrix must be positive definite") from None
+    return v
+
+
+def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
+    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
+
+    n = K.shape[0]
+    calls = [0]
+
+    def apply(b):
+        calls[0] += 1
+        if progress is not None:
+            progress(1)
+        return fact.solve(b)
+
+    op = LinearOperator((n, n), matvec=apply, dtype=np.float64)
+    ncv = min(n, max(2 * count + 1, count + 20))
+    v0 = np.random.default_rng(12345).standard_normal(n)
+    try:
+        _, v = eigsh(K, k=count, M=M, sigma=sigma, which="LM", OPinv=op, tol=tolerance,
+                     ncv=ncv, v0=v0, maxiter=max(1000, 10 * n // ncv))
+    except ArpackNoConvergence as exc:
+        raise SolverError(f"eigsh did not converge for {count} modes (converged: "
+                          f"{len(exc.eigenvalues)}); try a smaller modes.count or a finer "
+                          "modes.tolerance") from None
+    return v, {"method": "arpack", "solves": calls[0], "calls": calls[0], "ncv": ncv}
+
+
+# --------------------------------------------------------------------------- block Lanczos
+def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
+    """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
+    from pipeline.solve.factorize import sparse_times_dense
+
+    n = fact.n
+    rows = fact.info["rows"]  # (phase, C-ordered (k, n) block) -> (k, n)
+    calls = [0, 0]
+    clock = {"solve": 0.0, "mass": 0.0}
+
+    def op(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t0 = time.perf_counter()
+        X = rows(333, Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
+        t1 = time.perf_counter()
+        MX = sparse_times_dense(M, X.T)  # (n, k), column-major
+        t2 = time.perf_counter()
+        out = rows(331, MX.T)  # F^-1 M F^-T Y
+        del MX
+        clock["solve"] += time.perf_counter() - t2 + t1 - t0
+        clock["mass"] += t2 - t1
+        calls[0] += 2 * Y.shape[0]
+        calls[1] += 2
+        if progress is not None:
+            progress(Y.shape[0])
+        return out, X
+
+    b = max(1, min(block_size, n // 4))
+    tol = tolerance if tolerance > 0 else default_tolerance(n)
+    if max_basis is None:
+        max_basis = max(3 * count + 4 * b, count + 8 * b)
+    max_basis = min(max_basis, n // 2)
+    t0 = time.perf_counter()
+    _, theta, steps, restarts, X = block_lanczos(op, n, count, b, tol, max_basis,
+                                                 with_images=True)
+    # the Ritz vectors of the pencil, x = F^-T y, are the same combination of the
+    # images F^-T v the steps computed anyway: no further pass over the factor
+    return X.T, {"method": "block-lanczos", "block": b, "steps": steps, "restarts": restarts,
+                 "solves": calls[0], "calls": calls[1], "tolerance": tol,
+                 "max_basis": max_basis, "solve_seconds": clock["solve"],
+                 "mass_seconds": clock["mass"],
+                 "orthogonalisation_seconds": time.perf_counter() - t0 - clock["solve"]
+                 - clock["mass"]}
+
+
+def _orthonormal_block(W: np.ndarray, basis: np.ndarray, rng, scale: float):
+    """Orthonormal rows V spanning the rows of W (k, n), already orthogonal to ``basis``.
+
+    Returns (V, B) with W = B^T V. A well-conditioned W (smallest singular value above
+    1e-6 of the largest and of ``scale``) goes through Cholesky QR twice: two (k x k) Gram matrices and two
+    thin products, where an SVD of the (n x k) block costs several passes over it. Else
+    the SVD: directions of W below round-off of ``scale`` are replaced by random
+    vectors orthogonal to ``basis`` (rows) and to the rest (their coupling row is 0).
+    """
+    s2, E = np.linalg.eigh(W @ W.T)
+    if s2[-1] > 0.0 and np.sqrt(max(s2[0], 0.0)) > 1e-6 * max(np.sqrt(s2[-1]), scale):
+        s = np.sqrt(s2)
+        V = (E.T @ W) / s[:, None]
+        B = s[:, None] * E.T
+        L = np.linalg.cholesky(V @ V.T)  # = I + O(cond^2 eps): one more pass fixes it
+        V = np.linalg.inv(L) @ V
+        return V, L.T @ B
+    U, s, Vt = np.linalg.svd(W.T, full_matrices=False)  # W^T = U s Vt
+    V = np.ascontiguousarray(U.T)
+    B = s[:, None] * Vt
+    small = s <= 1e-12 * scale
+    if small.any():
+        good = V[~small]
+        R = rng.standard_normal((int(small.sum()), W.shape[1]))
+        for _ in range(2):
+            for Q in (basis, good):
+                R -= (R @ Q.T) @ Q
+        Ur, _, _ = np.linalg.svd(R.T, full_matrices=False)
+        V[small] = Ur.T
+        B[small] = 0.0
+    return V, B
+
+
+def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
+                  seed: int = 12345, max_restarts: int = 50, with_images: bool = False):
+    """The ``count`` largest eigenpairs of the symmetric operator ``op`` (n x n).
+
+    ``op(Y)`` applies the operator to the rows of Y (k, n). Block Lanczos with full
+    two-pass re-orthogonalisation; the projected matrix is built from the projection
+    coefficients themselves, which makes thick restarts (keep the best Ritz vectors,
+    continue from the residual block) exact. The basis lives in one preallocated
+    (max_basis + b, n) array, so each projection is one matrix product.
+    Returns (Y (count, n) orthonormal Ritz vectors, theta (count,), steps, restarts).
+
+    ``with_images``: ``op`` returns (S Y, Z) where Z (k, n) is some linear image of the
+    rows of Y (for the shift-invert operator: F^-T Y); the same combinations of the
+    images as of the basis are returned as a fifth item (count, n).
+    """
+    rng = np.random.default_rng(seed)
+    cap = max_basis + b
+    basis = np.empty((cap, n))  # pages are touched only as rows are filled
+    images = np.empty((cap, n)) if with_images else None
+    V, _ = _orthonormal_block(rng.standard_normal((b, n)), basis[:0], rng, 1.0)
+    size = 0  # rows in basis
+    H = np.zeros((cap, cap))
+    steps = restarts = 0
+    scale = 0.0
+    while True:
+        lo, hi = size, size + V.shape[0]
+        basis[lo:hi] = V
+        size = hi
+        out = op(V)
+        if with_images:
+            W, images[lo:hi] = out
+        else:
+            W = out
+        W = np.array(W, dtype=np.float64)  # own copy: modified in place below
+        del out
+        steps += 1
+        scale = max(scale, float(np.sqrt((W * W).sum(axis=1).max())))
+        Q = basis[:hi]
+        for _ in range(2):  # classical Gram-Schmidt, twice
+            C = Q @ W.T  # (hi, k)
+            H[:hi, lo:hi] += C
+            W -= C.T @ Q
+        Hs = np.triu(H[:hi, :hi])
+        Hs = Hs + np.triu(Hs, 1).T
+        theta, U = np.linalg.eigh(Hs)
+        theta, U = theta[::-1], U[:, ::-1]  # largest first
+        V, B = _orthonormal_block(W, Q, rng, scale)
+        del W
+        want = min(count, hi)
+        resid = np.linalg.norm(B @ U[lo:hi, :want], axis=0)
+        converged = want == count and bool(
+            np.all(resid <= tol * np.abs(theta[:want])))
+        if converged or hi >= n - b:
+            if want < count:
+                raise SolverError(f"block Lanczos: the Krylov space of this {n}-DOF problem "
+                                  f"holds only {want} of the {count} modes asked for")
+            Ut = np.ascontiguousarray(U[:, :count].T)
+            Y = Ut @ Q
+            if with_images:
+                return Y, theta[:count], steps, restarts, Ut @ images[:hi]
+            return Y, theta[:count], steps, restarts
+        if hi + V.shape[0] > max_basis:
+            if restarts >= max_restarts:
+                worst = float(np.max(resid / np.abs(theta[:want])))
+                raise SolverError(f"block Lanczos did not converge for {count} modes in "
+                                  f"{steps} steps (worst relative residual {worst:.1e}, "
+                                  f"tolerance {tol:.1e}); try a smaller modes.count or a "
+                                  "larger modes.tolerance")
+            keep = min(hi - V.shape[0], max(count + V.shape[0], max_basis // 2))
+            Ut = np.ascontiguousarray(U[:, :keep].T)
+            basis[:keep] = Ut @ Q
+            if with_images:
+                images[:keep] = Ut @ images[:hi]
+            H[:] = 0.0
+            H[np.arange(keep), np.arange(keep)] = theta[:keep]
+            # H[:keep, keep:] (the coupling B U_last of V to the kept vectors) is found
+            # again by the next step's projections
+            size = keep
+            restarts += 1
+            log.debug("block Lanczos: restart %d after %d steps, kept %d", restarts, steps,
+                      keep)

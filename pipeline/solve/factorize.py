@@ -1,0 +1,550 @@
+"""Sparse symmetric factorisations behind the shift-invert eigensolver.
+
+A backend factorises a symmetric matrix once and then solves many right-hand sides,
+one or a block of them per call, with that one factorisation. ``auto`` picks the
+fastest installed backend:
+
+``pardiso``
+    MKL PARDISO called directly through ``ctypes`` (MKL comes with the ``fast`` extra,
+    through pypardiso's dependency on ``mkl``). Symmetric positive-definite Cholesky
+    (matrix type 2) of the upper triangle, prepared once: 32-bit zero-based indices
+    (no per-call index conversion or re-hashing, unlike ``pypardiso.spsolve``) and
+    PARDISO's variable-block conversion of the rows (the 3 DOFs of a node share one
+    pattern), which makes the METIS analysis 2-3 times faster at 1M DOFs. The exact
+    factor size, known after the analysis, is checked against the available memory
+    before the factorisation allocates it. Threaded over
+    the cores this process may use (``MKL_NUM_THREADS`` overrides).
+    Multiple right-hand sides are solved in one call, and the factor ``L`` is also
+    offered as separate forward (``L^-1 b``) and backward (``L^-T y``) substitutions,
+    which the block Lanczos eigensolver uses (:mod:`pipeline.solve.eigen`).
+``superlu``
+    scipy's SuperLU with the ``MMD_AT_PLUS_A`` ordering (2x faster than the default
+    at 100k DOFs), always available.
+``cholmod``
+    SuiteSparse CHOLMOD through the ``cholespy`` wheel (the ``fast`` extra). That
+    wheel bundles the reference BLAS and runs on one thread: correct, but 3x slower
+    than SuperLU at 100k DOFs, so ``auto`` ranks it last; it is there as an
+    independent Cholesky to cross-check the others.
+
+``mumps`` (python-mumps) is an accepted name in the config but has no usable wheel
+for this Python/numpy (pip offers only the 0.0.2 wheel, built against numpy 1, which
+fails to import under numpy 2; later versions are source-only), nor has
+scikit-sparse (source-only); they are reported as not installed.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import glob
+import logging
+import os
+import sys
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.errors import ConfigError, SolverError
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("pardiso", "superlu", "cholmod", "mumps")
+
+# PARDISO error codes (MKL reference, "pardiso" error parameter)
+_PARDISO_ERRORS = {
+    -1: "input inconsistent",
+    -2: "not enough memory",
+    -3: "reordering problem",
+    -4: "zero or negative pivot: the matrix is singular or not positive definite",
+    -5: "unclassified internal error",
+    -6: "reordering failed",
+    -7: "diagonal matrix is singular",
+    -8: "32-bit integer overflow",
+    -9: "not enough memory for out-of-core",
+    -10: "cannot open out-of-core files",
+    -11: "out-of-core read/write error",
+}
+_MKL_DOMAIN_PARDISO = 4
+# iparm[36] < 0: PARDISO converts the CSR input to variable-size blocks, merging rows
+# whose patterns agree to this percentage (the 3 DOFs of a node always do). Measured on
+# the 1M-DOF cantilever: METIS analysis 5-9 s instead of 13-28 s with plain CSR input,
+# numerical factorisation within noise of it (155-170 s CPU on both), and 15% less CPU
+# than PARDISO's fixed 3x3 BSR input (whose multi-RHS solves were also slower).
+VBSR_THRESHOLD = -80
+# factors above this size (bytes, PARDISO's iparm[16]) are freed in a background thread
+BACKGROUND_RELEASE_BYTES = 1 << 30
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (affinity mask), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+@functools.lru_cache(maxsize=1)
+def _mkl_library() -> Any | None:
+    """The MKL runtime library (``libmkl_rt``), or None when it is not installed."""
+    from ctypes.util import find_library
+
+    # MKL's OpenMP threads otherwise spin for 200 ms after every solve, competing with
+    # the numpy (OpenBLAS) work between solves on a 2-core machine: a 10x slowdown of
+    # the Rayleigh-Ritz step was measured. Read when the OpenMP runtime starts.
+    os.environ.setdefault("KMP_BLOCKTIME", "0")
+    candidates = []
+    if os.environ.get("PYPARDISO_MKL_RT"):
+        candidates.append(os.environ["PYPARDISO_MKL_RT"])
+    for prefix in (sys.prefix, sys.base_prefix):
+        candidates += sorted(glob.glob(os.path.join(prefix, "lib", "libmkl_rt.so*")), key=len)
+        candidates += sorted(glob.glob(os.path.join(prefix, "Library", "bin", "mkl_rt*.dll")),
+                             key=len)
+    found = find_library("mkl_rt")
+    if found:
+        candidates.append(found)
+    for path in candidates:
+        try:
+            lib = ctypes.CDLL(path)
+            lib.pardiso  # noqa: B018  (the symbol must exist)
+        except (OSError, AttributeError):
+            continue
+        P = ctypes.POINTER
+        lib.pardiso.restype = None
+        lib.pardiso.argtypes = [P(ctypes.c_int64)] + [P(ctypes.c_int32)] * 5 + [
+            ctypes.c_void_p, P(ctypes.c_int32), P(ctypes.c_int32), P(ctypes.c_int32),
+            P(ctypes.c_int32), P(ctypes.c_int32), P(ctypes.c_int32), ctypes.c_void_p,
+            ctypes.c_void_p, P(ctypes.c_int32)]
+        log.debug("MKL runtime: %s", path)
+        return lib
+    return None
+
+
+@functools.lru_cache(maxsize=1)
+def _cholespy() -> Any | None:
+    try:
+        import cholespy
+
+        return cholespy
+    except Exception:  # ImportError, or its bundled libraries failing to load
+        return None
+
+
+def available_backends() -> list[str]:
+    """Installed backends, fastest first (measured at 100k DOFs)."""
+    found = []
+    if _mkl_library() is not None:
+        found.append("pardiso")
+    found.append("superlu")
+    if _cholespy() is not None:
+        found.append("cholmod")
+    return found
+
+
+@dataclass
+class Factorization:
+    """A factorised symmetric matrix A (n x n).
+
+    ``solve(b)``: A^-1 b for b of shape (n,) or (n, k). When the backend has a
+    symmetric factor A = F F^T, ``forward(b)`` = F^-1 b and ``backward(y)`` = F^-T y
+    (same shapes); otherwise they are None. ``release()`` frees the factor.
+    ``info``: factor statistics (``factor_nnz``, ``factor_bytes``, ``format``...).
+    """
+
+    solve: Callable[[np.ndarray], np.ndarray]
+    backend: str
+    n: int
+    release: Callable[[], None] = lambda: None
+    forward: Callable[[np.ndarray], np.ndarray] | None = None
+    backward: Callable[[np.ndarray], np.ndarray] | None = None
+    info: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- inputs
+def _upper_mask(indptr: np.ndarray, indices: np.ndarray, n: int):
+    """Mask of the entries with column >= row, and the indptr of those entries."""
+    rows = np.repeat(np.arange(n, dtype=np.int32), np.diff(indptr))
+    mask = indices >= rows
+    del rows
+    kept = np.zeros(mask.size + 1, dtype=np.int32 if mask.size < 2**31 else np.int64)
+    np.cumsum(mask, out=kept[1:])
+    return mask, kept[indptr].astype(np.int64)
+
+
+def upper_triangle_csr(A: sp.csr_matrix) -> sp.csr_matrix:
+    """The upper triangle (diagonal included) of CSR ``A``, sorted, 32-bit indices.
+
+    One pass over A's arrays; no COO intermediate.
+    """
+    A = sp.csr_matrix(A)
+    if not A.has_sorted_indices:
+        A = A.copy()
+        A.sort_indices()
+    n = A.shape[0]
+    mask, indptr = _upper_mask(A.indptr, A.indices, n)
+    itype = np.int32 if indptr[-1] < 2**31 else np.int64
+    return sp.csr_matrix((A.data[mask], A.indices[mask].astype(itype, copy=False),
+                          indptr.astype(itype, copy=False)), shape=A.shape)
+
+
+# --------------------------------------------------------------------------- products
+class _SparseMatrixT(ctypes.Structure):
+    _fields_ = [("type", ctypes.c_int), ("mode", ctypes.c_int), ("diag", ctypes.c_int)]
+
+
+def sparse_times_dense(A: sp.spmatrix, X: np.ndarray) -> np.ndarray:
+    """A @ X for CSR ``A`` (n x m, 32-bit indices) and dense X (m,) or (m, k).
+
+    MKL's threaded sparse BLAS (``mkl_sparse_d_mm``) when MKL is there, else scipy's
+    single-threaded product; the result is the same to round-off.
+    """
+    lib = _mkl_library()
+    X = np.asarray(X, dtype=np.float64)
+    if (lib is None or not sp.isspmatrix_csr(A) or A.indices.dtype != np.int32
+            or A.indptr.dtype != np.int32 or A.dtype != np.float64 or X.ndim != 2
+            or X.shape[1] < 2 or A.nnz == 0):
+        return A @ X
+    m, k = A.shape[0], X.shape[1]
+    if X.flags.f_contiguous:  # column-major in and out: no transposing copies
+        layout, ldx, ldy = 102, A.shape[1], m
+        Y = np.empty((m, k), order="F")
+    else:
+        X = np.ascontiguousarray(X)
+        layout, ldx, ldy = 101, k, k
+        Y = np.empty((m, k))
+    handle = ctypes.c_void_p()
+    ip = A.indptr
+    P = ctypes.POINTER
+    st = lib.mkl_sparse_d_create_csr(
+        ctypes.byref(handle), ctypes.c_int(0), ctypes.c_int(m), ctypes.c_int(A.shape[1]),
+        ip.ctypes.data_as(P(ctypes.c_int32)),
+        ctypes.c_void_p(ip.ctypes.data + 4),  # rows_end = indptr[1:]
+        A.indices.ctypes.data_as(P(ctypes.c_int32)), A.data.ctypes.data_as(ctypes.c_void_p))
+    if st != 0:
+        return A @ X
+    try:
+        descr = _SparseMatrixT(20, 0, 0)  # SPARSE_MATRIX_TYPE_GENERAL
+        lib.mkl_sparse_d_mm.argtypes = [ctypes.c_int, ctypes.c_double, ctypes.c_void_p,
+                                        _SparseMatrixT, ctypes.c_int, ctypes.c_void_p,
+                                        ctypes.c_int, ctypes.c_int, ctypes.c_double,
+                                        ctypes.c_void_p, ctypes.c_int]
+        st = lib.mkl_sparse_d_mm(10, 1.0, handle, descr, layout,  # non-transposed
+                                 X.ctypes.data, k, ldx, 0.0, Y.ctypes.data, ldy)
+    finally:
+        lib.mkl_sparse_destroy(handle)
+    if st != 0:
+        return A @ X
+    return Y
+
+
+# --------------------------------------------------------------------------- PARDISO
+class _Pardiso:
+    """One MKL PARDISO factorisation (matrix type 2 or -2), prepared once."""
+
+    def __init__(self, A: sp.spmatrix, positive_definite: bool = True):
+        lib = _mkl_library()
+        if lib is None:
+            raise ConfigError("config key 'modes.solver': 'pardiso' needs MKL (install the "
+                              "'fast' extra: pip install -e '.[fast]')")
+        self.lib = lib
+        self.n = A.shape[0]
+        self.mtype = 2 if positive_definite else -2
+        U = upper_triangle_csr(sp.csr_matrix(A))
+        if U.indptr.dtype != np.int32:
+            raise SolverError(f"the {self.n}x{self.n} system has {U.nnz} non-zeros in its "
+                              "upper triangle: more than 32-bit PARDISO indices hold")
+        self.a, self.ia, self.ja = U.data, U.indptr, U.indices
+        del U
+        self.pt = np.zeros(64, dtype=np.int64)
+        self.iparm = np.zeros(64, dtype=np.int32)
+        ip = self.iparm
+        ip[0] = 1  # supply all values
+        ip[1] = 3  # METIS nested dissection, OpenMP version (same fill, analysis 30% faster)
+        ip[9] = 8  # pivot perturbation 1e-8 (indefinite type only)
+        ip[17] = -1  # report the factor's non-zeros
+        ip[20] = 1  # Bunch-Kaufman pivoting (indefinite type only)
+        ip[23] = 1  # two-level parallel factorisation
+        ip[34] = 1  # zero-based indices: scipy's arrays are passed as they are
+        ip[36] = VBSR_THRESHOLD  # rows with (nearly) equal patterns -> variable blocks
+        if "MKL_NUM_THREADS" not in os.environ:
+            lib.MKL_Domain_Set_Num_Threads(ctypes.c_int(usable_cores()),
+                                           ctypes.c_int(_MKL_DOMAIN_PARDISO))
+        self._alive = True  # from the first call on, PARDISO may hold memory to release
+        t0 = time.perf_counter()
+        try:
+            self._call(11)  # analysis: ordering and symbolic factorisation
+            t1 = time.perf_counter()
+            # the exact factor size is known now, before the factorisation allocates it
+            from pipeline.fe.resources import check_factor_memory
+
+            check_factor_memory(float(self.iparm[16]) * 1024, self.n)
+            self._call(22)  # numerical factorisation
+        except BaseException:
+            self.release()
+            raise
+        self.seconds = {"analysis": t1 - t0, "factorisation": time.perf_counter() - t1}
+
+    def _call(self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None,
+              nrhs: int = 1) -> None:
+        P = ctypes.POINTER
+        i32 = ctypes.c_int32
+        err = i32(0)
+        dummy = np.zeros(1)
+        self.lib.pardiso(
+            self.pt.ctypes.data_as(P(ctypes.c_int64)), ctypes.byref(i32(1)), ctypes.byref(i32(1)),
+            ctypes.byref(i32(self.mtype)), ctypes.byref(i32(phase)), ctypes.byref(i32(self.n)),
+            self.a.ctypes.data, self.ia.ctypes.data_as(P(i32)), self.ja.ctypes.data_as(P(i32)),
+            None, ctypes.byref(i32(nrhs)), self.iparm.ctypes.data_as(P(i32)),
+            ctypes.byref(i32(0)), (dummy if b is None else b).ctypes.data,
+            (dummy if x is None else x).ctypes.data, ctypes.byref(err))
+        if err.value != 0:
+            what = _PARDISO_ERRORS.get(err.value, "unknown error")
+            if err.value == -4 or (phase == 22 and err.value == -7):
+                where = int(self.iparm[29])
+                at = f"; first bad pivot at equation {where}" if where > 0 else ""
+                raise SolverError(
+                    f"PARDISO could not factorise the {self.n}x{self.n} system ({what}{at}): "
+                    "the stiffness matrix is singular or not "
+                    "positive definite; check the supports (an unsupported body must be "
+                    "solved as a free body, with no supports) and the material")
+            if err.value in (-2, -9):
+                raise SolverError(f"PARDISO ran out of memory factorising the {self.n}x{self.n} "
+                                  f"system (error {err.value}); use a coarser mesh.size")
+            raise SolverError(f"PARDISO failed in phase {phase} on the {self.n}x{self.n} system: "
+                              f"error {err.value} ({what})")
+
+    def _apply(self, phase: int, b: np.ndarray) -> np.ndarray:
+        if not self._alive:
+            raise SolverError("the PARDISO factorisation was released")
+        b = np.asarray(b, dtype=np.float64)
+        if b.shape[0] != self.n:
+            raise ValueError(f"right-hand side has {b.shape[0]} rows, expected {self.n}")
+        if b.ndim == 1:
+            b = np.ascontiguousarray(b)
+            x = np.empty_like(b)
+            self._call(phase, b, x, 1)
+            return x
+        # PARDISO wants column-major (n, k): a C-ordered (k, n) array, i.e. b.T
+        bt = np.ascontiguousarray(b.T)
+        xt = np.empty_like(bt)
+        self._call(phase, bt, xt, bt.shape[0])
+        return xt.T
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._apply(33, b)
+
+    def forward(self, b: np.ndarray) -> np.ndarray:
+        return self._apply(331, b)
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        return self._apply(333, y)
+
+    def solve_rows(self, phase: int, bt: np.ndarray) -> np.ndarray:
+        """Solve for a C-ordered (k, n) block of right-hand sides (rows); no copies."""
+        if not self._alive:
+            raise SolverError("the PARDISO factorisation was released")
+        bt = np.ascontiguousarray(bt, dtype=np.float64)
+        xt = np.empty_like(bt)
+        self._call(phase, bt, xt, bt.shape[0] if bt.ndim == 2 else 1)
+        return xt
+
+    def release(self) -> None:
+        """Free PARDISO's memory. A factor above 1 GB is freed in a background thread
+        (0.7 s for the 9 GB factor at 1M DOFs, which then overlaps the file writing);
+        the interpreter waits for that thread before it exits."""
+        if not self._alive:
+            return
+        self._alive = False
+
+        def free() -> None:
+            try:
+                self._call(-1)
+            except SolverError:  # releasing must never mask the real error
+                pass
+            self.a = self.ia = self.ja = np.zeros(1)
+
+        if int(self.iparm[16]) * 1024 > BACKGROUND_RELEASE_BYTES:
+            import threading
+
+            self.releasing = threading.Thread(target=free, name="pardiso-release")
+            self.releasing.start()
+        else:
+            free()
+
+    def info(self) -> dict:
+        # iparm[16]: memory of numerical factorisation and solution (KB), iparm[17]: nnz
+        # of the factor
+        return {"format": "csr-upper/vbsr",
+                "analysis_seconds": self.seconds["analysis"],
+                "numeric_seconds": self.seconds["factorisation"],
+                "factor_nnz": int(self.iparm[17]),
+                "factor_bytes": int(self.iparm[16]) * 1024,
+                "analysis_bytes": int(self.iparm[14]) * 1024}
+
+
+def _pardiso(A: sp.spmatrix, positive_definite: bool) -> Factorization:
+    fact = _Pardiso(A, positive_definite)
+    info = fact.info()
+    info["rows"] = fact.solve_rows
+    fwd = fact.forward if positive_definite else None
+    bwd = fact.backward if positive_definite else None
+    return Factorization(fact.solve, "pardiso", A.shape[0], fact.release, fwd, bwd, info)
+
+
+def _superlu(A: sp.spmatrix, positive_definite: bool = True) -> Factorization:
+    from scipy.sparse.linalg import splu
+
+    try:
+        lu = splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A",
+                  options={"SymmetricMode": True, "DiagPivotThresh": 0.01})
+    except RuntimeError as exc:
+        raise SolverError(f"SuperLU could not factorise the {A.shape[0]}x{A.shape[0]} system "
+                          f"({exc}): the matrix is singular; check the supports") from None
+    if positive_definite and np.array_equal(lu.perm_r, lu.perm_c):
+        # symmetric pivoting only: A = P^T L D L^T P with D = diag(U), so by Sylvester's
+        # law of inertia A is positive definite iff every U_ii > 0
+        negative = int((lu.U.diagonal() <= 0).sum())
+        if negative:
+            raise SolverError(f"the {A.shape[0]}x{A.shape[0]} stiffness system is singular or "
+                              f"not positive definite ({negative} non-positive pivots): check "
+                              "the supports (a body that can move as a rigid body or mechanism "
+                              "needs supports) and the material (E > 0, -1 < nu < 0.5)")
+    info = {"format": "csc", "factor_nnz": int(lu.L.nnz + lu.U.nnz),
+            "factor_bytes": int(12 * (lu.L.nnz + lu.U.nnz))}
+    return Factorization(lu.solve, "superlu", A.shape[0], lambda: None, None, None, info)
+
+
+def _cholmod(A: sp.spmatrix) -> Factorization:
+    cholespy = _cholespy()
+    A = sp.csr_matrix(A)
+    n = A.shape[0]
+    try:
+        solver = cholespy.CholeskySolverD(n, A.indptr.astype(np.int32),
+                                          A.indices.astype(np.int32),
+                                          np.ascontiguousarray(A.data, dtype=np.float64),
+                                          cholespy.MatrixType.CSR)
+    except (ValueError, RuntimeError) as exc:
+        raise SolverError(f"CHOLMOD could not factorise the {n}x{n} system ({exc}): the "
+                          "stiffness matrix is singular or not positive definite; check the "
+                          "supports") from None
+    holder = [solver]
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        if holder[0] is None:
+            raise SolverError("the CHOLMOD factorisation was released")
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        holder[0].solve(b, x)
+        return x
+
+    def release() -> None:
+        holder[0] = None
+
+    return Factorization(solve, "cholmod", n, release, None, None, {"format": "csr"})
+
+
+def resolve_backend(backend: str = "auto") -> str:
+    """The backend ``backend`` names (``auto``: the fastest installed one)."""
+    available = available_backends()
+    if backend == "auto":
+        return available[0]
+    if backend not in available:
+        missing = ""
+        if backend in ("pardiso", "cholmod"):
+            missing = f" ('{backend}' comes with the 'fast' extra: pip install -e '.[fast]')"
+        elif backend == "mumps":
+            missing = " (python-mumps has no wheel for this Python/numpy)"
+        raise ConfigError(f"config key 'modes.solver': got '{backend}', expected one of the "
+                          f"installed backends: auto, {', '.join(available)}{missing}")
+    return backend
+
+
+def check_factorization(A: sp.spmatrix, fact: Factorization, seed: int = 7) -> float:
+    """Relative error of solving A x = A z for a known random z; SolverError if large.
+
+    A singular A (for example a body without enough supports) makes the solution
+    differ from z by arbitrary null-space components, however small the residual.
+    """
+    z = np.random.default_rng(seed).standard_normal(A.shape[0])
+    x = fact.solve(A @ z)
+    error = float(np.linalg.norm(x - z) / np.linalg.norm(z))
+    if not np.isfinite(error) or error > 1e-3:
+        raise SolverError(
+            f"the {A.shape[0]}x{A.shape[0]} stiffness system is singular to working precision "
+            f"(backend {fact.backend}: solving A x = A z misses z by {error:.1e} relative); "
+            "check the supports: a body that can move as a rigid body or mechanism needs "
+            "supports, or must be solved as a free body (no supports at all)")
+    return error
+
+
+# One factorisation kept after the eigensolve, keyed on the very matrix object it
+# factorises: the static correction of the reduced model solves with the same K, and
+# a second factorisation would double the time at 1M DOFs. Freed when that matrix is
+# garbage-collected or when another factorisation is kept.
+_kept: dict = {}
+
+
+def _matrix_key(A) -> tuple:
+    data = getattr(A, "data", None)
+    ptr = data.ctypes.data if isinstance(data, np.ndarray) else 0
+    return (id(A), A.shape, getattr(A, "nnz", 0), ptr)
+
+
+def _drop_kept() -> None:
+    entry = _kept.pop("entry", None)
+    if entry is not None:
+        entry[2].detach()
+        entry[1].release()
+
+
+def keep_factorization(A: sp.spmatrix, fact: Factorization) -> None:
+    """Keep ``fact`` (a factorisation of exactly ``A``) for a later :func:`factorize` of
+    the same matrix object, until ``A`` is garbage-collected (replaces any kept one)."""
+    _drop_kept()
+    try:
+        finalizer = weakref.finalize(A, _drop_kept)
+    except TypeError:  # not weak-referenceable: nothing to keep it by
+        fact.release()
+        return
+    _kept["entry"] = (_matrix_key(A), fact, finalizer)
+
+
+def release_kept() -> None:
+    """Free the kept factorisation now, if any."""
+    _drop_kept()
+
+
+def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = True,
+              check: bool = True) -> Factorization:
+    """Factorise the symmetric matrix ``A`` (n x n) once, with ``backend``.
+
+    ``backend``: ``auto`` or one of :data:`BACKENDS`; a backend that is not installed
+    is refused (ConfigError) with the list of those that are. A singular ``A`` raises
+    SolverError: from the factorisation itself, or (``check``) from
+    :func:`check_factorization`.
+    """
+    backend = resolve_backend(backend)
+    entry = _kept.get("entry")
+    if entry is not None and entry[0] == _matrix_key(A) and entry[1].backend == backend:
+        log.info("reusing the %s factorisation of this %dx%d matrix", backend, *A.shape)
+        kept = entry[1]
+        return Factorization(kept.solve, kept.backend, kept.n, lambda: None, kept.forward,
+                             kept.backward, dict(kept.info))
+    if A.shape[0] != A.shape[1] or A.shape[0] == 0:
+        raise SolverError(f"cannot factorise a {A.shape[0]}x{A.shape[1]} matrix")
+    if backend == "pardiso":
+        fact = _pardiso(A, positive_definite)
+    elif backend == "cholmod":
+        fact = _cholmod(A)
+    else:
+        fact = _superlu(A, positive_definite)
+    if check:
+        try:
+            check_factorization(A, fact)
+        except SolverError:
+            fact.release()
+            raise
+    return fact

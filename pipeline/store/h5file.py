@@ -1,0 +1,422 @@
+"""The HDF5 file: atomic writing, checksummed, versioned reading.
+
+Layout and units are documented in ``docs/hdf5-format.md`` (the contract with every
+tool that loads our files). Writing goes to a temporary file in the target folder,
+which is flushed, fsync'ed and renamed over the final name only when complete, so an
+interrupted run never leaves a file under the final name that looks valid.
+
+Integrity: the root attribute ``content_sha256`` is a SHA-256 over every dataset's
+path, dtype, shape and bytes (in sorted path order). ``attrs_sha256`` covers every
+attribute of every object (the metadata: units, names, filter cut-off, ...), and
+``content_index`` (JSON) holds a short digest of each dataset and of each object's
+attributes, so that a mismatch can be reported by name (which dataset changed, which
+group is missing). :func:`open_verified` recomputes them and refuses a truncated,
+bit-flipped or foreign file, or a schema version this code does not know, with a
+message that says which. Files written before ``attrs_sha256`` existed, or whose
+content was re-signed by a tool that only updates ``content_sha256`` (``attrs_sha256``
+records the content digest it was made with), are checked on their content only.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import glob
+import hashlib
+import json
+import logging
+import os
+import re
+import socket
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from pipeline.errors import FileFormatError
+from pipeline.store.tree import Dataset
+
+log = logging.getLogger(__name__)
+
+SCHEMA = "fe-reduced-body"
+SCHEMA_VERSION = 1
+KNOWN_VERSIONS = (1,)
+
+
+def _write_dataset(h5, path: str, ds: Dataset) -> None:
+    import h5py
+
+    arr = ds.as_array()
+    if arr.dtype == object:
+        dset = h5.create_dataset(path, data=[str(s) for s in arr.ravel()],
+                                 dtype=h5py.string_dtype("utf-8"))
+    elif arr.dtype.kind == "U":
+        dset = h5.create_dataset(path, data=arr.astype(object), dtype=h5py.string_dtype("utf-8"))
+    else:
+        dset = h5.create_dataset(path, data=arr)
+    dset.attrs["units"] = ds.units
+    if ds.description:
+        dset.attrs["description"] = ds.description
+    for key, value in ds.attrs.items():
+        dset.attrs[key] = _attr_value(value)
+
+
+def _attr_value(value: Any) -> Any:
+    if isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
+        import h5py
+
+        return np.array(value, dtype=h5py.string_dtype("utf-8"))
+    return value
+
+
+def _dataset_digests(h5) -> tuple[str, dict[str, str]]:
+    """(SHA-256 over every dataset, {path: SHA-256 of that dataset}) of an open File."""
+    digest = hashlib.sha256()
+    each: dict[str, str] = {}
+    paths: list[str] = []
+    h5.visititems(lambda name, obj: paths.append(name) if hasattr(obj, "dtype") else None)
+    for name in sorted(paths):
+        dset = h5[name]
+        one = hashlib.sha256()
+
+        def update(data: bytes) -> None:
+            digest.update(data)
+            one.update(data)
+
+        update(name.encode())
+        update(str(dset.shape).encode())
+        if dset.dtype.kind == "O" or dset.dtype.kind == "S":
+            data = dset.asstr()[()] if dset.shape else dset.asstr()[()]
+            items = np.atleast_1d(np.asarray(data, dtype=object)).ravel()
+            update(b"str")
+            for item in items:
+                update(str(item).encode("utf-8", "surrogateescape") + b"\0")
+        else:
+            update(dset.dtype.str.encode())
+            update(np.ascontiguousarray(dset[()]).tobytes())
+        each[name] = one.hexdigest()
+    return digest.hexdigest(), each
+
+
+def content_digest(h5) -> str:
+    """SHA-256 over every dataset (path, dtype, shape, bytes) of an open h5py File."""
+    return _dataset_digests(h5)[0]
+
+
+# root attributes that are not themselves covered by attrs_sha256
+_SIGNATURES = ("content_sha256", "attrs_sha256")
+
+
+def _attr_bytes(value: Any) -> bytes:
+    """A canonical byte form of an attribute value as h5py reads it back."""
+    if isinstance(value, str):
+        return b"s" + value.encode("utf-8", "surrogateescape")
+    if isinstance(value, bytes):
+        return b"b" + value
+    arr = np.asarray(value)
+    if arr.dtype.kind == "O":
+        return b"o" + str(arr.shape).encode() + b"\0".join(
+            (v if isinstance(v, bytes) else str(v).encode("utf-8", "surrogateescape"))
+            for v in arr.ravel())
+    return arr.dtype.str.encode() + str(arr.shape).encode() + np.ascontiguousarray(arr).tobytes()
+
+
+def _attrs_digests(h5) -> tuple[str, dict[str, str]]:
+    """(SHA-256 over every attribute of every object, {object path: SHA-256 of its
+    attributes}). The root's signatures are left out; ``content_index`` is in the total
+    but not in the root's own entry (the index cannot hold its own digest)."""
+    objects = ["/"]
+    h5.visit(lambda name: objects.append(name))
+    digest = hashlib.sha256()
+    each: dict[str, str] = {}
+    for name in sorted(objects):
+        obj = h5[name]
+        one = hashlib.sha256()
+        for key in sorted(obj.attrs):
+            if name == "/" and key in _SIGNATURES + ("content_index",):
+                continue
+            one.update(key.encode() + b"=" + _attr_bytes(obj.attrs[key]) + b"\0")
+        part = one.hexdigest()
+        digest.update(name.encode() + b":" + part.encode() + b"\n")
+        each[name] = part
+    if "content_index" in h5.attrs:
+        digest.update(b"content_index=" + _attr_bytes(h5.attrs["content_index"]))
+    return digest.hexdigest(), each
+
+
+def sign(h5) -> str:
+    """Write the integrity attributes of an open, writable File (after its last change):
+    ``content_index``, ``content_sha256`` and ``attrs_sha256``. Returns the content digest.
+    A tool that adds datasets to one of our files calls this to re-sign it."""
+    content, datasets = _dataset_digests(h5)
+    for key in _SIGNATURES + ("content_index",):
+        if key in h5.attrs:
+            del h5.attrs[key]
+    _, objects = _attrs_digests(h5)
+    index = {"datasets": {k: v[:16] for k, v in datasets.items()},
+             "attrs": {k: v[:16] for k, v in objects.items()}}
+    text = json.dumps(index, sort_keys=True, separators=(",", ":"))
+    if len(text) < 60000:  # an attribute lives in a 64 kB object header
+        h5.attrs["content_index"] = text
+    h5.attrs["content_sha256"] = content
+    h5.attrs["attrs_sha256"] = f"{content[:16]}:{_attrs_digests(h5)[0]}"
+    return content
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
+
+
+def _remove_stale_partials(path: Path) -> None:
+    """Temporary files of writers of ``path`` on this host that were killed (SIGKILL, power
+    loss) before they could remove them. A writer still running keeps its file."""
+    host = _host()
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.partial"):
+        parts = tmp.name[len(path.name) + 2:].rsplit(".", 2)
+        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+            continue
+        pid = int(parts[1])
+        if pid == os.getpid():
+            continue
+        try:
+            os.kill(pid, 0)
+            continue  # still alive (or the pid was reused): leave it
+        except ProcessLookupError:
+            pass
+        except OSError:
+            continue
+        try:
+            tmp.unlink()
+            log.info("removed %s, left by a writer that was killed", tmp)
+        except OSError:
+            pass
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_file(path: str | Path, tree: Mapping[str, Dataset],
+               group_attrs: Mapping[str, Mapping[str, Any]] | None = None,
+               root_attrs: Mapping[str, Any] | None = None) -> Path:
+    """Write ``tree`` (path -> Dataset) to ``path`` atomically, with the schema header."""
+    import h5py
+
+    from pipeline import __version__
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_partials(path)
+    tmp = path.with_name(f".{path.name}.{_host()}.{os.getpid()}.partial")
+    try:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs["schema"] = SCHEMA
+            h5.attrs["schema_version"] = SCHEMA_VERSION
+            h5.attrs["pipeline_version"] = __version__
+            h5.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).strftime(
+                "%Y-%m-%dT%H:%M:%SZ")
+            for key, value in (root_attrs or {}).items():
+                h5.attrs[key] = _attr_value(value)
+            for name in sorted(tree):
+                _write_dataset(h5, name, tree[name])
+            for group, attrs in (group_attrs or {}).items():
+                grp = h5.require_group(group)
+                for key, value in attrs.items():
+                    grp.attrs[key] = _attr_value(value)
+            sign(h5)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)  # the rename itself survives a power loss
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    log.info("wrote %s (%.1f MB)", path, path.stat().st_size / 1e6)
+    return path
+
+
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, np.generic):
+        value = value.item()  # 1.5, not np.float64(1.5)
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _has_hdf5_signature(path: Path, size: int) -> bool:
+    """The HDF5 signature at offset 0, 512, 1024, 2048, ... (after a user block)."""
+    with open(path, "rb") as fh:
+        offset = 0
+        while offset + 8 <= size:
+            fh.seek(offset)
+            if fh.read(8) == HDF5_SIGNATURE:
+                return True
+            offset = 512 if offset == 0 else 2 * offset
+    return False
+
+
+def _open_h5(path: Path):
+    """h5py.File(path, "r"), or FileFormatError saying why it is not a readable HDF5 file."""
+    import h5py
+
+    if not path.exists():
+        raise FileFormatError(f"file '{path}': not found")
+    if path.is_dir():
+        raise FileFormatError(f"file '{path}': is a directory, not an HDF5 file")
+    if not path.is_file():
+        raise FileFormatError(f"file '{path}': not a regular file")
+    try:
+        size = path.stat().st_size
+        signed = _has_hdf5_signature(path, size)
+    except OSError as exc:
+        raise FileFormatError(f"file '{path}': cannot be read ({exc})") from None
+    if size == 0:
+        raise FileFormatError(f"file '{path}': not a readable HDF5 file: it is empty (0 bytes; "
+                              "truncated to nothing?)")
+    if not signed:
+        raise FileFormatError(f"file '{path}': not a readable HDF5 file: no HDF5 signature in "
+                              f"its {size} bytes (not an HDF5 file, or its start is corrupt)")
+    try:
+        return h5py.File(path, "r")
+    except Exception as exc:  # OSError mostly; h5py raises others on corrupt metadata
+        text = " ".join(str(exc).split())
+        m = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
+        if m:
+            raise FileFormatError(
+                f"file '{path}': not a readable HDF5 file: truncated ({m.group(1)} bytes, its "
+                f"HDF5 header says {m.group(2)}): an incomplete copy, download or write") from None
+        raise FileFormatError(f"file '{path}': not a readable HDF5 file (truncated or corrupt: "
+                              f"{text[:200]})") from None
+
+
+def _schema_version(h5, path: Path) -> int:
+    if "schema_version" not in h5.attrs:
+        raise FileFormatError(f"file '{path}': has no schema_version attribute")
+    raw = h5.attrs["schema_version"]
+    value = raw.item() if isinstance(raw, np.ndarray) and raw.size == 1 else raw
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise FileFormatError(f"file '{path}': schema_version {_short(value)} is not an integer; "
+                              f"this pipeline reads version(s) "
+                              f"{', '.join(map(str, KNOWN_VERSIONS))}")
+    return int(value)
+
+
+def _diagnose(h5, stored_index: Any, actual: dict[str, str], kind: str) -> str:
+    """Which datasets (kind 'datasets') or objects' attributes (kind 'attrs') differ from the
+    index written with the file; '' when the index is missing or unreadable."""
+    try:
+        listed = json.loads(str(stored_index))[kind]
+        assert isinstance(listed, dict)
+    except Exception:
+        return ""
+    actual = {k: v[:16] for k, v in actual.items()}
+    missing = sorted(set(listed) - set(actual))
+    added = sorted(set(actual) - set(listed))
+    changed = sorted(k for k in listed if k in actual and actual[k] != listed[k])
+    parts = []
+    if missing:
+        groups = sorted({m.split("/")[0] for m in missing if "/" in m})
+        gone = [g for g in groups if g not in h5]
+        if gone:
+            parts.append(f"group{'s' if len(gone) > 1 else ''} "
+                         f"{', '.join('/' + g for g in gone)} missing")
+        rest = [m for m in missing if m.split("/")[0] not in gone]
+        if rest:
+            parts.append(f"{'dataset' if kind == 'datasets' else 'object'}"
+                         f"{'s' if len(rest) > 1 else ''} {', '.join(rest[:4])}"
+                         f"{' ...' if len(rest) > 4 else ''} missing")
+    if changed:
+        what = "dataset" if kind == "datasets" else "attributes of"
+        parts.append(f"{what} {', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} "
+                     "changed")
+    if added:
+        parts.append(f"{', '.join(added[:4])}{' ...' if len(added) > 4 else ''} added")
+    return "; ".join(parts)
+
+
+def _verify(h5, path: Path, verify_checksum: bool) -> None:
+    schema = h5.attrs.get("schema")
+    if isinstance(schema, bytes):
+        schema = schema.decode("utf-8", "replace")
+    if not isinstance(schema, str) or schema != SCHEMA:
+        raise FileFormatError(f"file '{path}': schema attribute is {_short(schema)}, expected "
+                              f"'{SCHEMA}' (not a file written by this pipeline)")
+    version = _schema_version(h5, path)
+    if version not in KNOWN_VERSIONS:
+        raise FileFormatError(f"file '{path}': schema_version {version} is not known to this "
+                              f"pipeline, which reads version(s) "
+                              f"{', '.join(map(str, KNOWN_VERSIONS))}")
+    if not verify_checksum:
+        return
+    stored = h5.attrs.get("content_sha256")
+    if stored is None:
+        raise FileFormatError(f"file '{path}': has no content_sha256 attribute")
+    stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
+    index = h5.attrs.get("content_index")
+    actual, each = _dataset_digests(h5)
+    if actual != stored:
+        detail = _diagnose(h5, index, each, "datasets")
+        raise FileFormatError(f"file '{path}': content checksum mismatch (stored "
+                              f"{stored[:12]}..., computed {actual[:12]}...)"
+                              f"{': ' + detail if detail else ''}: the file was modified or "
+                              "corrupted after it was written")
+    signed = h5.attrs.get("attrs_sha256")
+    if signed is None:
+        return  # written before attribute checksums existed
+    signed = signed.decode("utf-8", "replace") if isinstance(signed, bytes) else str(signed)
+    bound, _, stored_attrs = signed.partition(":")
+    if bound != stored[:16]:
+        # the content was re-signed by a tool that does not know attrs_sha256
+        log.debug("%s: attrs_sha256 belongs to an earlier content; attributes not checked", path)
+        return
+    actual_attrs, each_attrs = _attrs_digests(h5)
+    if actual_attrs != stored_attrs:
+        detail = _diagnose(h5, index, each_attrs, "attrs")
+        raise FileFormatError(f"file '{path}': attribute checksum mismatch (stored "
+                              f"{stored_attrs[:12]}..., computed {actual_attrs[:12]}...)"
+                              f"{': ' + detail if detail else ''}: the metadata (units, "
+                              "names, settings) was modified or corrupted after it was written")
+
+
+def open_verified(path: str | Path, verify_checksum: bool = True):
+    """Open one of our HDF5 files read-only after checking schema, version and checksums.
+
+    Returns an open ``h5py.File`` (use it as a context manager). Raises
+    FileFormatError naming the file and what is wrong: not found, not HDF5, truncated,
+    foreign (schema), unknown version, content or attribute checksum mismatch (naming the
+    changed datasets or missing groups when the file has a ``content_index``), or
+    metadata too corrupt to read.
+    """
+    path = Path(path)
+    h5 = _open_h5(path)
+    try:
+        _verify(h5, path, verify_checksum)
+    except FileFormatError:
+        h5.close()
+        raise
+    except Exception as exc:  # h5py/HDF5 errors on corrupt metadata: OSError, RuntimeError...
+        h5.close()
+        text = " ".join(str(exc).split())[:200]
+        raise FileFormatError(f"file '{path}': corrupt HDF5 metadata, a dataset or attribute "
+                              f"cannot be read ({type(exc).__name__}: {text})") from None
+    except BaseException:
+        h5.close()
+        raise
+    return h5
+
+
+def read_strings(dset) -> list[str]:
+    """A string dataset or attribute as a list of str."""
+    if hasattr(dset, "asstr"):
+        return [str(s) for s in np.atleast_1d(dset.asstr()[()])]
+    return [s.decode() if isinstance(s, bytes) else str(s) for s in np.atleast_1d(dset)]
