@@ -75,12 +75,13 @@ def test_degenerate_and_non_tetrahedral_meshes_are_refused(tmp_path):
 
 
 def test_stale_mesh_temporaries_of_dead_processes_are_removed(tmp_path):
+    from pipeline._util.atomic import host_tag
     from pipeline.config import Geometry, MeshSpec
     from pipeline.fe.mesh import generate_mesh
 
-    dead = tmp_path / ".box.999999999.tmp.msh"  # no such pid
+    dead = tmp_path / f".box.msh.{host_tag()}.999999999.partial.msh"  # no such pid
     dead.write_text("partial")
-    alive = tmp_path / ".box.1.tmp.msh"  # pid 1 always exists
+    alive = tmp_path / f".box.msh.{host_tag()}.1.partial.msh"  # pid 1 always exists
     alive.write_text("in progress")
     generate_mesh(Geometry("box", 0.1, 0.02, 0.02), MeshSpec(size=0.02), tmp_path / "box.msh")
     assert not dead.exists() and alive.exists() and (tmp_path / "box.msh").exists()

@@ -29,7 +29,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import ROOT
-from pipeline.config import (TOP_KEYS, Config, _key_text, apply_overrides, config_from_dict,
+from pipeline._util.validate import key_text as _key_text
+from pipeline.config import (TOP_KEYS, Config, apply_overrides, config_from_dict,
                              config_to_yaml, load_config)
 from pipeline.errors import ConfigError
 

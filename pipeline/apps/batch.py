@@ -32,7 +32,7 @@ Outputs, under ``outputs/<name>/`` (or ``-o DIR``)::
 geometry read from a file, that file's bytes. A case whose file exists and is intact is
 not computed again (a re-run says so); a failed case is retried on the next run. An
 interrupted batch is resumed by running it again: finished cases are kept, partial files
-(``.<key>.h5.<pid>.partial``) are removed and never taken for results.
+(``.<key>.h5.<host>.<pid>.partial.h5``) are removed and never taken for results.
 
 Execution: a local Dask cluster by default (worker processes, one per core, each with a
 memory limit), or an existing cluster given by ``--scheduler tcp://host:8786``. Each
@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
+from pipeline._util.atomic import write_bytes, write_text
 from pipeline.errors import ConfigError, FileFormatError, PipelineError
 
 log = logging.getLogger(__name__)
@@ -165,7 +166,7 @@ def _override_items(raw: Any, where: str, file: str) -> list[tuple[str, Any]]:
 
 def _resolve_base(base: Any, batch_path: Path) -> tuple[Any, str, str]:
     """(raw mapping, source path for relative geometry paths, display name) of ``base``."""
-    from pipeline.config import _parse_yaml
+    from pipeline._util.yamlio import parse_yaml as _parse_yaml
 
     file = str(batch_path)
     if isinstance(base, Mapping):
@@ -223,7 +224,8 @@ def load_batch(path: str | Path) -> BatchSpec:
     Raises ConfigError naming the batch file, the case (number and overrides) and the
     config key for every invalid case (all of them, not just the first).
     """
-    from pipeline.config import _parse_yaml, apply_overrides, config_from_dict
+    from pipeline._util.yamlio import parse_yaml as _parse_yaml
+    from pipeline.config import apply_overrides, config_from_dict
 
     path = Path(path)
     file = str(path)
@@ -473,9 +475,7 @@ def _child(cfg, target: Path, workdir: Path) -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
     try:
         out = _run_here(cfg, target, workdir)
-        tmp = workdir / "result.json.tmp"
-        tmp.write_text(json.dumps(out), encoding="utf-8")
-        os.replace(tmp, workdir / "result.json")
+        write_text(workdir / "result.json", json.dumps(out))
     finally:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
@@ -605,21 +605,9 @@ def _utc(t: float) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
 
 def _write_record(cases_dir: Path, record: dict) -> None:
-    _write_atomic(cases_dir / f"{record['key']}.json",
+    write_bytes(cases_dir / f"{record['key']}.json",
                   (json.dumps(record, indent=1, sort_keys=True) + "\n").encode())
 
 
@@ -763,7 +751,7 @@ def _batch_lock(outdir: Path):
 
 def _clean_partials(cases_dir: Path) -> int:
     n = 0
-    for p in cases_dir.glob(".*.partial"):
+    for p in cases_dir.glob(".*.partial*"):
         with contextlib.suppress(OSError):
             p.unlink()
             n += 1
@@ -1008,14 +996,14 @@ def _collect(fut, case: Case, cases_dir: Path, outcomes: dict[str, dict],
     if result.get("status") == "ok":
         try:
             if data is not None:
-                _write_atomic(h5, data)
+                write_bytes(h5, data)
             result = {**_record_from_file(h5, case, verify=data is not None), **result}
         except (OSError, FileFormatError) as exc:
             result = {**result, "status": "failed", "error_type": type(exc).__name__,
                       "error": f"the case ran but its file is not usable: {exc}"}
     if log_text:
         with contextlib.suppress(OSError):
-            _write_atomic(cases_dir / f"{case.key}.log", log_text.encode())
+            write_bytes(cases_dir / f"{case.key}.log", log_text.encode())
     record = _finish_record(result, case, h5 if result.get("status") == "ok" else None)
     _write_record(cases_dir, record)
     outcomes[case.key] = record

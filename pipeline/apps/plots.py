@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.store.h5file import open_verified, read_strings
 
 log = logging.getLogger(__name__)
@@ -293,6 +294,12 @@ def _draw_mode(ax, data: ModeData, surface: Surface, mode: int, *, light=True, o
         bar.set_label("|u| / max |u|")
 
 
+def _savefig(fig, out: Path) -> None:
+    """Save ``fig`` to ``out`` through the atomic writer (the format from the suffix)."""
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=DPI, facecolor="white", format=out.suffix.lstrip(".") or None)
+
+
 def _fmt_hz(f: float) -> str:
     return f"{f:.1f}" if abs(f) >= 100 else f"{f:.4g}"
 
@@ -325,7 +332,7 @@ def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | Non
              f"{view}; deformation exaggerated to {DEFORMATION_FRACTION:.0%} of the largest "
              "dimension; grey: undeformed outline", ha="center", fontsize=8, color="0.3")
     out = Path(out)
-    fig.savefig(out, dpi=DPI, facecolor="white")
+    _savefig(fig, out)
     return out
 
 
@@ -355,7 +362,7 @@ def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None
     else:
         fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.08)
     out = Path(out)
-    fig.savefig(out, dpi=DPI, facecolor="white")
+    _savefig(fig, out)
     return out
 
 
@@ -373,7 +380,7 @@ def frequency_rows(data: ModeData) -> list[dict]:
 
 def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
     out = Path(out)
-    with open(out, "w", newline="", encoding="utf-8") as fh:
+    with atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(["mode", "frequency_hz", "label", "in_reduced_model", "damping_ratio"])
         for r in frequency_rows(data):
@@ -429,7 +436,7 @@ def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
         elif row % 2 == 0:
             cell.set_facecolor("#f6f6f6")
     out = Path(out)
-    fig.savefig(out, dpi=DPI, facecolor="white")
+    _savefig(fig, out)
     return out
 
 
@@ -525,7 +532,7 @@ def plot_bode(path: str | Path, out: str | Path) -> Path:
              "retained modes", ha="center", fontsize=8, color="0.35")
     _margins(fig, len(outs), n_in)
     out = Path(out)
-    fig.savefig(out, dpi=DPI, facecolor="white")
+    _savefig(fig, out)
     return out
 
 
@@ -580,7 +587,7 @@ def plot_step(path: str | Path, out: str | Path) -> Path:
     fig.suptitle(f"{Path(path).stem}: step response", fontsize=11, fontweight="bold")
     _margins(fig, len(outs), n_in)
     out = Path(out)
-    fig.savefig(out, dpi=DPI, facecolor="white")
+    _savefig(fig, out)
     return out
 
 

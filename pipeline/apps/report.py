@@ -244,14 +244,14 @@ def _csv_value(value: Any) -> str:
 
 
 def write_summary_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> Path:
-    from pipeline.apps.batch import _write_atomic
+    from pipeline._util.atomic import write_bytes
 
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(columns)
     for row in rows:
         writer.writerow([_csv_value(row.get(c)) for c in columns])
-    _write_atomic(path, buf.getvalue().encode("utf-8"))
+    write_bytes(path, buf.getvalue().encode("utf-8"))
     return path
 
 
@@ -584,7 +584,7 @@ def _html(result, columns, rows, figures, conv_rows) -> str:
 # --------------------------------------------------------------------------- entry
 def write_outputs(result) -> dict[str, Path]:
     """Write summary.csv, the PNG plots and report.html into ``result.outdir``."""
-    from pipeline.apps.batch import _write_atomic
+    from pipeline._util.atomic import write_bytes
 
     outdir = Path(result.outdir)
     files: dict[str, Path] = {}
@@ -616,10 +616,10 @@ def write_outputs(result) -> dict[str, Path]:
                 continue
             title, fig, name = item
             png = _png(fig)
-            _write_atomic(outdir / name, png)
+            write_bytes(outdir / name, png)
             files[name] = outdir / name
             figures.append((title, fig, name, png))
     text = _html(result, columns, rows, figures, conv_rows)
-    _write_atomic(outdir / "report.html", text.encode("utf-8"))
+    write_bytes(outdir / "report.html", text.encode("utf-8"))
     files["report"] = outdir / "report.html"
     return files

@@ -44,6 +44,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.errors import ConfigError, FileFormatError
 
 log = logging.getLogger(__name__)
@@ -371,7 +372,7 @@ def parse_scenarios(raw: Any, source: str = "scenario") -> list[Scenario]:
 
 def load_scenarios(path: str | Path) -> list[Scenario]:
     """Read and validate a scenario YAML file (one scenario or a list)."""
-    from pipeline.config import _parse_yaml
+    from pipeline._util.yamlio import parse_yaml as _parse_yaml
 
     path = Path(path)
     try:
@@ -1748,14 +1749,12 @@ def _write_csv(path: Path, s: ScenarioResult) -> Path:
                          else f" m={run.mass:g}kg")
         for name, values in run.signals.items():
             cols.append((f"{tag}:{name} [{run.units[name]}]", values))
-    tmp = path.with_name(f".{path.name}.partial")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["time [s]"] + [c[0] for c in cols])
         for i, ti in enumerate(t):
             w.writerow([f"{ti:.10g}"] + [f"{c[1][i]:.10g}" if i < c[1].size else ""
                                          for c in cols])
-    tmp.replace(path)
     return path
 
 
@@ -1852,10 +1851,11 @@ def _plot(path: Path, s: ScenarioResult, port: str) -> Path:
     fig.suptitle(f"{sc.name} ({sc.kind})" + ("\n" + "; ".join(lines) if lines else ""),
                  fontsize=10)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.partial.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError, MeshError
 from pipeline.fe.mesh import BodyMesh, read_mesh
@@ -193,14 +194,8 @@ def _count_tets(gmsh) -> int:
 
 
 def _write(gmsh, out_path: Path) -> Path:
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp{out_path.suffix}")
-    try:
+    with atomic_path(out_path) as tmp:
         gmsh.write(str(tmp))
-        os.replace(tmp, out_path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return out_path
 
 

@@ -19,7 +19,8 @@ from typing import Mapping
 import numpy as np
 
 from pipeline.config import Geometry, MeshSpec
-from pipeline.errors import MeshError
+from pipeline._util.atomic import atomic_path
+from pipeline.errors import MeshError, OutputError
 
 log = logging.getLogger(__name__)
 
@@ -57,20 +58,6 @@ def _box_faces(geometry: Geometry) -> dict[str, tuple[int, float]]:
             "back": (2, 0.0), "front": (2, D)}
 
 
-def _remove_stale_temporaries(path: Path) -> None:
-    """Delete ``.<stem>.<pid>.tmp<suffix>`` files left by killed runs (their pid is gone)."""
-    for tmp in path.parent.glob(f".{path.stem}.*.tmp{path.suffix}"):
-        pid = tmp.name[len(path.stem) + 2:].split(".", 1)[0]
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            tmp.unlink(missing_ok=True)
-        except PermissionError:
-            pass
-
-
 def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     """Mesh ``geometry`` with gmsh and write it (format 4.1, binary) to ``path``.
 
@@ -84,10 +71,7 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     import gmsh
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
     threads = int(os.environ.get("PIPELINE_GMSH_THREADS", "1"))
-    _remove_stale_temporaries(path)
     if gmsh.isInitialized():
         gmsh.finalize()
     gmsh.initialize(interruptible=False)
@@ -128,9 +112,9 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
         if not elem_tags or sum(len(t) for t in elem_tags) == 0:
             raise MeshError(f"gmsh made no volume elements for geometry {geometry} with "
                             f"mesh.size = {spec.size:g} m")
-        gmsh.write(str(tmp))
-        os.replace(tmp, path)
-    except MeshError:
+        with atomic_path(path) as tmp:
+            gmsh.write(str(tmp))
+    except (MeshError, OutputError):
         raise
     except Exception as exc:  # gmsh raises plain Exception with its own message
         messages = [m for m in gmsh.logger.get() if "rror" in m]
@@ -143,8 +127,6 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
         if gmsh.isInitialized():
             gmsh.logger.stop()
             gmsh.finalize()
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 

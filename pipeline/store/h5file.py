@@ -20,18 +20,16 @@ records the content digest it was made with), are checked on their content only.
 from __future__ import annotations
 
 import datetime as _dt
-import glob
 import hashlib
 import json
 import logging
-import os
 import re
-import socket
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
 from pipeline.store.tree import Dataset
 
@@ -162,48 +160,6 @@ def sign(h5) -> str:
     return content
 
 
-def _host() -> str:
-    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:64] or "host"
-
-
-def _remove_stale_partials(path: Path) -> None:
-    """Temporary files of writers of ``path`` on this host that were killed (SIGKILL, power
-    loss) before they could remove them. A writer still running keeps its file."""
-    host = _host()
-    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.partial"):
-        parts = tmp.name[len(path.name) + 2:].rsplit(".", 2)
-        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
-            continue
-        pid = int(parts[1])
-        if pid == os.getpid():
-            continue
-        try:
-            os.kill(pid, 0)
-            continue  # still alive (or the pid was reused): leave it
-        except ProcessLookupError:
-            pass
-        except OSError:
-            continue
-        try:
-            tmp.unlink()
-            log.info("removed %s, left by a writer that was killed", tmp)
-        except OSError:
-            pass
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def write_file(path: str | Path, tree: Mapping[str, Dataset],
                group_attrs: Mapping[str, Mapping[str, Any]] | None = None,
                root_attrs: Mapping[str, Any] | None = None) -> Path:
@@ -213,10 +169,7 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     from pipeline import __version__
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_partials(path)
-    tmp = path.with_name(f".{path.name}.{_host()}.{os.getpid()}.partial")
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             h5.attrs["schema"] = SCHEMA
             h5.attrs["schema_version"] = SCHEMA_VERSION
@@ -232,13 +185,6 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
                 for key, value in attrs.items():
                     grp.attrs[key] = _attr_value(value)
             sign(h5)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)  # the rename itself survives a power loss
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     log.info("wrote %s (%.1f MB)", path, path.stat().st_size / 1e6)
     return path
 

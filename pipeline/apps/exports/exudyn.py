@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
 from pipeline.store.tree import Dataset
 from pipeline.apps.exports import csr_datasets, read_csr
@@ -185,21 +186,12 @@ def _write(group, key: str, value: Any) -> None:
 def write_tagged_hdf5(path: Path, data: dict[str, Any]) -> Path:
     """Write ``data`` (nested dict / list / ndarray / csr / str / int / float) to ``path``
     atomically (temporary file, then rename)."""
-    import os
-
     import h5py
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    try:
-        with h5py.File(tmp, "w") as h5:
-            for key, value in data.items():
-                _write(h5, key, value)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        for key, value in data.items():
+            _write(h5, key, value)
     return path
 
 

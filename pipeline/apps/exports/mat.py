@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
 from pipeline.store.h5file import open_verified, read_strings
 
@@ -124,15 +125,8 @@ def export(h5_path: str | Path, out_path: str | Path) -> Path:
 
     out_path = Path(out_path)
     variables = mat_variables(h5_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.name}.partial")
-    try:
-        with open(tmp, "wb") as fh:
-            savemat(fh, variables, format="5", long_field_names=True, do_compression=True,
-                    oned_as="column")
-        tmp.replace(out_path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(out_path) as tmp, open(tmp, "wb") as fh:
+        savemat(fh, variables, format="5", long_field_names=True, do_compression=True,
+                oned_as="column")
     log.info("wrote %s (%d variables)", out_path, len(variables))
     return out_path

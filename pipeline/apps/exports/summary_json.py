@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline._util.atomic import write_text
 from pipeline.store.h5file import open_verified, read_strings
 
 log = logging.getLogger(__name__)
@@ -179,13 +180,6 @@ def export(h5_path: str | Path, out_path: str | Path) -> Path:
     """Write the JSON summary of ``h5_path`` to ``out_path``; returns it."""
     out_path = Path(out_path)
     text = json.dumps(summary(h5_path), indent=2, allow_nan=False) + "\n"
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.name}.partial")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(out_path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_text(out_path, text)
     log.info("wrote %s", out_path)
     return out_path

@@ -21,11 +21,11 @@ and an output whose sidecar would overwrite the input file is refused.
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
 
+from pipeline._util.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.store.h5file import open_verified, read_strings
 
@@ -77,15 +77,9 @@ def export_vtu(h5_path: str | Path, out_path: str | Path) -> Path:
 
     out_path = Path(out_path)
     mesh = mode_mesh(h5_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.stem}.{os.getpid()}.partial.vtu")
-    try:
+    with atomic_path(out_path) as tmp:
         meshio.write(tmp, mesh, file_format="vtu", binary=True, compression="zlib")
         _add_field_data(tmp, mesh.field_data)
-        tmp.replace(out_path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     log.info("wrote %s (%d points, %d modes)", out_path, len(mesh.points),
              len(mesh.field_data["frequencies_hz"]))
     return out_path
