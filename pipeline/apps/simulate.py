@@ -45,6 +45,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
+from pipeline.reduce.statespace import StateSpace
+from pipeline.store.read import ModelFile, read_model_file
 from pipeline.errors import ConfigError, FileFormatError
 
 log = logging.getLogger(__name__)
@@ -409,181 +411,11 @@ def _as_scenarios(scenario: Any) -> list[Scenario]:
 
 
 # =========================================================================== the model file
-@dataclass(frozen=True, eq=False)
-class ElasticModel:
-    """One force-in, motion-out LTI model read from the file.
-
-    outputs named ``<port>/position|velocity|acceleration``; inputs by port name. For a
-    modal model the states are ``eta_k`` and ``eta_dot_k`` (METHODS section 3).
-    """
-
-    label: str
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    state_names: tuple[str, ...]
-    filter_kind: str = "none"
-    cutoff_hz: float | None = None
-
-    @property
-    def ports(self) -> tuple[str, ...]:
-        return tuple(n.rsplit("/", 1)[0] for n in self.output_names if n.endswith("/position"))
-
-    def rows(self, port: str) -> tuple[int, int, int]:
-        names = list(self.output_names)
-        try:
-            return tuple(names.index(f"{port}/{q}")  # type: ignore[return-value]
-                         for q in ("position", "velocity", "acceleration"))
-        except ValueError:
-            raise FileFormatError(f"{self.label} model: output port '{port}' lacks one of "
-                                  "position/velocity/acceleration") from None
-
-    def col(self, name: str) -> int:
-        return list(self.input_names).index(name)
-
-    def modal_indices(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Indices (eta, eta_dot) of the modal states, or None for a non-modal model."""
-        pos = {n: i for i, n in enumerate(self.state_names)}
-        k = 1
-        eta, dot = [], []
-        while f"eta_{k}" in pos and f"eta_dot_{k}" in pos:
-            eta.append(pos[f"eta_{k}"])
-            dot.append(pos[f"eta_dot_{k}"])
-            k += 1
-        if not eta:
-            return None
-        e, d = np.array(eta), np.array(dot)
-        A = self.A
-        off = lambda X: X - np.diag(np.diag(X))  # noqa: E731
-        scale = max(float(np.abs(A).max()), 1.0)
-        ok = (np.allclose(A[np.ix_(e, d)], np.eye(e.size), atol=1e-12 * scale)
-              and np.abs(off(A[np.ix_(d, e)])).max(initial=0.0) <= 1e-12 * scale
-              and np.abs(off(A[np.ix_(d, d)])).max(initial=0.0) <= 1e-12 * scale
-              and np.abs(A[np.ix_(e, e)]).max(initial=0.0) <= 1e-12 * scale)
-        return (e, d) if ok else None
-
-
-@dataclass(frozen=True, eq=False)
-class ModelFile:
-    """Everything the stepper reads from one model file."""
-
-    path: Path
-    sha256: str
-    plant: ElasticModel
-    filtered: ElasticModel | None
-    frequencies_hz: np.ndarray
-    labels: tuple[str, ...]
-    ports: dict[str, dict[str, Any]]        # name -> {side, kind, region, direction}
-    support_regions: tuple[str, ...]
-    region_centroids: dict[str, np.ndarray]
-    body_mass: float
-    body_com: np.ndarray
-    body_inertia: np.ndarray
-    lumped: dict[str, Any] | None
-    in_plane: bool = False
-
-
-def _region_centroid(h5, name: str) -> np.ndarray | None:
-    key = f"mesh/regions/{name}"
-    if key not in h5 or "mesh/points" not in h5:
-        return None
-    tris = np.asarray(h5[key][()], dtype=np.int64)
-    if tris.ndim != 2 or tris.shape[0] == 0:
-        return None
-    pts = np.asarray(h5["mesh/points"][()], dtype=float)
-    p = pts[tris[:, :3]]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return (area[:, None] * p.mean(axis=1)).sum(axis=0) / area.sum()
-
-
-def read_model_file(path: str | Path) -> ModelFile:
-    """Read the state-space models, port data and body data of ``path``.
-
-    Uses :func:`pipeline.store.read.load_model` (verifies schema and checksum) and h5py for
-    the rest (stored config for port directions and regions, body inertia, region
-    centroids, the lumped chain). Raises FileFormatError for a file without a model.
-    """
-    import yaml
-
-    from pipeline.store.read import load_model
-    from pipeline.store.h5file import open_verified, read_strings
-
-    path = Path(path)
-    lm = load_model(path)
-    mats = lm.matrices
-    plant = ElasticModel("FE", mats["A"], mats["B"], mats["C"], mats["D"], lm.input_names,
-                         lm.output_names, lm.state_names)
-    filtered = None
-    if lm.matrices_filtered is not None:
-        fm = lm.matrices_filtered
-        with open_verified(path, verify_checksum=False) as h5:
-            names = tuple(read_strings(h5["statespace_filtered/state_names"])) \
-                if "statespace_filtered/state_names" in h5 else ()
-        filtered = ElasticModel("FE filtered", fm["A"], fm["B"], fm["C"], fm["D"],
-                                lm.input_names, lm.output_names, names,
-                                lm.filter_kind, lm.cutoff_hz)
-    for model in (plant,) + ((filtered,) if filtered is not None else ()):
-        if not model.ports or not model.input_names:
-            raise FileFormatError(f"file '{path}': the {model.label} model has no input or no "
-                                  "output port")
-    with open_verified(path, verify_checksum=False) as h5:
-        sha = str(h5.attrs.get("content_sha256", ""))
-        cfg = None
-        if "config_yaml" in h5.attrs:
-            try:
-                cfg = yaml.safe_load(str(h5.attrs["config_yaml"]))
-            except yaml.YAMLError:
-                cfg = None
-        ports: dict[str, dict[str, Any]] = {}
-        supports: tuple[str, ...] = ()
-        in_plane = False
-        if isinstance(cfg, Mapping):
-            in_plane = bool((cfg.get("constraints") or {}).get("in_plane", False))
-            for side in ("inputs", "outputs"):
-                for p in (cfg.get("ports") or {}).get(side) or []:
-                    if isinstance(p, Mapping) and "name" in p:
-                        d = p.get("direction")
-                        ports[str(p["name"])] = {
-                            "side": side, "kind": p.get("kind"), "region": p.get("region"),
-                            "direction": None if d is None else np.asarray(d, float)
-                            / np.linalg.norm(np.asarray(d, float))}
-            supports = tuple(str(s.get("region")) for s in cfg.get("supports") or []
-                             if isinstance(s, Mapping) and s.get("region"))
-        centroids: dict[str, np.ndarray] = {}
-        for name in set(supports) | {str(p["region"]) for p in ports.values() if p["region"]}:
-            c = _region_centroid(h5, name)
-            if c is not None:
-                centroids[name] = c
-        body_mass = float(h5["body/mass"][()]) if "body/mass" in h5 else math.nan
-        body_com = np.asarray(h5["body/center_of_mass"][()], float) \
-            if "body/center_of_mass" in h5 else np.full(3, np.nan)
-        body_inertia = np.asarray(h5["body/inertia"][()], float) \
-            if "body/inertia" in h5 else np.full((3, 3), np.nan)
-        lumped = None
-        if "lumped/statespace/A" in h5:
-            g = h5["lumped/statespace"]
-            attrs = g["A"].attrs
-            lumped = {
-                "A": np.asarray(g["A"][()], float), "B": np.asarray(g["B"][()], float),
-                "C": np.asarray(g["C"][()], float), "D": np.asarray(g["D"][()], float),
-                "input_names": tuple(read_strings(attrs.get("input_names", []))),
-                "output_names": tuple(read_strings(attrs.get("output_names", []))),
-                "state_names": tuple(read_strings(attrs.get("state_names", []))),
-                "input_direction": np.asarray(attrs.get("input_direction", np.full(3, np.nan)),
-                                              float),
-                "output_direction": np.asarray(attrs.get("output_direction",
-                                                         np.full(3, np.nan)), float),
-            }
-            for key in ("element_mass", "element_com", "element_inertia", "element_extent",
-                        "joint_positions"):
-                if f"lumped/{key}" in h5:
-                    lumped[key] = np.asarray(h5[f"lumped/{key}"][()], float)
-    return ModelFile(path, sha, plant, filtered, np.asarray(lm.frequencies_hz, float),
-                     tuple(lm.labels), ports, supports, centroids, body_mass, body_com,
-                     body_inertia, lumped, in_plane)
+def ElasticModel(label, A, B, C, D, input_names, output_names, state_names,
+                 filter_kind="none", cutoff_hz=None) -> StateSpace:
+    """A force-in, motion-out model: the one :class:`StateSpace` type, labelled."""
+    return StateSpace(A, B, C, D, input_names, output_names, state_names, label=label,
+                      filter_kind=filter_kind, cutoff_hz=cutoff_hz)
 
 
 # =========================================================================== model algebra

@@ -8,13 +8,15 @@ numpy and python-control.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from pipeline.errors import FileFormatError
+from pipeline.reduce.statespace import StateSpace
 from pipeline.store.h5file import open_verified, read_strings
 
 
@@ -122,3 +124,121 @@ def _read(h5, path: Path) -> LoadedModel:
                        _to_control(filt, fnames) if filt is not None else None,
                        names["input_names"], names["output_names"], names["state_names"],
                        freqs, labels, damping, compliance, mats, filt, filter_kind, cutoff)
+
+
+# --------------------------------------------------------------------------- everything
+@dataclass(frozen=True, eq=False)
+class ModelFile:
+    """Everything the stepper reads from one model file."""
+
+    path: Path
+    sha256: str
+    plant: StateSpace
+    filtered: StateSpace | None
+    frequencies_hz: np.ndarray
+    labels: tuple[str, ...]
+    ports: dict[str, dict[str, Any]]        # name -> {side, kind, region, direction}
+    support_regions: tuple[str, ...]
+    region_centroids: dict[str, np.ndarray]
+    body_mass: float
+    body_com: np.ndarray
+    body_inertia: np.ndarray
+    lumped: dict[str, Any] | None
+    in_plane: bool = False
+
+
+def _region_centroid(h5, name: str) -> np.ndarray | None:
+    key = f"mesh/regions/{name}"
+    if key not in h5 or "mesh/points" not in h5:
+        return None
+    tris = np.asarray(h5[key][()], dtype=np.int64)
+    if tris.ndim != 2 or tris.shape[0] == 0:
+        return None
+    pts = np.asarray(h5["mesh/points"][()], dtype=float)
+    p = pts[tris[:, :3]]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return (area[:, None] * p.mean(axis=1)).sum(axis=0) / area.sum()
+
+
+def read_model_file(path: str | Path) -> ModelFile:
+    """Read the state-space models, port data and body data of ``path``.
+
+    Uses :func:`pipeline.store.read.load_model` (verifies schema and checksum) and h5py for
+    the rest (stored config for port directions and regions, body inertia, region
+    centroids, the lumped chain). Raises FileFormatError for a file without a model.
+    """
+    import yaml
+
+    path = Path(path)
+    lm = load_model(path)
+    mats = lm.matrices
+    plant = StateSpace(mats["A"], mats["B"], mats["C"], mats["D"], lm.input_names,
+                       lm.output_names, lm.state_names, label="FE")
+    filtered = None
+    if lm.matrices_filtered is not None:
+        fm = lm.matrices_filtered
+        with open_verified(path, verify_checksum=False) as h5:
+            names = tuple(read_strings(h5["statespace_filtered/state_names"])) \
+                if "statespace_filtered/state_names" in h5 else ()
+        filtered = StateSpace(fm["A"], fm["B"], fm["C"], fm["D"], lm.input_names,
+                              lm.output_names, names, label="FE filtered",
+                              filter_kind=lm.filter_kind, cutoff_hz=lm.cutoff_hz)
+    for model in (plant,) + ((filtered,) if filtered is not None else ()):
+        if not model.ports or not model.input_names:
+            raise FileFormatError(f"file '{path}': the {model.label} model has no input or no "
+                                  "output port")
+    with open_verified(path, verify_checksum=False) as h5:
+        sha = str(h5.attrs.get("content_sha256", ""))
+        cfg = None
+        if "config_yaml" in h5.attrs:
+            try:
+                cfg = yaml.safe_load(str(h5.attrs["config_yaml"]))
+            except yaml.YAMLError:
+                cfg = None
+        ports: dict[str, dict[str, Any]] = {}
+        supports: tuple[str, ...] = ()
+        in_plane = False
+        if isinstance(cfg, Mapping):
+            in_plane = bool((cfg.get("constraints") or {}).get("in_plane", False))
+            for side in ("inputs", "outputs"):
+                for p in (cfg.get("ports") or {}).get(side) or []:
+                    if isinstance(p, Mapping) and "name" in p:
+                        d = p.get("direction")
+                        ports[str(p["name"])] = {
+                            "side": side, "kind": p.get("kind"), "region": p.get("region"),
+                            "direction": None if d is None else np.asarray(d, float)
+                            / np.linalg.norm(np.asarray(d, float))}
+            supports = tuple(str(s.get("region")) for s in cfg.get("supports") or []
+                             if isinstance(s, Mapping) and s.get("region"))
+        centroids: dict[str, np.ndarray] = {}
+        for name in set(supports) | {str(p["region"]) for p in ports.values() if p["region"]}:
+            c = _region_centroid(h5, name)
+            if c is not None:
+                centroids[name] = c
+        body_mass = float(h5["body/mass"][()]) if "body/mass" in h5 else math.nan
+        body_com = np.asarray(h5["body/center_of_mass"][()], float) \
+            if "body/center_of_mass" in h5 else np.full(3, np.nan)
+        body_inertia = np.asarray(h5["body/inertia"][()], float) \
+            if "body/inertia" in h5 else np.full((3, 3), np.nan)
+        lumped = None
+        if "lumped/statespace/A" in h5:
+            g = h5["lumped/statespace"]
+            attrs = g["A"].attrs
+            lumped = {
+                "A": np.asarray(g["A"][()], float), "B": np.asarray(g["B"][()], float),
+                "C": np.asarray(g["C"][()], float), "D": np.asarray(g["D"][()], float),
+                "input_names": tuple(read_strings(attrs.get("input_names", []))),
+                "output_names": tuple(read_strings(attrs.get("output_names", []))),
+                "state_names": tuple(read_strings(attrs.get("state_names", []))),
+                "input_direction": np.asarray(attrs.get("input_direction", np.full(3, np.nan)),
+                                              float),
+                "output_direction": np.asarray(attrs.get("output_direction",
+                                                         np.full(3, np.nan)), float),
+            }
+            for key in ("element_mass", "element_com", "element_inertia", "element_extent",
+                        "joint_positions"):
+                if f"lumped/{key}" in h5:
+                    lumped[key] = np.asarray(h5[f"lumped/{key}"][()], float)
+    return ModelFile(path, sha, plant, filtered, np.asarray(lm.frequencies_hz, float),
+                     tuple(lm.labels), ports, supports, centroids, body_mass, body_com,
+                     body_inertia, lumped, in_plane)
