@@ -1,11 +1,13 @@
 """Reduced models of flexible bodies from 3D finite elements.
 
-Data flow, one module per stage::
+Data flow, one subpackage per stage::
 
-    config -> mesh -> fespace/regions -> assemble -> modes -> reduce -> store
+    config -> fe (mesh, space, regions, assemble, body, ports) -> solve (factorise,
+    eigenmodes) -> reduce (StateSpace models) -> store (the HDF5 file)
 
-Every stage is a function of arrays and small frozen dataclasses; :mod:`pipeline.run`
-chains them and the CLI (``python -m pipeline``) calls the same functions.
+:mod:`pipeline.run` chains the stages; :mod:`pipeline.apps` (simulate, batch, plots,
+exports, summary) uses a result file through :mod:`pipeline.store.read` only; the CLI
+(``python -m pipeline``, :mod:`pipeline.cli`) calls the same functions.
 """
 
 __version__ = "0.1.0"
@@ -22,11 +24,13 @@ from pipeline.errors import (  # noqa: E402
 
 
 
-def load_model(path):
-    """Load a reduced model from an HDF5 file (see :func:`pipeline.store.read.load_model`)."""
+def load_model(path, require_plant: bool = False):
+    """Load every reduced model of an HDF5 file (see :func:`pipeline.store.read.load_model`).
+
+    Imported on first use, so ``import pipeline`` stays light (no h5py, no control)."""
     from pipeline.store.read import load_model as _load
 
-    return _load(path)
+    return _load(path, require_plant=require_plant)
 
 
 __all__ = [

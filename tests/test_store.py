@@ -133,3 +133,54 @@ def test_bit_flip_in_a_dataset_is_detected(result, tmp_path):
         h5["modes/frequencies_hz"][0] += 1e-9
     with pytest.raises(FileFormatError, match="checksum mismatch"):
         load_model(flipped)
+
+
+# --------------------------------------------------------------------------- every model
+def test_load_model_gives_every_model_as_one_statespace_type(result):
+    from pipeline.reduce.statespace import StateSpace
+
+    model = load_model(result.output)
+    assert set(model.models) == {"plant", "filtered", "lumped"}
+    for name, ss in model.models.items():
+        assert isinstance(ss, StateSpace) and ss.label == name
+    # the plant is the python-control system bit for bit
+    np.testing.assert_array_equal(model.plant.A, model.ss.A)
+    np.testing.assert_array_equal(model.plant.D, model.ss.D)
+    # residual correction: the reduced model's static gain is the full-FE T K^-1 F; the
+    # position rows of G(0) are sums of O(|G|) terms, so round-off ~ n_states eps |G|
+    G = model.static_compliance
+    rows = [model.plant.output_names.index(f"{p}/position") for p in model.plant.ports]
+    np.testing.assert_allclose(model.plant.dc_gain()[rows], G, rtol=0,
+                               atol=1e3 * np.finfo(float).eps * np.abs(G).max())
+    # the filter has unit DC gain: the filtered model's static positions are the plant's
+    np.testing.assert_allclose(model.filtered.dc_gain()[rows], G, rtol=1e-9)
+    # the lumped chain's static tip compliance, stored beside it, is its own G(0)
+    with h5py.File(result.output, "r") as h5:
+        stored = float(h5["lumped/tip_compliance"][()])
+    lumped = model.lumped
+    position = lumped.output_names.index("tip_position")
+    assert np.isclose(abs(lumped.dc_gain()[position, 0]), stored, rtol=1e-9)
+    with pytest.raises(FileFormatError) as exc:
+        model.model("craig_bampton")
+    assert exc.value.value == "craig_bampton" and exc.value.exit_code == 7
+
+
+def test_connection_only_file_loads_its_connection_and_craig_bampton_models(tmp_path):
+    cfg = load_config(ROOT / "configs/cantilever_connection.yaml", ["mesh.size=0.02",
+                                                                   "craig_bampton.modes=4"])
+    out = run_pipeline(cfg, tmp_path / "conn.h5", mesh_dir=tmp_path).output
+    model = load_model(out)
+    assert model.plant is None and model.ss is None
+    assert set(model.models) == {"connection/root", "craig_bampton"}
+    conn = model.model("connection/root")
+    # inputs: a_P (6), then the wrench at the child connection 'tip' (6)
+    assert conn.n_inputs == 12 and conn.input_units[:6] == ("m/s^2",) * 3 + ("rad/s^2",) * 3
+    assert conn.input_units[6:] == ("N",) * 3 + ("N m",) * 3
+    with h5py.File(out, "r") as h5:  # the feedthrough's top-left block is the residual mass
+        np.testing.assert_array_equal(conn.D[:6, :6], h5["connections/root/D_P0"][()])
+    cb = model.craig_bampton
+    n = 2 * 6 + 4  # two interfaces with six coordinates each, four fixed-interface modes
+    assert cb.M.shape == (n, n) and len(cb.coordinate_names) == n
+    np.testing.assert_allclose(cb.M, cb.M.T, rtol=0, atol=1e-12 * np.abs(cb.M).max())
+    with pytest.raises(FileFormatError, match="no plant model"):
+        load_model(out, require_plant=True)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.store.h5file import open_verified, read_strings
+from pipeline.store.read import open_verified, read_strings
 
 log = logging.getLogger(__name__)
 
@@ -493,7 +493,7 @@ def plot_bode(path: str | Path, out: str | Path) -> Path:
 
     from pipeline.store.read import load_model
 
-    model = load_model(path)
+    model = load_model(path, require_plant=True)
     units = _units(path)
     outs = _position_outputs(model.output_names)
     n_in = len(model.input_names)
@@ -543,7 +543,7 @@ def plot_step(path: str | Path, out: str | Path) -> Path:
 
     from pipeline.store.read import load_model
 
-    model = load_model(path)
+    model = load_model(path, require_plant=True)
     units = _units(path)
     outs = _position_outputs(model.output_names)
     n_in = len(model.input_names)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import FileFormatError
-from pipeline.store.h5file import open_verified, read_strings
+from pipeline.store.read import open_verified, read_strings
 
 
 def _names(group, key: str) -> list[str]:

@@ -1,15 +1,24 @@
-"""Load a reduced model from our HDF5 file, reading only the file.
+"""The one reader of our HDF5 file: every tool that uses a result file reads it here.
 
-``load_model(path)`` verifies the schema, version and checksum, and returns the
-python-control systems with their port names, frequencies and mode labels. No mesh
-or finite-element code runs on the way, so a downstream tool needs only h5py,
-numpy and python-control.
+``load_model(path)`` verifies the schema, version and checksum (through
+:func:`open_verified`), and returns every model the file holds as the one
+:class:`~pipeline.reduce.statespace.StateSpace` type (and as python-control systems):
+the plant (``/statespace``), its filtered twin, the lumped chain, each connection-point
+model and the Craig-Bampton model (second order: reduced M and K).
+``read_model_file(path)`` adds what a simulation needs (ports from the stored config,
+region centroids, body inertia). Inspect, simulate, plots, exports and the batch report
+open files only through this module (``open_verified``, ``read_strings``).
+
+No mesh or finite-element code runs on the way (this module never imports
+:mod:`pipeline.fe`, gmsh, meshio or scikit-fem), so a downstream tool needs only h5py,
+numpy and python-control. A file that is not ours, corrupt, or lacks what the caller
+needs ends in one :class:`~pipeline.errors.FileFormatError` line (exit code 7).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -18,6 +27,9 @@ import numpy as np
 from pipeline.errors import FileFormatError
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store.h5file import open_verified, read_strings
+
+__all__ = ["load_model", "LoadedModel", "SecondOrderModel", "ModelFile", "read_model_file",
+           "open_verified", "read_strings"]
 
 
 @dataclass(frozen=True)
@@ -30,6 +42,11 @@ class LoadedModel:
     frequencies_hz (n_m,), labels (n_m,): all modes in the file.
     damping_ratios (n_r,): of the retained modes. static_compliance: (n_y x n_u) full-FE
     T K^-1 F, or None. matrices / matrices_filtered: the raw A, B, C, D arrays.
+    plant, filtered, lumped: the same models as :class:`StateSpace` (None when absent);
+    connections: connection-point models by name; craig_bampton: the reduced M, K.
+    :attr:`models` lists every model the file holds; :meth:`model` picks one by name.
+    The plant's fields (ss, matrices, names) are None or empty in a file without
+    ``/statespace`` (connection-point or Craig-Bampton models only).
     """
 
     path: Path
@@ -46,6 +63,47 @@ class LoadedModel:
     matrices_filtered: dict[str, np.ndarray] | None
     filter_kind: str
     cutoff_hz: float | None
+    plant: StateSpace | None = None
+    filtered: StateSpace | None = None
+    lumped: StateSpace | None = None
+    connections: dict[str, StateSpace] = field(default_factory=dict)
+    craig_bampton: "SecondOrderModel | None" = None
+
+    @property
+    def models(self) -> dict[str, Any]:
+        """Every model in the file by name: ``plant``, ``filtered``, ``lumped``,
+        ``connection/<name>`` (StateSpace) and ``craig_bampton`` (SecondOrderModel)."""
+        out: dict[str, Any] = {"plant": self.plant, "filtered": self.filtered,
+                               "lumped": self.lumped}
+        out.update({f"connection/{k}": v for k, v in self.connections.items()})
+        out["craig_bampton"] = self.craig_bampton
+        return {k: v for k, v in out.items() if v is not None}
+
+    def model(self, name: str):
+        """One model of :attr:`models` by name; FileFormatError naming what the file has."""
+        try:
+            return self.models[name]
+        except KeyError:
+            raise FileFormatError(f"file '{self.path}': holds no '{name}' model; it holds "
+                                  f"{', '.join(self.models) or 'none'}", key=str(self.path),
+                                  value=name, expected="one of " + ", ".join(self.models)
+                                  ) from None
+
+
+@dataclass(frozen=True, eq=False)
+class SecondOrderModel:
+    """A reduced second-order model M q'' + K q = f (Craig-Bampton).
+
+    M, K (n, n): entries in kg m^2 / (u_i u_j) and N m / (u_i u_j), u the coordinate units;
+    coordinate_names, coordinate_units (n,); interface_names (k,);
+    fixed_interface_frequencies_hz (N,)."""
+
+    M: np.ndarray
+    K: np.ndarray
+    coordinate_names: tuple[str, ...]
+    coordinate_units: tuple[str, ...]
+    interface_names: tuple[str, ...]
+    fixed_interface_frequencies_hz: np.ndarray
 
 
 def _group_matrices(h5, group: str) -> tuple[dict[str, np.ndarray], dict[str, tuple[str, ...]]]:
@@ -75,23 +133,33 @@ def _to_control(mats: dict[str, np.ndarray], names: dict[str, tuple[str, ...]]):
                       states=list(names["state_names"]) or None)
 
 
-REQUIRED = ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
-            "statespace/damping_ratios", "modes/frequencies_hz", "modes/labels")
+REQUIRED = ("modes/frequencies_hz", "modes/labels")
+REQUIRED_PLANT = ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
+                  "statespace/damping_ratios")
+#: groups that hold a model besides the plant
+OTHER_MODELS = ("lumped/statespace/A", "connections", "craig_bampton/M")
 
 
-def load_model(path: str | Path) -> LoadedModel:
-    """Read the reduced model of ``path`` (see the class docstring).
+def load_model(path: str | Path, require_plant: bool = False) -> LoadedModel:
+    """Read every reduced model of ``path`` (see the class docstring).
 
-    Raises FileFormatError for a file that is not ours, corrupt (see
-    :func:`pipeline.store.h5file.open_verified`), holds modes only, or lacks a dataset the
-    layout requires.
+    A file with connection-point, Craig-Bampton or lumped models but no ``/statespace``
+    (a config without ``reduction``) loads with ``ss``, ``plant`` and the plant's
+    matrices None, unless ``require_plant``. Raises FileFormatError for a file that is
+    not ours, corrupt (see :func:`open_verified`), holds modes only (or no plant when
+    ``require_plant``), or lacks a dataset the layout requires.
     """
     path = Path(path)
     with open_verified(path) as h5:
-        if "statespace" not in h5:
+        has_plant = "statespace" in h5
+        if not has_plant and (require_plant or not any(k in h5 for k in OTHER_MODELS)):
             raise FileFormatError(f"file '{path}': has no /statespace group (the config had no "
-                                  "'reduction' section); it holds modes only")
-        missing = [k for k in REQUIRED if k not in h5]
+                                  "'reduction' section); it holds "
+                                  + ("modes only" if not any(k in h5 for k in OTHER_MODELS)
+                                     else "no plant model"),
+                                  key=str(path), value="no /statespace",
+                                  expected="a file with a reduced model")
+        missing = [k for k in REQUIRED + (REQUIRED_PLANT if has_plant else ()) if k not in h5]
         if missing:
             raise FileFormatError(f"file '{path}': dataset{'s' if len(missing) > 1 else ''} "
                                   f"{', '.join(missing)} missing (an incomplete file, not the "
@@ -107,6 +175,13 @@ def load_model(path: str | Path) -> LoadedModel:
 
 
 def _read(h5, path: Path) -> LoadedModel:
+    freqs = np.array(h5["modes/frequencies_hz"][()])
+    labels = tuple(read_strings(h5["modes/labels"]))
+    others = dict(lumped=_lumped(h5), connections=_connections(h5),
+                  craig_bampton=_craig_bampton(h5))
+    if "statespace" not in h5:
+        return LoadedModel(path, None, None, (), (), (), freqs, labels, np.zeros(0), None, {},
+                           None, "none", None, **others)
     mats, names = _group_matrices(h5, "statespace")
     filt = None
     filter_kind, cutoff = "none", None
@@ -118,12 +193,70 @@ def _read(h5, path: Path) -> LoadedModel:
     compliance = (np.array(h5["statespace/static_compliance"][()])
                   if "statespace/static_compliance" in h5 else None)
     damping = np.array(h5["statespace/damping_ratios"][()])
-    freqs = np.array(h5["modes/frequencies_hz"][()])
-    labels = tuple(read_strings(h5["modes/labels"]))
+    plant = _statespace(mats, names, "plant")
+    filtered = (_statespace(filt, fnames, "filtered", filter_kind=filter_kind, cutoff_hz=cutoff)
+                if filt is not None else None)
     return LoadedModel(path, _to_control(mats, names),
                        _to_control(filt, fnames) if filt is not None else None,
                        names["input_names"], names["output_names"], names["state_names"],
-                       freqs, labels, damping, compliance, mats, filt, filter_kind, cutoff)
+                       freqs, labels, damping, compliance, mats, filt, filter_kind, cutoff,
+                       plant=plant, filtered=filtered, **others)
+
+
+def _statespace(mats: dict[str, np.ndarray], names: dict[str, tuple[str, ...]], label: str,
+                **kw) -> StateSpace:
+    # a ValueError (shapes, non-finite values) becomes load_model's FileFormatError
+    return StateSpace(mats["A"], mats["B"], mats["C"], mats["D"], names["input_names"],
+                      names["output_names"], names["state_names"], label=label, **kw)
+
+
+def _strings(h5, group: str, key: str) -> tuple[str, ...]:
+    grp = h5[group]
+    if key in grp:
+        return tuple(read_strings(grp[key]))
+    return tuple(read_strings(grp["A"].attrs.get(key, [])))
+
+
+def _lumped(h5) -> StateSpace | None:
+    """The lumped chain's state space (``/lumped/statespace``), or None."""
+    if "lumped/statespace/A" not in h5:
+        return None
+    mats, names = _group_matrices(h5, "lumped/statespace")
+    return _statespace(mats, names, "lumped")
+
+
+def _connections(h5) -> dict[str, StateSpace]:
+    """Each connection-point model (``/connections/<name>/statespace``) by name."""
+    out: dict[str, StateSpace] = {}
+    if "connections" not in h5:
+        return out
+    for name in sorted(h5["connections"]):
+        group = f"connections/{name}/statespace"
+        if f"{group}/A" not in h5:
+            continue
+        mats, names = _group_matrices(h5, group)
+        units = {k: _strings(h5, group, k) for k in ("input_units", "output_units")}
+        out[name] = _statespace(mats, names, f"connection/{name}", **units)
+    return out
+
+
+def _craig_bampton(h5) -> SecondOrderModel | None:
+    """The Craig-Bampton model (``/craig_bampton``), or None."""
+    if "craig_bampton/M" not in h5:
+        return None
+    g = h5["craig_bampton"]
+    M = np.array(g["M"][()], dtype=np.float64)
+    K = np.array(g["K"][()], dtype=np.float64)
+    n = M.shape[0]
+    if M.shape != (n, n) or K.shape != (n, n):
+        raise FileFormatError(f"file '{h5.filename}': craig_bampton/M {M.shape} and K "
+                              f"{K.shape} are not square matrices of one size")
+    return SecondOrderModel(
+        M, K, tuple(read_strings(g["coordinate_names"])) if "coordinate_names" in g else (),
+        tuple(read_strings(g["coordinate_units"])) if "coordinate_units" in g else (),
+        tuple(read_strings(g["interface_names"])) if "interface_names" in g else (),
+        np.array(g["fixed_interface_frequencies_hz"][()], dtype=np.float64)
+        if "fixed_interface_frequencies_hz" in g else np.zeros(0))
 
 
 # --------------------------------------------------------------------------- everything
@@ -170,7 +303,7 @@ def read_model_file(path: str | Path) -> ModelFile:
     import yaml
 
     path = Path(path)
-    lm = load_model(path)
+    lm = load_model(path, require_plant=True)
     mats = lm.matrices
     plant = StateSpace(mats["A"], mats["B"], mats["C"], mats["D"], lm.input_names,
                        lm.output_names, lm.state_names, label="FE")

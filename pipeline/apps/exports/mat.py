@@ -38,7 +38,7 @@ import numpy as np
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
-from pipeline.store.h5file import open_verified, read_strings
+from pipeline.store.read import open_verified, read_strings
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from pipeline._util.atomic import write_text
-from pipeline.store.h5file import open_verified, read_strings
+from pipeline.store.read import open_verified, read_strings
 
 log = logging.getLogger(__name__)
 
