@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.store.read import open_verified, read_strings
+from pipeline.store.read import ModeSet, open_verified, read_modes, read_strings
+
+ModeData = ModeSet  # what the pictures need: the mesh and modes of one file
 
 log = logging.getLogger(__name__)
 
@@ -51,42 +53,6 @@ _TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 _TET_OPPOSITE = np.array([0, 1, 2, 3])
 # local node of the midpoint of corner edge (i, j) in meshio's tetra10 order
 _TET10_EDGE = {(0, 1): 4, (1, 2): 5, (0, 2): 6, (0, 3): 7, (1, 3): 8, (2, 3): 9}
-
-
-@dataclass(frozen=True)
-class ModeData:
-    """What the pictures need from the file."""
-
-    name: str
-    points: np.ndarray            # (n_p, 3) m
-    cells: np.ndarray             # (n_t, 4 | 10) node indices, meshio order
-    shapes: np.ndarray            # (n_p, 3, n_m)
-    frequencies_hz: np.ndarray    # (n_m,)
-    labels: tuple[str, ...]
-    fixed_nodes: np.ndarray       # nodes with at least one constrained DOF
-    retained_damping: np.ndarray  # damping ratios of the modes kept in /statespace (or empty)
-    has_statespace: bool
-
-
-def read_modes(path: str | Path) -> ModeData:
-    """The mesh, modes and labels of an HDF5 result file (verified)."""
-    with open_verified(path) as h5:
-        cells_group = h5["mesh/cells"]
-        kind = "tetra10" if "tetra10" in cells_group else next(iter(cells_group))
-        fixed = np.array(h5["mesh/fixed_dofs"][()]) if "mesh/fixed_dofs" in h5 else np.zeros(0)
-        damping = (np.array(h5["statespace/damping_ratios"][()])
-                   if "statespace/damping_ratios" in h5 else np.zeros(0))
-        return ModeData(
-            name=str(h5.attrs.get("name", Path(path).stem)),
-            points=np.array(h5["mesh/points"][()], dtype=float),
-            cells=np.array(cells_group[kind][()], dtype=np.int64),
-            shapes=np.array(h5["modes/shapes"][()], dtype=float),
-            frequencies_hz=np.array(h5["modes/frequencies_hz"][()], dtype=float),
-            labels=tuple(read_strings(h5["modes/labels"])),
-            fixed_nodes=np.unique(fixed.astype(np.int64) // 3),
-            retained_damping=damping,
-            has_statespace="statespace" in h5,
-        )
 
 
 # --------------------------------------------------------------------------- geometry

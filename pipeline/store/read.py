@@ -17,19 +17,56 @@ needs ends in one :class:`~pipeline.errors.FileFormatError` line (exit code 7).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
 from pipeline.errors import FileFormatError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.store.h5file import open_verified, read_strings
+from pipeline.errors import PipelineError
+from pipeline.store import h5file
+from pipeline.store.h5file import read_strings
 
 __all__ = ["load_model", "LoadedModel", "SecondOrderModel", "ModelFile", "read_model_file",
-           "open_verified", "read_strings"]
+           "ModeSet", "read_modes", "open_verified", "read_strings"]
+
+
+#: what h5py and numpy raise on content that does not have the documented layout
+LAYOUT_ERRORS = (KeyError, IndexError, ValueError, TypeError, AttributeError, OSError,
+                 RuntimeError)
+
+
+def layout_error(path: str | Path, exc: BaseException) -> FileFormatError:
+    """The one-line error for a file whose content does not follow docs/hdf5-format.md."""
+    text = " ".join(str(exc).split())[:200]
+    return FileFormatError(f"file '{path}': inconsistent with the layout of "
+                           f"docs/hdf5-format.md ({type(exc).__name__}: {text})",
+                           key=str(path), value=f"{type(exc).__name__}: {text}",
+                           expected="the layout of docs/hdf5-format.md")
+
+
+@contextlib.contextmanager
+def open_verified(path: str | Path, verify_checksum: bool = True) -> Iterator[Any]:
+    """Open one of our files read-only, verified (schema, version, checksums: see
+    :func:`pipeline.store.h5file.open_verified`), for reading in a ``with`` block.
+
+    Whatever the block raises while reading content that does not have the documented
+    layout (a missing dataset, a wrong shape or type) becomes one FileFormatError line
+    naming the file; a PipelineError raised in the block passes through unchanged.
+    """
+    h5 = h5file.open_verified(path, verify_checksum)
+    try:
+        yield h5
+    except PipelineError:
+        raise
+    except LAYOUT_ERRORS as exc:
+        raise layout_error(path, exc) from None
+    finally:
+        h5.close()
 
 
 @dataclass(frozen=True)
@@ -108,7 +145,7 @@ class SecondOrderModel:
 
 def _group_matrices(h5, group: str) -> tuple[dict[str, np.ndarray], dict[str, tuple[str, ...]]]:
     grp = h5[group]
-    mats = {k: np.array(grp[k][()], dtype=np.float64) for k in "ABCD"}
+    mats = {k: _array(h5, f"{group}/{k}", "f", (None, None)) for k in "ABCD"}
     names = {}
     for key in ("input_names", "output_names", "state_names"):
         if key in grp:
@@ -164,18 +201,11 @@ def load_model(path: str | Path, require_plant: bool = False) -> LoadedModel:
             raise FileFormatError(f"file '{path}': dataset{'s' if len(missing) > 1 else ''} "
                                   f"{', '.join(missing)} missing (an incomplete file, not the "
                                   "layout of docs/hdf5-format.md)")
-        try:
-            return _read(h5, path)
-        except FileFormatError:
-            raise
-        except (KeyError, IndexError, ValueError, TypeError, OSError, RuntimeError) as exc:
-            text = " ".join(str(exc).split())[:200]
-            raise FileFormatError(f"file '{path}': inconsistent with the layout of "
-                                  f"docs/hdf5-format.md ({type(exc).__name__}: {text})") from None
+        return _read(h5, path)
 
 
 def _read(h5, path: Path) -> LoadedModel:
-    freqs = np.array(h5["modes/frequencies_hz"][()])
+    freqs = _array(h5, "modes/frequencies_hz", "f", (None,))
     labels = tuple(read_strings(h5["modes/labels"]))
     others = dict(lumped=_lumped(h5), connections=_connections(h5),
                   craig_bampton=_craig_bampton(h5))
@@ -192,8 +222,13 @@ def _read(h5, path: Path) -> LoadedModel:
         cutoff = float(attrs["cutoff_hz"]) if "cutoff_hz" in attrs else None
     compliance = (np.array(h5["statespace/static_compliance"][()])
                   if "statespace/static_compliance" in h5 else None)
-    damping = np.array(h5["statespace/damping_ratios"][()])
+    damping = _array(h5, "statespace/damping_ratios", "f", (None,))
     plant = _statespace(mats, names, "plant")
+    if not plant.ports or len(plant.output_names) != 3 * len(plant.ports):
+        raise FileFormatError(f"file '{path}': statespace/output_names {list(plant.output_names)[:4]} "
+                              "are not '<port>/position|velocity|acceleration' for every port",
+                              key="statespace/output_names", value=plant.output_names[:4],
+                              expected="<port>/position, <port>/velocity, <port>/acceleration")
     filtered = (_statespace(filt, fnames, "filtered", filter_kind=filter_kind, cutoff_hz=cutoff)
                 if filt is not None else None)
     return LoadedModel(path, _to_control(mats, names),
@@ -296,10 +331,19 @@ def _region_centroid(h5, name: str) -> np.ndarray | None:
 def read_model_file(path: str | Path) -> ModelFile:
     """Read the state-space models, port data and body data of ``path``.
 
-    Uses :func:`pipeline.store.read.load_model` (verifies schema and checksum) and h5py for
-    the rest (stored config for port directions and regions, body inertia, region
-    centroids, the lumped chain). Raises FileFormatError for a file without a model.
+    Uses :func:`load_model` (verifies schema and checksum) and the stored config for port
+    directions and regions, body inertia, region centroids, the lumped chain. Raises
+    FileFormatError for a file without a plant model or with content off the layout.
     """
+    try:
+        return _read_model_file(Path(path))
+    except PipelineError:
+        raise
+    except LAYOUT_ERRORS as exc:
+        raise layout_error(path, exc) from None
+
+
+def _read_model_file(path: Path) -> ModelFile:
     import yaml
 
     path = Path(path)
@@ -375,3 +419,80 @@ def read_model_file(path: str | Path) -> ModelFile:
     return ModelFile(path, sha, plant, filtered, np.asarray(lm.frequencies_hz, float),
                      tuple(lm.labels), ports, supports, centroids, body_mass, body_com,
                      body_inertia, lumped, in_plane)
+
+
+# --------------------------------------------------------------------------- mesh and modes
+@dataclass(frozen=True)
+class ModeSet:
+    """The mesh and the mode shapes of a file: what pictures and mesh exports need.
+
+    points (n_p, 3) m; cells (n_t, 4 | 10) node indices in meshio order, of ``cell_type``;
+    shapes (n_p, 3, n_m) kg^-1/2; frequencies_hz (n_m,); labels (n_m,); fixed_dofs (n_c,)
+    (DOF 3 node + component); regions: boundary triangles (n_f, 3) by name;
+    retained_damping: damping ratios of the modes in ``/statespace`` (empty without it).
+    """
+
+    name: str
+    points: np.ndarray
+    cell_type: str
+    cells: np.ndarray
+    shapes: np.ndarray
+    frequencies_hz: np.ndarray
+    labels: tuple[str, ...]
+    fixed_dofs: np.ndarray
+    regions: dict[str, np.ndarray]
+    retained_damping: np.ndarray
+    has_statespace: bool
+
+    @property
+    def fixed_nodes(self) -> np.ndarray:
+        """Nodes with at least one constrained DOF."""
+        return np.unique(self.fixed_dofs // 3)
+
+
+def _array(h5, key: str, kind: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Dataset ``key`` as a float64 (kind 'f') or int64 (kind 'i') array of ``shape``
+    (None: any length), finite; FileFormatError naming the dataset otherwise."""
+    dset = h5[key]
+    got = dset.dtype.kind
+    if got not in ("f", "i", "u") or (kind == "i" and got == "f"):
+        raise FileFormatError(f"file '{h5.filename}': {key} has dtype {dset.dtype}, expected "
+                              f"{'real numbers' if kind == 'f' else 'integers'}",
+                              key=key, value=str(dset.dtype), expected=kind)
+    a = np.array(dset[()], dtype=np.float64 if kind == "f" else np.int64)
+    if a.ndim != len(shape) or any(w is not None and g != w for g, w in zip(a.shape, shape)):
+        want = "(" + ", ".join("n" if w is None else str(w) for w in shape) + ")"
+        raise FileFormatError(f"file '{h5.filename}': {key} has shape {a.shape}, expected {want}",
+                              key=key, value=a.shape, expected=want)
+    if kind == "f" and not np.all(np.isfinite(a)):
+        raise FileFormatError(f"file '{h5.filename}': {key} holds non-finite values", key=key,
+                              value="NaN or inf", expected="finite numbers")
+    return a
+
+
+def read_modes(path: str | Path) -> ModeSet:
+    """The mesh, modes, labels, supports and regions of a result file (verified, with
+    every array's dtype and shape checked against the others)."""
+    with open_verified(path) as h5:
+        points = _array(h5, "mesh/points", "f", (None, 3))
+        cells_group = h5["mesh/cells"]
+        kind = "tetra10" if "tetra10" in cells_group else next(iter(cells_group))
+        cells = _array(h5, f"mesh/cells/{kind}", "i", (None, 10 if kind == "tetra10" else 4))
+        if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
+            raise FileFormatError(f"file '{path}': mesh/cells/{kind} refers to nodes outside "
+                                  f"0..{points.shape[0] - 1}", key=f"mesh/cells/{kind}")
+        freqs = _array(h5, "modes/frequencies_hz", "f", (None,))
+        shapes = _array(h5, "modes/shapes", "f", (points.shape[0], 3, freqs.size))
+        labels = tuple(read_strings(h5["modes/labels"]))
+        if len(labels) != freqs.size:
+            raise FileFormatError(f"file '{path}': {len(labels)} mode labels for {freqs.size} "
+                                  "modes", key="modes/labels", value=len(labels),
+                                  expected=str(freqs.size))
+        fixed = (_array(h5, "mesh/fixed_dofs", "i", (None,)) if "mesh/fixed_dofs" in h5
+                 else np.zeros(0, np.int64))
+        regions = {name: _array(h5, f"mesh/regions/{name}", "i", (None, 3))
+                   for name in (h5["mesh/regions"] if "mesh/regions" in h5 else [])}
+        damping = (_array(h5, "statespace/damping_ratios", "f", (None,))
+                   if "statespace/damping_ratios" in h5 else np.zeros(0))
+        return ModeSet(str(h5.attrs.get("name", Path(path).stem)), points, kind, cells, shapes,
+                       freqs, labels, fixed, regions, damping, "statespace" in h5)

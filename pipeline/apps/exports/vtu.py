@@ -27,7 +27,7 @@ import numpy as np
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import ConfigError
-from pipeline.store.read import open_verified, read_strings
+from pipeline.store.read import read_modes
 
 log = logging.getLogger(__name__)
 
@@ -44,18 +44,10 @@ def mode_mesh(h5_path: str | Path):
     """A :class:`meshio.Mesh` of ``h5_path`` (verified) with every mode as point data."""
     import meshio
 
-    with open_verified(h5_path) as h5:
-        points = np.array(h5["mesh/points"][()], dtype=np.float64)
-        cells_group = h5["mesh/cells"]
-        kind = "tetra10" if "tetra10" in cells_group else next(iter(cells_group))
-        cells = np.array(cells_group[kind][()], dtype=np.int64)
-        shapes = np.array(h5["modes/shapes"][()], dtype=np.float64)
-        freqs = np.array(h5["modes/frequencies_hz"][()], dtype=np.float64)
-        labels = read_strings(h5["modes/labels"])
-        fixed = (np.array(h5["mesh/fixed_dofs"][()], dtype=np.int64)
-                 if "mesh/fixed_dofs" in h5 else np.zeros(0, np.int64))
-        regions = {name: np.array(h5[f"mesh/regions/{name}"][()], dtype=np.int64)
-                   for name in (h5["mesh/regions"] if "mesh/regions" in h5 else [])}
+    modes = read_modes(h5_path)
+    points, kind, cells, shapes = modes.points, modes.cell_type, modes.cells, modes.shapes
+    freqs, labels, fixed, regions = (modes.frequencies_hz, modes.labels, modes.fixed_dofs,
+                                     modes.regions)
     point_data: dict[str, np.ndarray] = {}
     for i, f in enumerate(freqs):
         point_data[mode_array_name(i, f)] = np.ascontiguousarray(shapes[:, :, i])
