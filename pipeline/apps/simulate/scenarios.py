@@ -1,0 +1,306 @@
+"""Scenario records and their validation: what a scenario file may say, checked once.
+
+A scenario file holds one scenario (a mapping with a ``kind``) or a list of them; every
+key is checked by the one field checker :mod:`pipeline._util.validate`, so a bad value
+is one :class:`~pipeline.errors.ConfigError` line whose ``key`` is the dotted path of
+the value (``scenario.force`` for a single scenario, ``scenarios[2].mass`` in a list,
+``scenarios[0].integrator.rtol``), ``value`` what was given and ``expected`` what would
+be accepted. Units are SI (N, kg, s, Hz, rad, N m/rad); docs/simulate.md lists every key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from pipeline._util import validate as v
+from pipeline._util.yamlio import parse_yaml
+from pipeline.errors import ConfigError
+
+__all__ = ["KINDS", "METHODS", "LOOPS", "DEFAULT_GRAVITY", "MAX_SAMPLES", "SCENARIO_KEYS",
+           "Integrator", "Scenario", "parse_scenario", "parse_scenarios", "load_scenarios",
+           "as_scenarios"]
+
+KINDS = ("step_load", "body_load", "mass_sweep", "spring_mount")
+METHODS = ("LSODA", "Radau", "BDF", "RK45", "DOP853")
+LOOPS = ("filtered", "exact")
+#: ``gravity: true`` means this vector (m/s^2): the reference cantilever hangs along -y.
+DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
+#: Most samples one run may produce (memory guard).
+MAX_SAMPLES = 2_000_000
+#: Fewest samples a run needs to measure anything.
+MIN_SAMPLES = 16
+
+_COMMON = ("name", "kind", "duration", "output_rate", "input", "output", "damping",
+           "integrator", "lumped")
+_LOOP_KEYS = ("gravity", "preload", "loop", "cutoff_hz")
+#: The keys each kind of scenario accepts.
+SCENARIO_KEYS = {
+    "step_load": _COMMON + ("force", "t_on", "t_off"),
+    "body_load": _COMMON + ("mass",) + _LOOP_KEYS,
+    "mass_sweep": _COMMON + ("masses", "cycles") + _LOOP_KEYS,
+    "spring_mount": _COMMON + ("mass", "stiffness", "joint_damping", "joint",
+                               "initial_angle") + _LOOP_KEYS,
+}
+_REQUIRED = {"step_load": ("force",), "body_load": ("mass",), "mass_sweep": ("masses",),
+             "spring_mount": ("mass", "stiffness")}
+_INTEGRATOR_KEYS = ("method", "rtol", "atol")
+#: Largest |initial_angle| (rad): the mount is linearised about theta = 0.
+MAX_INITIAL_ANGLE = 0.1
+
+
+# =========================================================================== scenarios
+@dataclass(frozen=True)
+class Integrator:
+    """solve_ivp settings. ``atol`` is relative to the peak magnitude of each state (the
+    peaks come from an exact matrix-exponential pass, so the tolerance means the same for
+    states in m kg^1/2, m kg^1/2/s, rad or N)."""
+
+    method: str = "LSODA"
+    rtol: float = 1e-8
+    atol: float = 1e-8
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One validated scenario (units SI; see docs/simulate.md for the meaning of each key).
+
+    kind: step_load | body_load | mass_sweep | spring_mount. duration: s. output_rate: Hz
+    (samples per second of the recorded time series). input / output: port names (None:
+    the model's only input / output port). damping: False removes the modal damping of the
+    model (the coupled system is then undamped, apart from the filter's own small effect).
+    lumped: also run the lumped chain when the file has one.
+    step_load: force (N along the input port's direction), t_on, t_off (s; None: stays on).
+    body_load / mass_sweep / spring_mount: mass (kg) or masses, gravity ((3,) m/s^2 or
+    None), preload (N on the input port, held for t < 0 and released at t = 0), loop
+    (filtered | exact), cutoff_hz (re-filter the plant at this cutoff instead of using the
+    file's filtered model). spring_mount: stiffness (N m/rad), joint_damping (N m s/rad),
+    joint ((3,) m, the revolute joint's point; None: centroid of the support region),
+    initial_angle (rad, the joint's angle at t = 0).
+    """
+
+    name: str
+    kind: str
+    duration: float
+    output_rate: float = 5000.0
+    input: str | None = None
+    output: str | None = None
+    damping: bool = True
+    integrator: Integrator = Integrator()
+    lumped: bool = True
+    force: float = 0.0
+    t_on: float = 0.0
+    t_off: float | None = None
+    mass: float = 0.0
+    masses: tuple[float, ...] = ()
+    gravity: tuple[float, float, float] | None = None
+    preload: float = 0.0
+    loop: str = "filtered"
+    cutoff_hz: float | None = None
+    stiffness: float = 0.0
+    joint_damping: float = 0.0
+    joint: tuple[float, float, float] | None = None
+    initial_angle: float = 0.0
+    cycles: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The keys a scenario file would hold for this scenario (round-trips)."""
+        out: dict[str, Any] = {"name": self.name, "kind": self.kind, "duration": self.duration,
+                               "output_rate": self.output_rate, "input": self.input,
+                               "output": self.output, "damping": self.damping,
+                               "lumped": self.lumped,
+                               "integrator": {"method": self.integrator.method,
+                                              "rtol": self.integrator.rtol,
+                                              "atol": self.integrator.atol}}
+        allowed = SCENARIO_KEYS[self.kind]
+        for key in allowed:
+            if key in out:
+                continue
+            value = getattr(self, key)
+            out[key] = list(value) if isinstance(value, tuple) else value
+        return out
+
+
+
+def _optional_number(raw: Mapping, key: str, path: str, **bounds) -> float | None:
+    """``raw[key]`` checked by :func:`validate.number`, or None when absent or null."""
+    return None if raw.get(key) is None else v.number(raw, key, path, **bounds)
+
+
+def _port_name(raw: Mapping, key: str, path: str) -> str | None:
+    """A port name (the rule of config port names), or None: the model's only port."""
+    return None if raw.get(key) is None else v.name(raw, key, path)
+
+
+def _integrator(raw: Mapping, path: str) -> Integrator:
+    where = f"{path}.integrator"
+    integ_raw = raw.get("integrator")
+    if integ_raw is None:
+        return Integrator()
+    v.mapping(integ_raw, where, _INTEGRATOR_KEYS)
+    return Integrator(v.choice(integ_raw, "method", where, METHODS, Integrator.method),
+                      v.number(integ_raw, "rtol", where, Integrator.rtol, lo=1e-14, hi=1e-3),
+                      v.number(integ_raw, "atol", where, Integrator.atol, lo=1e-16, hi=1e-2))
+
+
+def _masses(raw: Mapping, path: str) -> tuple[float, ...]:
+    masses = raw.get("masses")
+    if not isinstance(masses, list) or len(masses) < 3:
+        raise v.fail(f"{path}.masses", masses, "a list of at least three masses (kg)")
+    items = {f"masses[{i}]": m for i, m in enumerate(masses)}
+    values = tuple(v.number(items, key, path, lo=0.0) for key in items)
+    if len(set(values)) < 3:
+        raise v.fail(f"{path}.masses", masses, "at least three different masses (a line "
+                     "through two points has no residual)")
+    return values
+
+
+def parse_scenario(raw: Any, path: str) -> Scenario:
+    """Validate one scenario mapping; ``path`` is its dotted path (``scenarios[0]``)."""
+    if not isinstance(raw, Mapping):
+        raise v.fail(path, raw, "a mapping of scenario keys (with a 'kind')")
+    kind = v.choice(raw, "kind", path, KINDS)
+    name = v.name(raw, "name", path, kind)
+    v.mapping(raw, path, SCENARIO_KEYS[kind], _REQUIRED[kind] + ("duration",))
+    duration = v.number(raw, "duration", path, lo=0.0, lo_open=True)
+    rate = v.number(raw, "output_rate", path, 5000.0, lo=0.0, lo_open=True)
+    samples = duration * rate
+    if not MIN_SAMPLES <= samples <= MAX_SAMPLES:
+        raise v.fail(f"{path}.duration", duration,
+                     f"a duration giving {MIN_SAMPLES} to {MAX_SAMPLES:g} samples at "
+                     f"output_rate {rate:g} Hz (duration x output_rate = {samples:.3g})")
+    common = dict(name=name, kind=kind, duration=duration, output_rate=rate,
+                  input=_port_name(raw, "input", path), output=_port_name(raw, "output", path),
+                  damping=v.boolean(raw, "damping", path, kind != "mass_sweep"),
+                  integrator=_integrator(raw, path),
+                  lumped=v.boolean(raw, "lumped", path, True))
+    if kind == "step_load":
+        t_on = v.number(raw, "t_on", path, 0.0, lo=0.0)
+        t_off = _optional_number(raw, "t_off", path, lo=0.0)
+        if t_on >= duration:
+            raise v.fail(f"{path}.t_on", t_on,
+                         f"a time before the end of the run (duration {duration:g} s)")
+        if t_off is not None and not t_on < t_off:
+            raise v.fail(f"{path}.t_off", t_off,
+                         f"a time after t_on = {t_on:g} s (or null: stays on)")
+        if t_off is not None and t_off >= duration:
+            t_off = None  # switched off at or after the end: never within the run
+        force = v.number(raw, "force", path)
+        if force == 0.0:
+            raise v.fail(f"{path}.force", force, "a non-zero force (N)")
+        return Scenario(**common, force=force, t_on=t_on, t_off=t_off)
+
+    loop = v.choice(raw, "loop", path, LOOPS, "filtered")
+    gravity_raw = raw.get("gravity", False)
+    if gravity_raw is True:
+        gravity = DEFAULT_GRAVITY
+    elif gravity_raw is False or gravity_raw is None:
+        gravity = None
+    else:
+        gravity = v.vector(raw, "gravity", path)
+        if not any(gravity):
+            gravity = None
+    extra: dict[str, Any] = dict(
+        gravity=gravity, preload=v.number(raw, "preload", path, 0.0), loop=loop,
+        cutoff_hz=_optional_number(raw, "cutoff_hz", path, lo=0.0, lo_open=True))
+    if extra["cutoff_hz"] is not None and loop != "filtered":
+        raise v.fail(f"{path}.cutoff_hz", extra["cutoff_hz"], "no cutoff with loop: exact "
+                     "(a cutoff re-filters the plant for loop: filtered)")
+    if kind == "mass_sweep":
+        extra["masses"] = _masses(raw, path)
+        extra["cycles"] = _optional_number(raw, "cycles", path, lo=2.0)
+        lightest = min(extra["masses"])
+    else:
+        extra["mass"] = v.number(raw, "mass", path, lo=0.0)
+        lightest = extra["mass"]
+    if kind == "spring_mount":
+        extra["stiffness"] = v.number(raw, "stiffness", path, lo=0.0, lo_open=True)
+        extra["joint_damping"] = v.number(raw, "joint_damping", path, 0.0, lo=0.0)
+        extra["joint"] = v.vector(raw, "joint", path, None)
+        extra["initial_angle"] = v.number(raw, "initial_angle", path, 0.0)
+        if abs(extra["initial_angle"]) > MAX_INITIAL_ANGLE:
+            raise v.fail(f"{path}.initial_angle", extra["initial_angle"],
+                         f"a small angle, |angle| <= {MAX_INITIAL_ANGLE:g} rad (the model is "
+                         "linearised)")
+    excited = extra["preload"] != 0.0 or (gravity is not None and lightest > 0.0) \
+        or (kind == "spring_mount" and (extra["initial_angle"] != 0.0 or gravity is not None))
+    if not excited:
+        why = ("with mass 0 in the sweep, gravity does not load the body; " if
+               gravity is not None else "")
+        load = "preload (N) or gravity" + (" or initial_angle" if kind == "spring_mount" else "")
+        raise ConfigError(f"config key '{path}': nothing excites the system: {why}set {load}",
+                          key=path, expected=f"a load: {load}")
+    return Scenario(**common, **extra)
+
+
+def _unique_names(scenarios: list[Scenario], path: str) -> list[Scenario]:
+    names = [s.name for s in scenarios]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"config key '{path}': scenario name(s) {', '.join(dup)} used more "
+                          "than once; give each scenario its own 'name'", key=path,
+                          value=dup, expected="a different name for each scenario")
+    return scenarios
+
+
+def parse_scenarios(raw: Any, source: str | None = None) -> list[Scenario]:
+    """Validate a parsed scenario document: one mapping (one scenario) or a list of them.
+
+    Keys in errors are ``scenario.<key>`` for a mapping and ``scenarios[i].<key>`` for a
+    list, under ``source`` when given."""
+    if isinstance(raw, Mapping):
+        return [parse_scenario(raw, source or "scenario")]
+    root = source or "scenarios"
+    if not (isinstance(raw, list) and raw):
+        raise v.fail(root, raw, "a scenario (a mapping with a 'kind') or a non-empty list "
+                     "of scenarios")
+    return _unique_names([parse_scenario(item, f"{root}[{i}]") for i, item in enumerate(raw)],
+                         root)
+
+
+def load_scenarios(path: str | Path) -> list[Scenario]:
+    """Read and validate a scenario YAML file (one scenario or a list). An error names the
+    file in its message; its ``key`` stays the path inside the document."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"scenario file '{path}': not found", key=str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"scenario file '{path}': cannot be read ({exc})",
+                          key=str(path)) from None
+    raw = parse_yaml(text, f"scenario file '{path}'")
+    if raw is None:
+        raise ConfigError(f"scenario file '{path}': is empty, expected a scenario or a list",
+                          key=str(path), expected="a scenario or a list of scenarios")
+    try:
+        return parse_scenarios(raw)
+    except ConfigError as exc:
+        raise ConfigError(f"scenario file '{path}': {exc}", key=exc.key, value=exc.value,
+                          expected=exc.expected) from None
+
+
+def as_scenarios(scenario: Any) -> list[Scenario]:
+    """Scenarios from what :func:`simulate` accepts: a Scenario, a file path, a parsed
+    mapping or list, or a list of Scenarios or of file paths (names unique across files)."""
+    if isinstance(scenario, Scenario):
+        return [scenario]
+    if isinstance(scenario, (str, Path)):
+        return load_scenarios(scenario)
+    if isinstance(scenario, (list, tuple)) and scenario and all(
+            isinstance(s, Scenario) for s in scenario):
+        return list(scenario)
+    if isinstance(scenario, (list, tuple)) and scenario and all(
+            isinstance(s, (str, Path)) for s in scenario):
+        out: list[Scenario] = []
+        for s in scenario:
+            out.extend(load_scenarios(s))
+        names = [s.name for s in out]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ConfigError(f"scenario name(s) {', '.join(dup)} used in more than one file",
+                              key="name", value=dup,
+                              expected="a different name for each scenario")
+        return out
+    return parse_scenarios(list(scenario) if isinstance(scenario, tuple) else scenario)
