@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import RegionError
-from pipeline.fe.mesh import BodyMesh
+from pipeline.fe.mesh.common import BodyMesh
 
 log = logging.getLogger(__name__)
 

@@ -48,6 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
+from pipeline.fe.resources import check_factor_memory
 
 log = logging.getLogger(__name__)
 
@@ -277,8 +278,6 @@ class _Pardiso:
             self._call(11)  # analysis: ordering and symbolic factorisation
             t1 = time.perf_counter()
             # the exact factor size is known now, before the factorisation allocates it
-            from pipeline.fe.resources import check_factor_memory
-
             check_factor_memory(float(self.iparm[16]) * 1024, self.n)
             self._call(22)  # numerical factorisation
         except BaseException:
