@@ -48,8 +48,6 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
         gmsh.option.setNumber("General.NumThreads", threads)
         gmsh.logger.start()
         gmsh.model.add("body")
-        if geometry.kind != "box":  # validated in config; kept as a guard for library use
-            raise MeshError(f"geometry.kind '{geometry.kind}': expected 'box'")
         L, H, D = geometry.length, geometry.height, geometry.depth
         volume = gmsh.model.occ.addBox(0.0, 0.0, 0.0, L, H, D)
         gmsh.model.occ.synchronize()
