@@ -10,6 +10,7 @@ import contextlib
 import logging
 import resource
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -17,11 +18,14 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.config import Config, config_to_yaml
+from pipeline.fe.body import node_volume_weights
+from pipeline.fe.model import build_fe_model
+from pipeline.solve.stage import compute_modes
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
-ProgressFactory = Callable[[str, int | None, str], Any]
+ProgressFactory = Callable[[str, int | None, str], Any]  # same as pipeline.fe.model's
 
 
 def peak_memory_mb() -> float:
@@ -68,59 +72,33 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
-    from pipeline.fe.assemble import assemble_blocks, block_pattern, mass_csr, restrict, stiffness_csr
-    from pipeline.fe.body import body_properties, label_modes, node_volume_weights
-    from pipeline.fe.space import build_space
-    from pipeline.fe.mesh import mesh_body
-    from pipeline.solve.eigen import solve_modes
-    from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
-    from pipeline.fe.resources import check_memory
-
     progress = progress or _no_progress
     times: dict[str, float] = {}
     output = Path(output)
     tree: dict[str, Dataset] = {}
     group_attrs: dict[str, dict[str, Any]] = {}
 
-    with _stage("mesh", times):
-        body, mesh_path = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
-        space = build_space(body, cfg.mesh.order)
-        regions = resolve_regions(space, cfg.regions)
-        log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
-                 space.n_nodes, space.n_dofs)
-    check_memory(space, cfg.modes.count)
-
-    with _stage("assemble", times):
-        pattern = block_pattern(space)
-        with progress("assemble", body.n_tetrahedra, "elem") as update:
-            kcomp, mblock = assemble_blocks(space, cfg.material, pattern=pattern,
-                                            progress=update)
-        M = mass_csr(pattern, mblock)
-        del mblock
-        props = body_properties(M, space.node_points)
-        fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
-        free = free_dofs(space.n_dofs, fixed)
-        # connection-point models need the unsupported body: keep it only then
-        full = (stiffness_csr(pattern, kcomp), M) if cfg.connections else None
-        # K straight onto the free DOFs (the full K is never built for a clamped body);
-        # M restricted in place when nothing else needs it: never two copies alive
-        K = stiffness_csr(pattern, kcomp, free)
-        del kcomp, pattern
-        M = restrict(M, free, overwrite=full is None)
-        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
-
+    fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times))
     with _stage("modes", times):
         with progress("eigensolve", None, "solve") as update:
-            modes = solve_modes(K, M, cfg.modes.count, supported=bool(cfg.supports),
-                                backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
-                                progress=update)
-        shapes = np.zeros((space.n_dofs, modes.omega2.size))
-        shapes[free] = modes.shapes
-        shapes = shapes.reshape(space.n_nodes, 3, -1)
-        labels = label_modes(space.node_points, shapes, modes.n_rigid,
-                             node_volume_weights(space))
-        for f, lab in zip(modes.frequencies_hz, labels):
-            log.info("mode %-14s %12.4f Hz", lab, f)
+            modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free, fe.space.node_points,
+                                  node_volume_weights(fe.space), supported=bool(cfg.supports),
+                                  backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
+                                  progress=update, keep=cfg.reduction is not None)
+    if modes.factorization is not None:
+        # the kept factor of K (for the static correction) lives exactly as long as K:
+        # freed when the reduce stage drops K, before the connection models factorise
+        # the unsupported K; released explicitly after the reduce stage in any case
+        weakref.finalize(fe.K, modes.release_factorization)
+    # the stages below hold the matrices by these names only (the reduce stage frees
+    # K, M and full by deleting them), so the FEModel record is dropped here
+    space, regions, fixed, free, props, mesh_path = (fe.space, fe.regions, fe.fixed,
+                                                     fe.free, fe.props, fe.mesh_path)
+    body = space.body
+    K, M = fe.K, fe.M
+    full = (fe.K_full, fe.M_full) if fe.K_full is not None else None
+    del fe
+    shapes, labels = modes.shapes_full, list(modes.labels)
 
     extras: dict[str, Any] = {}
     with _stage("reduce", times):
@@ -140,6 +118,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
             extras.setdefault("summary", []).extend(lines)
             del full
 
+    modes.release_factorization()  # idempotent: freed when K was dropped
     tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
     group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
                             "solver": modes.backend, "shift_rad2_s2": modes.shift}

@@ -22,7 +22,7 @@ import yaml
 
 from pipeline.config import Geometry, MeshSpec, load_config
 from pipeline.errors import ConfigError, MeshError, RegionError, SolverError
-from pipeline.fe.geometry import cad_volume, check_dimensions, mesh_geometry
+from pipeline.fe.mesh import cad_volume, check_dimensions, mesh_geometry
 from pipeline.run import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]

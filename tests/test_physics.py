@@ -15,7 +15,8 @@ import pytest
 import scipy.linalg as sla
 
 from conftest import ALUMINIUM, build_model
-from pipeline.fe.body import body_properties, label_modes
+from pipeline.fe.body import body_properties
+from pipeline.solve.labels import label_modes
 from pipeline.config import Port, Ports
 from pipeline.solve.eigen import solve_modes
 from pipeline.fe.ports import port_matrices

@@ -164,20 +164,21 @@ def test_large_pardiso_factor_is_freed_in_the_background(beam, monkeypatch):
     again.release()
 
 
-def test_kept_factorisation_is_reused_for_the_same_matrix_only(beam):
+def test_kept_factorisation_is_handed_on_in_the_result_and_freed_by_its_owner(beam):
+    """keep=True hands the factorisation of K to the caller (no module-level cache);
+    keep=False (the default) frees it inside solve_modes."""
     K, M = beam["K"].copy(), beam["M"]
-    solve_modes(K, M, 4)
-    kept = solvers._kept.get("entry")
-    assert kept is not None
-    again = solvers.factorize(K, solvers.resolve_backend("auto"))
-    assert again.solve is kept[1].solve
-    other = solvers.factorize(K.copy(), "superlu")
-    assert other.solve is not kept[1].solve
-    del K, again
-    import gc
-
-    gc.collect()
-    assert "entry" not in solvers._kept
+    assert not hasattr(solvers, "_kept") and not hasattr(solvers, "keep_factorization")
+    assert solve_modes(K, M, 4).factorization is None
+    modes = solve_modes(K, M, 4, keep=True)
+    assert modes.factorization is not None and modes.solve is modes.factorization.solve
+    b = np.random.default_rng(1).standard_normal(K.shape[0])
+    assert np.linalg.norm(K @ modes.solve(b) - b) / np.linalg.norm(b) < 1e-8
+    modes.release_factorization()
+    modes.release_factorization()  # idempotent
+    if modes.factorization.backend == "pardiso":
+        with pytest.raises(SolverError, match="released"):
+            modes.solve(b)
 
 
 def test_upper_triangle_is_one_pass_and_32_bit(beam):

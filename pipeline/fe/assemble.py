@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Material
+from pipeline.errors import SolverError
 from pipeline.fe.space import FESpace
 
 log = logging.getLogger(__name__)
@@ -37,15 +38,19 @@ INT32_MAX = 2**31 - 1
 
 
 def check_material(material: Material) -> None:
-    """Refuse a material whose stiffness or mass matrix would not be positive definite."""
+    """Refuse a material whose stiffness or mass matrix would not be positive definite.
+
+    A config's material was checked when the config was read (:mod:`pipeline.config`);
+    this guards library callers that build a :class:`~pipeline.config.Material` themselves
+    (the record does not validate itself)."""
     E, nu, rho = material.E, material.nu, material.rho
     if not (np.isfinite(E) and E > 0 and np.isfinite(nu) and -1.0 < nu < 0.5
             and np.isfinite(rho) and rho > 0):
-        from pipeline.errors import SolverError
-
         raise SolverError(f"material E = {E:g} Pa, nu = {nu:g}, rho = {rho:g} kg/m^3: the "
                           "stiffness or mass matrix would not be positive definite; expected "
-                          "E > 0, -1 < nu < 0.5 and rho > 0")
+                          "E > 0, -1 < nu < 0.5 and rho > 0", key="material",
+                          value={"E": E, "nu": nu, "rho": rho},
+                          expected="E > 0, -1 < nu < 0.5 and rho > 0")
 
 
 def lame_parameters(material: Material) -> tuple[float, float]:

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import RegionError
-from pipeline.fe.mesh import BodyMesh
+from pipeline.fe.mesh.common import BodyMesh
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +58,6 @@ class FESpace:
     @property
     def cell_type(self) -> str:
         return "tetra10" if self.order == 2 else "tetra"
-
-    def element_dofs(self, elements: slice | np.ndarray = slice(None)) -> np.ndarray:
-        """(n_chunk, 3 * nodes_per_element) DOFs per element, skfem's local order."""
-        nodes = self.element_nodes[elements]
-        return (3 * nodes[:, :, None] + np.arange(3)).reshape(nodes.shape[0], -1)
 
     def skfem_element(self):
         from skfem import ElementTetP1, ElementTetP2, ElementVector

@@ -29,14 +29,21 @@ def _damping_spec(cfg: Config):
     return DampingSpec("rayleigh", alpha=d.alpha, beta=d.beta)
 
 
-def _factorize(backend: str):
+def _factorize(backend: str, solve=None):
+    """K -> (b -> K^-1 b): ``solve`` when one is handed in (the modes stage's kept
+    factorisation of this K, owned and freed by the caller), else a new factorisation."""
+    if solve is not None:
+        return lambda K: solve
     from pipeline.solve.factorize import factorize
 
     return lambda K: factorize(K, backend, positive_definite=True).solve
 
 
-def build_statespace(cfg: Config, space, regions, K, M, free, modes):
-    """The reduced model (pipeline.reduce.modal.ReducedModel) and its filtered twin."""
+def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
+    """The reduced model (pipeline.reduce.modal.ReducedModel) and its filtered twin.
+
+    ``solve``: b -> K^-1 b for this K; default: the factorisation the modes stage kept
+    (``modes.solve``), else K is factorised here."""
     from pipeline.reduce.filters import filtered_model
     from pipeline.fe.ports import port_matrices
     from pipeline.reduce.modal import reduce_model
@@ -47,7 +54,9 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes):
     reduced = reduce_model(K, M, modes.shapes, modes.omega2, F, T, cfg.reduction.modes,
                            _damping_spec(cfg), cfg.reduction.static_correction,
                            ports.input_names, ports.output_names,
-                           factorize=_factorize(cfg.modes.solver))
+                           factorize=_factorize(cfg.modes.solver,
+                                                solve if solve is not None
+                                                else getattr(modes, "solve", None)))
     filtered = None
     if cfg.filter.kind != "none":
         filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)
@@ -59,9 +68,12 @@ def _compliance_units(ports) -> str:
     return f"{kinds.pop()[1]}/{next(iter(ports.input_units))}" if len(kinds) == 1 else "mixed"
 
 
-def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=None
+def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=None,
+                 solve=None
                  ) -> tuple[dict[str, Dataset], dict[str, dict[str, Any]], dict[str, Any]]:
-    """All configured reduced models: (datasets, group attributes, extras for the CLI)."""
+    """All configured reduced models: (datasets, group attributes, extras for the CLI).
+
+    ``solve``: b -> K^-1 b for this K, see :func:`build_statespace`."""
     tree: dict[str, Dataset] = {}
     attrs: dict[str, dict[str, Any]] = {}
     summary: list[str] = []
@@ -71,7 +83,8 @@ def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=N
         from pipeline.reduce.filters import filter_datasets, filter_group_attrs
         from pipeline.reduce.modal import statespace_datasets
 
-        ports, reduced, filtered = build_statespace(cfg, space, regions, K, M, free, modes)
+        ports, reduced, filtered = build_statespace(cfg, space, regions, K, M, free, modes,
+                                                     solve)
         tree.update(statespace_datasets(reduced, "statespace", _compliance_units(ports)))
         attrs["statespace"] = {"static_correction": reduced.static_correction,
                                "n_modes": reduced.n_modes, "n_basis": reduced.n_basis,

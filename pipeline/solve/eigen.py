@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
+from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
+                                      sparse_times_dense)
+from pipeline.solve.modes import Modes
 
 log = logging.getLogger(__name__)
 
@@ -38,31 +40,6 @@ DEFAULT_TOLERANCE = 1e-10
 LARGE_TOLERANCE = 1e-8
 LARGE_SYSTEM = 100_000  # free DOFs from which LARGE_TOLERANCE is the default
 DENSE_MAX = 600  # below this many free DOFs, a dense generalized eigh
-
-
-@dataclass(frozen=True)
-class ModeSet:
-    """Modes of the constrained body.
-
-    omega2: (n_m,) rad^2/s^2, ascending (rigid modes clipped to >= 0).
-    frequencies_hz: (n_m,) Hz.
-    shapes: (n_free, n_m) M-orthonormal mode shapes on the free DOFs.
-    residuals: (n_m,) ||K phi - omega^2 M phi|| / ||K phi|| (rigid: / ||M phi|| |shift|).
-    n_rigid: number of zero-frequency (rigid-body) modes found.
-    backend: the factorisation used; shift: the shift sigma (rad^2/s^2).
-    seconds: wall time of the whole stage; stats: what the solver did (method, solves,
-    steps, factor size...).
-    """
-
-    omega2: np.ndarray
-    frequencies_hz: np.ndarray
-    shapes: np.ndarray
-    residuals: np.ndarray
-    n_rigid: int
-    backend: str
-    shift: float
-    seconds: float
-    stats: dict | None = None
 
 
 def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
@@ -107,7 +84,7 @@ def default_block_size(count: int, supported: bool = True) -> int:
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
                 progress=None, method: str = "auto", block_size: int | None = None,
-                max_basis: int | None = None, keep: bool = True) -> ModeSet:
+                max_basis: int | None = None, keep: bool = False) -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
@@ -116,11 +93,11 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     Lanczos, machine precision for ARPACK). ``method``: ``auto`` (block Lanczos when the
     backend offers a symmetric factor, else ARPACK), ``lanczos``, ``arpack`` or
     ``dense``. ``progress``, if given, is called with the number of right-hand sides
-    of every solve. ``keep``: for a supported body, keep the factorisation of K for a
-    later :func:`pipeline.solve.factorize.factorize` of the same K object (the static
-    correction), see :func:`pipeline.solve.factorize.keep_factorization`.
+    of every solve. ``keep``: for a supported body (shift 0) solved by factorisation,
+    return the factorisation of K in :attr:`Modes.factorization` instead of freeing it
+    (the static correction solves with the same K); the caller then owns it and frees
+    it with :meth:`Modes.release_factorization`.
     """
-    from pipeline.solve.factorize import check_factorization, factorize, keep_factorization, resolve_backend
 
     t0 = time.perf_counter()
     n = K.shape[0]
@@ -129,11 +106,11 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
                           f"{n - 1} free degrees of freedom of this mesh (refine the mesh)")
     if method not in ("auto", "lanczos", "arpack", "dense"):
         raise ValueError(f"method '{method}': expected auto, lanczos, arpack or dense")
-    K_given = K
     K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
     M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
     sigma = default_shift(K, M, supported) if shift is None else float(shift)
     stats: dict = {"n": n, "count": count}
+    kept = None
     if method == "dense" or (method == "auto" and n <= DENSE_MAX):
         backend_name = f"dense ({resolve_backend(backend)} not needed)"
         v = _dense_modes(K, M, count, sigma)
@@ -169,35 +146,38 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
             fact.release()
             raise
         if sigma == 0.0 and keep:
-            keep_factorization(K_given, fact)  # the static correction solves with this K
+            kept = fact  # handed to the caller: the static correction solves with this K
         else:
             fact.release()
         stats.update(lstats)
         stats["eigensolver_seconds"] = time.perf_counter() - t2
         log.info("%s: %d solves (%d calls) in %.2f s", stats["method"], stats["solves"],
                  stats["calls"], stats["eigensolver_seconds"])
-    t3 = time.perf_counter()
-    w, v, residuals = _rayleigh_ritz(K, M, v, sigma)
-    stats["rayleigh_ritz_seconds"] = time.perf_counter() - t3
-    rigid = np.zeros(w.size, dtype=bool)
-    if not supported:
-        rigid = np.abs(w) < 1e-6 * abs(sigma)
-    w = np.where(rigid, 0.0, w)
-    if (w < 0).any():
-        raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness matrix is "
-                          "indefinite; check the material (E > 0, -1 < nu < 0.5)")
+    try:
+        t3 = time.perf_counter()
+        w, v, residuals = _rayleigh_ritz(K, M, v, sigma)
+        stats["rayleigh_ritz_seconds"] = time.perf_counter() - t3
+        rigid = np.zeros(w.size, dtype=bool)
+        if not supported:
+            rigid = np.abs(w) < 1e-6 * abs(sigma)
+        w = np.where(rigid, 0.0, w)
+        if (w < 0).any():
+            raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness matrix is "
+                              "indefinite; check the material (E > 0, -1 < nu < 0.5)")
+    except BaseException:
+        if kept is not None:
+            kept.release()
+        raise
     seconds = time.perf_counter() - t0
-    return ModeSet(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
-                   residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
-                   shift=sigma, seconds=seconds, stats=stats)
+    return Modes(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
+                 residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
+                 shift=sigma, seconds=seconds, stats=stats, factorization=kept)
 
 
 # --------------------------------------------------------------------------- post-processing
 def _rayleigh_ritz(K, M, v: np.ndarray, sigma: float):
     """Exact M-orthonormality and diagonal K in span(v); sorted; sign convention."""
     from scipy.linalg import eigh
-
-    from pipeline.solve.factorize import sparse_times_dense
 
     v = np.ascontiguousarray(v)
     Kv, Mv = sparse_times_dense(K, v), sparse_times_dense(M, v)
@@ -262,8 +242,6 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
 # --------------------------------------------------------------------------- block Lanczos
 def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
     """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
-    from pipeline.solve.factorize import sparse_times_dense
-
     n = fact.n
     rows = fact.info["rows"]  # (phase, C-ordered (k, n) block) -> (k, n)
     calls = [0, 0]

@@ -41,7 +41,6 @@ import logging
 import os
 import sys
 import time
-import weakref
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -49,6 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
+from pipeline.fe.resources import check_factor_memory
 
 log = logging.getLogger(__name__)
 
@@ -278,8 +278,6 @@ class _Pardiso:
             self._call(11)  # analysis: ordering and symbolic factorisation
             t1 = time.perf_counter()
             # the exact factor size is known now, before the factorisation allocates it
-            from pipeline.fe.resources import check_factor_memory
-
             check_factor_memory(float(self.iparm[16]) * 1024, self.n)
             self._call(22)  # numerical factorisation
         except BaseException:
@@ -480,43 +478,6 @@ def check_factorization(A: sp.spmatrix, fact: Factorization, seed: int = 7) -> f
     return error
 
 
-# One factorisation kept after the eigensolve, keyed on the very matrix object it
-# factorises: the static correction of the reduced model solves with the same K, and
-# a second factorisation would double the time at 1M DOFs. Freed when that matrix is
-# garbage-collected or when another factorisation is kept.
-_kept: dict = {}
-
-
-def _matrix_key(A) -> tuple:
-    data = getattr(A, "data", None)
-    ptr = data.ctypes.data if isinstance(data, np.ndarray) else 0
-    return (id(A), A.shape, getattr(A, "nnz", 0), ptr)
-
-
-def _drop_kept() -> None:
-    entry = _kept.pop("entry", None)
-    if entry is not None:
-        entry[2].detach()
-        entry[1].release()
-
-
-def keep_factorization(A: sp.spmatrix, fact: Factorization) -> None:
-    """Keep ``fact`` (a factorisation of exactly ``A``) for a later :func:`factorize` of
-    the same matrix object, until ``A`` is garbage-collected (replaces any kept one)."""
-    _drop_kept()
-    try:
-        finalizer = weakref.finalize(A, _drop_kept)
-    except TypeError:  # not weak-referenceable: nothing to keep it by
-        fact.release()
-        return
-    _kept["entry"] = (_matrix_key(A), fact, finalizer)
-
-
-def release_kept() -> None:
-    """Free the kept factorisation now, if any."""
-    _drop_kept()
-
-
 def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = True,
               check: bool = True) -> Factorization:
     """Factorise the symmetric matrix ``A`` (n x n) once, with ``backend``.
@@ -527,12 +488,6 @@ def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = T
     :func:`check_factorization`.
     """
     backend = resolve_backend(backend)
-    entry = _kept.get("entry")
-    if entry is not None and entry[0] == _matrix_key(A) and entry[1].backend == backend:
-        log.info("reusing the %s factorisation of this %dx%d matrix", backend, *A.shape)
-        kept = entry[1]
-        return Factorization(kept.solve, kept.backend, kept.n, lambda: None, kept.forward,
-                             kept.backward, dict(kept.info))
     if A.shape[0] != A.shape[1] or A.shape[0] == 0:
         raise SolverError(f"cannot factorise a {A.shape[0]}x{A.shape[1]} matrix")
     if backend == "pardiso":

@@ -1,0 +1,337 @@
+"""Parse and validate a raw config mapping (as read from YAML) into a :class:`Config`.
+
+This is the boundary of the pipeline: every key is checked here, once, with the field
+checker :mod:`pipeline._util.validate`, and refused with a
+:class:`~pipeline.errors.ConfigError` that names the dotted key path, the value
+received and what was expected. Cross-section rules (regions that exist, a reduced
+model with ports, ...) are checked after the sections.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence, get_args
+
+from pipeline._util import validate as v
+from pipeline._util.yamlio import parse_yaml
+from pipeline.config.overrides import apply_overrides
+from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, SOLVERS, Config, Connection,
+                                    Constraints, Coupling, Damping, Filter, FilterKind,
+                                    Geometry, InputKind, Lumped, LumpedConstants, Material,
+                                    MeshAlgorithm, MeshSpec, Modes, OutputKind, Port, Ports,
+                                    Reduction, RegionSelector, SelectorKind, StaticCorrection,
+                                    Support)
+from pipeline.errors import ConfigError
+
+def _geometry(raw: Any, base_dir: str = "") -> Geometry:
+    raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale"),
+                   ("kind",))
+    kind = v.choice(raw, "kind", "geometry", GEOMETRY_KINDS)
+    if kind == "box":
+        extra = sorted(set(raw) - {"kind", "length", "height", "depth"})
+        if extra:
+            raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to a box; "
+                              "expected kind, length, height, depth")
+        return Geometry(
+            kind=kind,
+            length=v.number(raw, "length", "geometry", lo=0.0, lo_open=True, hi=1e3),
+            height=v.number(raw, "height", "geometry", lo=0.0, lo_open=True, hi=1e3),
+            depth=v.number(raw, "depth", "geometry", lo=0.0, lo_open=True, hi=1e3),
+        )
+    extra = sorted(set(raw) - {"kind", "path", "scale"})
+    if extra:
+        raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to kind '{kind}'; "
+                          "expected kind, path, scale")
+    path = raw.get("path", v.MISSING)
+    if path is v.MISSING:
+        raise ConfigError("config key 'geometry.path' is missing; it is required for kind "
+                          f"'{kind}'")
+    if not isinstance(path, str) or not path.strip() or "\0" in path:
+        raise v.fail("geometry.path", path, "a file path")
+    resolved = Path(path) if Path(path).is_absolute() or not base_dir else Path(base_dir) / path
+    try:
+        exists = resolved.is_file()
+    except (OSError, ValueError):  # a name too long for the file system, ...
+        exists = False
+    if not exists:
+        raise v.fail("geometry.path", path, f"an existing file (looked for "
+                    f"'{v.describe(str(resolved))[1:-1]}')")
+    return Geometry(kind=kind, length=0.0, height=0.0, depth=0.0, path=str(resolved),
+                    scale=v.number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3))
+
+
+def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
+    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), ("size",))
+    order = v.choice(raw, "order", "mesh", (1, 2), default=2)
+    size = v.number(raw, "size", "mesh", lo=0.0, lo_open=True)
+    largest = geometry.largest_dimension()
+    if largest is not None:
+        if size > largest:
+            raise v.fail("mesh.size", size, f"a size no larger than the body's largest dimension "
+                        f"({largest:g} m)")
+        smallest = min(geometry.length, geometry.height, geometry.depth)
+        if size < smallest / 400.0 or largest / size > 5000:
+            raise v.fail("mesh.size", size, f"a size of at least "
+                        f"{max(smallest / 400, largest / 5000):g} m for this body (a finer mesh "
+                        "would not fit any machine)")
+    algorithm = v.choice(raw, "algorithm", "mesh", get_args(MeshAlgorithm), default="hxt")
+    return MeshSpec(order=order, size=size, algorithm=algorithm)
+
+
+def _material(raw: Any) -> Material:
+    raw = v.mapping(raw, "material", ("E", "nu", "rho"), ("E", "nu", "rho"))
+    return Material(
+        E=v.number(raw, "E", "material", lo=0.0, lo_open=True, hi=1e13),
+        nu=v.number(raw, "nu", "material", lo=-1.0, hi=0.5, lo_open=True, hi_open=True),
+        rho=v.number(raw, "rho", "material", lo=0.0, lo_open=True, hi=1e6),
+    )
+
+
+def _supports(raw: Any) -> tuple[Support, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise v.fail("supports", raw, "a list of {region: NAME, fix: all | [x, y, z]}")
+    out = []
+    for i, item in enumerate(raw):
+        path = f"supports[{i}]"
+        item = v.mapping(item, path, ("region", "fix"), ("region",))
+        region = v.name(item, "region", path)
+        fix = item.get("fix", "all")
+        if fix == "all":
+            comps = ("x", "y", "z")
+        elif (isinstance(fix, list) and fix and all(c in ("x", "y", "z") for c in fix)
+              and len(set(fix)) == len(fix)):
+            comps = tuple(sorted(fix))
+        else:
+            raise v.fail(f"{path}.fix", fix, "'all' or a list of distinct components from x, y, z")
+        out.append(Support(region=region, fix=comps))
+    return tuple(out)
+
+
+def _regions(raw: Any) -> dict[str, RegionSelector]:
+    if raw is None:
+        return {}
+    if not isinstance(raw, Mapping):
+        raise v.fail("regions", raw, "a mapping of region names to selectors")
+    out = {}
+    for name, sel in raw.items():
+        path = f"regions.{name}"
+        if not isinstance(name, str) or not v.NAME_RE.fullmatch(name):
+            raise v.fail("regions", name, "region names of letters, digits, '_', '-' or '.'")
+        sel = v.mapping(sel, path, ("kind", "point", "normal", "tolerance", "lower", "upper",
+                                   "radius"), ("kind",))
+        kind = v.choice(sel, "kind", path, get_args(SelectorKind))
+        if kind == "plane":
+            allowed = {"kind", "point", "normal", "tolerance"}
+            r = RegionSelector(kind, point=v.vector(sel, "point", path),
+                               normal=v.vector(sel, "normal", path, nonzero=True),
+                               tolerance=v.number(sel, "tolerance", path, 1e-6, lo=0.0))
+        elif kind == "box":
+            allowed = {"kind", "lower", "upper"}
+            lower, upper = v.vector(sel, "lower", path), v.vector(sel, "upper", path)
+            if any(a > b for a, b in zip(lower, upper)):
+                raise v.fail(f"{path}.upper", list(upper), f"every component >= lower {list(lower)}")
+            r = RegionSelector(kind, lower=lower, upper=upper)
+        else:
+            allowed = {"kind", "point", "radius"}
+            r = RegionSelector(kind, point=v.vector(sel, "point", path),
+                               radius=v.number(sel, "radius", path, lo=0.0, lo_open=True))
+        extra = set(sel) - allowed
+        if extra:
+            key = sorted(extra)[0]
+            raise ConfigError(f"config key '{path}.{key}' does not apply to a '{kind}' selector; "
+                              f"expected one of: {', '.join(sorted(allowed))}")
+        out[name] = r
+    return out
+
+
+def _ports(raw: Any) -> Ports:
+    if raw is None:
+        return Ports()
+    raw = v.mapping(raw, "ports", ("inputs", "outputs"))
+    seen: dict[str, str] = {}
+    groups = {}
+    for side, kinds in (("inputs", get_args(InputKind)), ("outputs", get_args(OutputKind))):
+        items = []
+        for i, item in enumerate(v.items(raw, side, "ports")):
+            path = f"ports.{side}[{i}]"
+            item = v.mapping(item, path, ("name", "region", "kind", "direction"),
+                            ("name", "region", "kind", "direction"))
+            name = v.name(item, "name", path)
+            if name in seen:
+                raise v.fail(f"{path}.name", name, f"a name not used already (it names {seen[name]})")
+            seen[name] = path
+            items.append(Port(name=name, region=v.name(item, "region", path),
+                              kind=v.choice(item, "kind", path, kinds),
+                              direction=v.vector(item, "direction", path, nonzero=True)))
+        groups[side] = tuple(items)
+    return Ports(**groups)
+
+
+def _damping(raw: Any) -> Damping:
+    if raw is None:
+        return Damping()
+    raw = v.mapping(raw, "damping", ("kind", "ratio", "ratios", "alpha", "beta"), ("kind",))
+    kind = v.choice(raw, "kind", "damping", ("uniform", "per_mode", "rayleigh", "none"))
+    if kind == "uniform":
+        return Damping(kind=kind, ratio=v.number(raw, "ratio", "damping", lo=0.0, hi=1.0, hi_open=True))
+    if kind == "none":
+        return Damping(kind="uniform", ratio=0.0)
+    if kind == "per_mode":
+        ratios = raw.get("ratios", v.MISSING)
+        if ratios is v.MISSING:
+            raise ConfigError("config key 'damping.ratios' is missing; it is required for per_mode")
+        if not isinstance(ratios, list) or not ratios:
+            raise v.fail("damping.ratios", ratios, "a non-empty list of ratios in [0, 1)")
+        values = tuple(v.number({f"ratios[{i}]": r}, f"ratios[{i}]", "damping", lo=0.0, hi=1.0,
+                               hi_open=True) for i, r in enumerate(ratios))
+        return Damping(kind=kind, ratio=0.0, ratios=values)
+    return Damping(kind=kind, ratio=0.0, alpha=v.number(raw, "alpha", "damping", lo=0.0),
+                   beta=v.number(raw, "beta", "damping", lo=0.0))
+
+
+def _reduction(raw: Any, modes: Modes) -> Reduction | None:
+    if raw is None:
+        return None
+    raw = v.mapping(raw, "reduction", ("modes", "static_correction"), ("modes",))
+    n = v.integer(raw, "modes", "reduction", lo=1)
+    if n > modes.count:
+        raise v.fail("reduction.modes", n, f"at most modes.count = {modes.count}")
+    return Reduction(modes=n, static_correction=v.choice(
+        raw, "static_correction", "reduction", get_args(StaticCorrection), default="residual"))
+
+
+def _filter(raw: Any) -> Filter:
+    if raw is None:
+        return Filter(kind="none")
+    raw = v.mapping(raw, "filter", ("kind", "cutoff_hz"), ("kind",))
+    kind = v.choice(raw, "kind", "filter", get_args(FilterKind))
+    cutoff = v.number(raw, "cutoff_hz", "filter", 2000.0, lo=0.0, lo_open=True, hi=1e9)
+    return Filter(kind=kind, cutoff_hz=cutoff)
+
+
+def _lumped(raw: Any) -> Lumped | None:
+    if raw is None:
+        return None
+    raw = v.mapping(raw, "lumped", ("elements", "constants"), ("elements",))
+    return Lumped(elements=v.integer(raw, "elements", "lumped", lo=1, hi=10000),
+                  constants=v.choice(raw, "constants", "lumped", get_args(LumpedConstants), "refined"))
+
+
+def _connections(raw: Any) -> tuple[Connection, ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise v.fail("connections", raw, "a list of {name, region, point, coupling}")
+    out, seen = [], set()
+    for i, item in enumerate(raw):
+        path = f"connections[{i}]"
+        item = v.mapping(item, path, ("name", "region", "point", "coupling"),
+                        ("name", "region", "point"))
+        name = v.name(item, "name", path)
+        if name in seen:
+            raise v.fail(f"{path}.name", name, "a name not used by another connection")
+        seen.add(name)
+        out.append(Connection(name=name, region=v.name(item, "region", path),
+                              point=v.vector(item, "point", path),
+                              coupling=v.choice(item, "coupling", path, get_args(Coupling),
+                                               "rigid")))
+    return tuple(out)
+
+
+TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
+            "ports", "damping", "reduction", "filter", "lumped", "connections",
+            "craig_bampton")
+
+
+def _section(raw: Mapping, key: str) -> Any:
+    """An optional section: {} when absent or null, else the value (validated by the caller;
+    ``modes: false`` or ``modes: []`` is refused, not read as the defaults)."""
+    value = raw.get(key)
+    return {} if value is None else value
+
+
+def config_from_dict(raw: Any, source: str = "") -> Config:
+    """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
+    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
+    geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
+    constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
+    modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance"))
+    modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
+                  solver=v.choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
+                  tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2))
+    regions = _regions(raw.get("regions"))
+    for name in regions:
+        if geometry.kind == "box" and name in BOX_FACES:
+            raise v.fail(f"regions.{name}", name, f"a name other than the box's own faces "
+                        f"({', '.join(BOX_FACES)})")
+    cfg = Config(
+        name=v.name(raw, "name", ""),
+        geometry=geometry,
+        mesh=_mesh(raw["mesh"], geometry),
+        material=_material(raw["material"]),
+        supports=_supports(raw.get("supports")),
+        constraints=Constraints(in_plane=v.boolean(constraints, "in_plane", "constraints", False)),
+        modes=modes,
+        regions=regions,
+        ports=_ports(raw.get("ports")),
+        damping=_damping(raw.get("damping")),
+        reduction=_reduction(raw.get("reduction"), modes),
+        filter=_filter(raw.get("filter")),
+        lumped=_lumped(raw.get("lumped")),
+        connections=_connections(raw.get("connections")),
+        craig_bampton_modes=v.integer(v.mapping(_section(raw, "craig_bampton"), "craig_bampton",
+                                              ("modes",)), "modes", "craig_bampton", 0,
+                                     lo=0, hi=500),
+        source=source,
+    )
+    known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
+    used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
+    used += [(f"ports.inputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.inputs)]
+    used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)]
+    used += [(f"connections[{i}].region", c.region) for i, c in enumerate(cfg.connections)]
+    for path, region in used:
+        if known and region not in known:
+            raise v.fail(path, region, "a region the geometry names or 'regions' defines: "
+                        + ", ".join(sorted(known)))
+    if cfg.reduction is not None and not (cfg.ports.inputs and cfg.ports.outputs):
+        raise v.fail("reduction", raw.get("reduction"), "ports with at least one input and one "
+                    "output (a reduced model needs both)")
+    if cfg.reduction is not None and not cfg.supports \
+            and cfg.reduction.static_correction != "none":
+        raise v.fail("reduction.static_correction", cfg.reduction.static_correction,
+                    "'none' for a body without supports (its stiffness matrix is singular: a "
+                    "free body has no static deflection to correct with); add supports, e.g. "
+                    "supports: [{region: root, fix: all}], or set "
+                    "reduction.static_correction: none")
+    if cfg.lumped is not None and geometry.kind != "box":
+        raise v.fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
+                    f"straight beam; geometry.kind is '{geometry.kind}')")
+    if cfg.damping.kind == "per_mode" and cfg.reduction is not None \
+            and len(cfg.damping.ratios) < cfg.reduction.modes:
+        raise v.fail("damping.ratios", list(cfg.damping.ratios),
+                    f"at least reduction.modes = {cfg.reduction.modes} ratios")
+    return cfg
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> Config:
+    """Read a YAML config file, apply ``--set`` overrides and validate it."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file '{path}': not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file '{path}': cannot be read ({exc})") from None
+    raw = parse_yaml(text, f"config file '{path}'")
+    if raw is None:
+        raise ConfigError(f"config file '{path}': is empty, expected a mapping of config keys")
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"config file '{path}': got {v.describe(raw)}, expected a mapping of "
+                          "config keys at the top level")
+    raw = apply_overrides(raw, overrides)
+    try:
+        return config_from_dict(raw, source=str(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

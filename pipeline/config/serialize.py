@@ -1,0 +1,58 @@
+"""The resolved config back to plain data and YAML (the copy stored in every HDF5 file):
+``load_config`` of :func:`config_to_yaml`'s text gives back an equal :class:`Config`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, fields
+from typing import Any
+
+from pipeline.config.schema import Config
+
+
+def config_to_dict(cfg: Config) -> dict:
+    """The resolved config as plain YAML-ready data (tuples become lists)."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, tuple):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        return value
+
+    out = {}
+    for f in fields(cfg):
+        if f.name == "source":
+            continue
+        value = getattr(cfg, f.name)
+        if value is None:
+            continue
+        if f.name == "regions":
+            value = {k: {kk: vv for kk, vv in asdict(v).items() if vv is not None}
+                     for k, v in value.items()}
+        elif f.name == "craig_bampton_modes":
+            if value:
+                out["craig_bampton"] = {"modes": value}
+            continue
+        elif f.name == "connections":
+            value = [asdict(c) for c in value]
+        elif f.name == "supports":
+            value = [{"region": s.region, "fix": "all" if s.fix == ("x", "y", "z") else list(s.fix)}
+                     for s in value]
+        elif f.name == "geometry":
+            keep = ("kind", "length", "height", "depth") if value.kind == "box" else \
+                ("kind", "path", "scale")
+            value = {k: getattr(value, k) for k in keep}
+        elif hasattr(value, "__dataclass_fields__"):
+            value = asdict(value)
+        out[f.name] = plain(value)
+    if cfg.damping.kind != "per_mode":
+        out["damping"].pop("ratios", None)
+    return out
+
+
+def config_to_yaml(cfg: Config) -> str:
+    """The resolved config as YAML text; ``load`` of it gives back an equal Config."""
+    import yaml  # deferred: only writing a file needs it
+
+    return yaml.safe_dump(config_to_dict(cfg), sort_keys=False)

@@ -1,0 +1,58 @@
+"""Mesh stage: the body as a tetrahedral :class:`BodyMesh`, from one of the geometry
+sources of ``geometry.kind``, each in its own module and registered in :data:`SOURCES`:
+
+``box``  (:mod:`~pipeline.fe.mesh.box`)
+    gmsh meshes the box L x H x D and names its six faces.
+``step`` (:mod:`~pipeline.fe.mesh.cad`)
+    A STEP, IGES or BREP file, read by gmsh's OpenCASCADE kernel, in metres.
+``geo``  (:mod:`~pipeline.fe.mesh.geo`)
+    A gmsh script; its physical groups name the regions.
+``mesh`` (:mod:`~pipeline.fe.mesh.read`)
+    An existing tetrahedral mesh any format meshio reads, scaled by ``geometry.scale``.
+
+gmsh and meshio are imported only when a source runs. The shared record, checks and
+gmsh helpers are in :mod:`~pipeline.fe.mesh.common`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.config import Geometry, MeshSpec
+from pipeline.errors import ConfigError
+from pipeline.fe.mesh.box import box_faces, generate_mesh, mesh_box
+from pipeline.fe.mesh.cad import cad_volume, mesh_step
+from pipeline.fe.mesh.common import (CAD_SUFFIXES, MAX_EXTENT_M, MAX_TETRAHEDRA, MIN_EXTENT_M,
+                                     TET_TYPES, BodyMesh, MeshSource, check_dimensions)
+from pipeline.fe.mesh.geo import mesh_geo
+from pipeline.fe.mesh.read import mesh_file, read_mesh
+from pipeline.fe.mesh.registry import SOURCES
+
+__all__ = ["SOURCES", "BodyMesh", "MeshSource", "mesh_body", "mesh_geometry", "generate_mesh",
+           "read_mesh", "box_faces", "cad_volume", "check_dimensions", "mesh_box", "mesh_step",
+           "mesh_geo", "mesh_file", "CAD_SUFFIXES", "MAX_EXTENT_M", "MAX_TETRAHEDRA",
+           "MIN_EXTENT_M", "TET_TYPES"]
+
+
+def mesh_geometry(geometry: Geometry, spec: MeshSpec, out_path: str | Path
+                  ) -> tuple[BodyMesh, Path]:
+    """The mesh stage for ``geometry.kind``: (mesh, its file).
+
+    box, step and geo write the gmsh mesh (in metres) to ``out_path``; mesh returns the
+    file it read (``out_path`` is not written) with vertices multiplied by ``scale``.
+    """
+    source = SOURCES.get(geometry.kind)
+    if source is None:
+        raise ConfigError.field("geometry.kind", geometry.kind, f"one of {', '.join(SOURCES)}")
+    if geometry.kind != "box" and not Path(geometry.path).is_file():
+        # checked when the config was read; the file may have gone since
+        raise ConfigError(f"config key 'geometry.path': got '{geometry.path}', expected an "
+                          "existing file")
+    return source(geometry, spec, Path(out_path))
+
+
+def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path, name: str
+              ) -> tuple[BodyMesh, Path]:
+    """The mesh stage of a run: (mesh, path of the mesh file ``<mesh_dir>/<name>.msh``, or
+    the file read for kind ``mesh``)."""
+    return mesh_geometry(geometry, spec, Path(mesh_dir) / f"{name}.msh")

@@ -1,0 +1,216 @@
+"""What every mesh source shares: the :class:`BodyMesh` record, plausibility checks of
+the body's dimensions and of the element count, and the gmsh session helpers.
+
+A :class:`BodyMesh` holds straight-sided tetrahedra (the corner nodes of the gmsh
+elements) plus the boundary triangles of every named region (gmsh physical groups).
+Higher-order nodes are re-created by the finite-element space
+(:mod:`pipeline.fe.space`) at the edge midpoints, so a quadratic field lives on
+straight-edged tetrahedra: exact for the box, and a faceted approximation of a curved
+surface. Lengths are in metres.
+
+Refused with a :class:`~pipeline.errors.ConfigError` naming the key: dimensions that
+betray a unit mistake (largest dimension above :data:`MAX_EXTENT_M` or below
+:data:`MIN_EXTENT_M` after scaling) and a ``mesh.size`` that would make more than
+:data:`MAX_TETRAHEDRA` elements.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from pipeline._util.atomic import atomic_path
+from pipeline.config import Geometry, MeshSpec
+from pipeline.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+@dataclass(frozen=True)
+class BodyMesh:
+    """A tetrahedral mesh of the body with named boundary regions.
+
+    vertices: (n_v, 3) float64, m.
+    tetrahedra: (n_t, 4) int64 vertex indices, positively oriented.
+    regions: name -> (n_f, 3) int64 vertex indices of the boundary triangles.
+    source: the file the mesh was read from.
+    """
+
+    vertices: np.ndarray
+    tetrahedra: np.ndarray
+    regions: Mapping[str, np.ndarray] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_tetrahedra(self) -> int:
+        return int(self.tetrahedra.shape[0])
+
+
+#: A mesh source: (geometry, mesh spec, path for the mesh file) -> (mesh, its file).
+MeshSource = Callable[[Geometry, MeshSpec, Path], "tuple[BodyMesh, Path]"]
+
+#: Largest plausible body dimension (m) after scaling; above it we suspect a unit mistake.
+MAX_EXTENT_M = 50.0
+#: Smallest plausible largest-dimension (m) after scaling.
+MIN_EXTENT_M = 1e-4
+#: Refuse a mesh.size that would make more tetrahedra than this (estimate before meshing).
+MAX_TETRAHEDRA = 3_000_000
+#: gmsh makes about this many tetrahedra per size^3 of volume.
+TETS_PER_CUBE = 6.5
+
+CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs", ".brep")
+TET_TYPES = ("tetra", "tetra10")
+VOLUME_TYPES = ("tetra", "tetra10", "hexahedron", "hexahedron20", "hexahedron24",
+                 "hexahedron27", "wedge", "wedge12", "wedge15", "wedge18", "pyramid",
+                 "pyramid13", "pyramid14", "polyhedron")
+ALGORITHM_3D = {"delaunay": 1, "frontal": 4, "hxt": 10}
+#: Elements per full circle along curved CAD faces.
+ELEMENTS_PER_2PI = 12
+
+
+# --------------------------------------------------------------------------- checks
+def format_length(x: float) -> str:
+    return f"{x * 1e3:.4g} mm" if x < 0.1 else f"{x:.4g} m"
+
+
+def check_dimensions(extent, geometry: Geometry, what: str) -> None:
+    """Refuse a body whose largest dimension (m, after scaling) betrays a unit mistake.
+
+    ``extent``: the bounding-box size (3,) in m; ``what``: the file, for the message.
+    """
+    extent = np.asarray(extent, dtype=float)
+    largest = float(extent.max())
+    if MIN_EXTENT_M <= largest <= MAX_EXTENT_M:
+        return
+    dims = " x ".join(format_length(float(e)) for e in extent)
+    hint = ""
+    factors = (1e-3, 1e-6) if largest > MAX_EXTENT_M else (1e3, 1e6)
+    for f in factors:
+        if MIN_EXTENT_M <= largest * f <= MAX_EXTENT_M:
+            unit = {1e-3: "drawn in mm", 1e-6: "drawn in micrometres",
+                    1e3: "a length in km, or scale applied twice", 1e6: "scale applied twice"}[f]
+            hint = f"; did you mean scale: {geometry.scale * f:g} ({unit})?"
+            break
+    if geometry.kind == "step" and geometry.scale != 1.0:
+        hint += (" Note: STEP and IGES files declare their unit and are read in metres, so "
+                 "scale: 1 is right for them unless that declaration is wrong")
+    raise ConfigError(
+        f"config key 'geometry.scale': the body in '{what}' measures {dims} with scale = "
+        f"{geometry.scale:g}; expected a largest dimension between {format_length(MIN_EXTENT_M)} and "
+        f"{MAX_EXTENT_M:g} m{hint}")
+
+
+def check_size(volume_m3: float, spec: MeshSpec, what: str) -> None:
+    estimate = TETS_PER_CUBE * volume_m3 / spec.size ** 3
+    if estimate > MAX_TETRAHEDRA:
+        smallest = (TETS_PER_CUBE * volume_m3 / MAX_TETRAHEDRA) ** (1.0 / 3.0)
+        raise ConfigError(
+            f"config key 'mesh.size': got {spec.size:g} m, which would make about "
+            f"{estimate:.2g} tetrahedra for the body in '{what}' (volume {volume_m3:.4g} m^3); "
+            f"expected at least {smallest:.3g} m (at most {MAX_TETRAHEDRA:.0e} tetrahedra)")
+
+
+# --------------------------------------------------------------------------- gmsh session
+@contextlib.contextmanager
+def quiet_fd1():
+    """Capture what C++ libraries (OpenCASCADE) print on file descriptor 1; log it."""
+    try:
+        fd = os.dup(1)
+    except OSError:  # no usable stdout: nothing to silence
+        yield
+        return
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        try:
+            sys.stdout.flush()
+        except Exception:  # pragma: no cover - a closed stdout
+            pass
+        os.dup2(sink.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(fd, 1)
+            os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace").strip()
+            if text:
+                log.debug("OpenCASCADE: %s", text)
+
+
+@contextlib.contextmanager
+def gmsh_session(name: str):
+    import gmsh
+
+    if gmsh.isInitialized():
+        gmsh.finalize()
+    gmsh.initialize(interruptible=False)
+    quiet = quiet_fd1()
+    quiet.__enter__()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.Verbosity", 2)
+        gmsh.option.setNumber("General.NumThreads", os.cpu_count() or 1)
+        gmsh.logger.start()
+        gmsh.model.add(name)
+        yield gmsh
+    finally:
+        if gmsh.isInitialized():
+            for line in gmsh.logger.get():
+                log.debug("gmsh: %s", line)
+            gmsh.logger.stop()
+            gmsh.finalize()
+        quiet.__exit__(None, None, None)
+
+
+def gmsh_error(gmsh, exc: Exception) -> str:
+    errors = [m for m in gmsh.logger.get() if "rror" in m]
+    return errors[-1] if errors else str(exc)
+
+
+def mesh_options(gmsh, spec: MeshSpec, unit: float, from_points: bool) -> None:
+    """Element size ``spec.size`` (m) in model units (``unit`` m per model unit)."""
+    size = spec.size / unit
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", size / 10.0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 1 if from_points else 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", ELEMENTS_PER_2PI)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
+    gmsh.option.setNumber("Mesh.Algorithm3D", ALGORITHM_3D[spec.algorithm])
+    gmsh.option.setNumber("Mesh.ElementOrder", 1)
+    gmsh.option.setNumber("Mesh.Binary", 1)
+
+
+def count_tets(gmsh) -> int:
+    types, tags, _ = gmsh.model.mesh.getElements(3)
+    return int(sum(len(t) for typ, t in zip(types, tags) if typ in (4, 11)))
+
+
+def write_gmsh(gmsh, out_path: Path) -> Path:
+    """Write gmsh's mesh to ``out_path`` atomically (temporary name, then rename)."""
+    with atomic_path(out_path) as tmp:
+        gmsh.write(str(tmp))
+    return out_path
+
+
+def mesh_volume(body: BodyMesh) -> float:
+    v = body.vertices
+    t = body.tetrahedra
+    a = v[t[:, 0]]
+    return float(np.abs(np.einsum("ij,ij->i", np.cross(v[t[:, 1]] - a, v[t[:, 2]] - a),
+                                  v[t[:, 3]] - a)).sum() / 6.0)
+
+
+def extent(gmsh, unit: float = 1.0) -> np.ndarray:
+    """Bounding-box size of the model's volumes, times ``unit``."""
+    boxes = np.array([gmsh.model.getBoundingBox(3, tag) for _, tag in gmsh.model.getEntities(3)])
+    return (boxes[:, 3:].max(axis=0) - boxes[:, :3].min(axis=0)) * unit

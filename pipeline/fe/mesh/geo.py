@@ -1,0 +1,78 @@
+"""The ``geo`` source: a gmsh script (``.geo``) whose physical groups name the regions.
+
+The script's numbers are multiplied by ``geometry.scale`` (gmsh's
+``Mesh.ScalingFactor``: draw in mm, set ``scale: 0.001``); ``mesh.size`` (m) caps the
+element size. A script that meshes itself (``Mesh 3;``) keeps its own mesh.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import Geometry, MeshSpec
+from pipeline.errors import ConfigError, MeshError
+from pipeline.fe.mesh.common import (BodyMesh, check_dimensions, check_size, count_tets, extent,
+                                     gmsh_error, gmsh_session, mesh_options, quiet_fd1,
+                                     write_gmsh)
+from pipeline.fe.mesh.read import read_mesh
+from pipeline.fe.mesh.registry import SOURCES
+
+log = logging.getLogger(__name__)
+
+
+def _mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> Path:
+    path = Path(geometry.path)
+    if path.suffix.lower() != ".geo":
+        raise ConfigError(f"config key 'geometry.path': got '{path}' for kind 'geo'; expected a "
+                          "gmsh script ending in .geo")
+    with gmsh_session("body") as gmsh:
+        try:
+            with quiet_fd1():
+                gmsh.open(str(path))
+        except Exception as exc:
+            raise MeshError(f"geometry.path '{path}': gmsh cannot run this script "
+                            f"({gmsh_error(gmsh, exc)}); expected a valid .geo file") from None
+        vols = [tag for _, tag in gmsh.model.getEntities(3)]
+        if not vols:
+            raise MeshError(f"geometry.path '{path}': the script defines no volume; expected at "
+                            "least one (Volume, Box, Extrude ...)")
+        scale = geometry.scale
+        check_dimensions(extent(gmsh, scale), geometry, str(path))
+        if not any(d == 3 for d, _ in gmsh.model.getPhysicalGroups()):
+            # gmsh saves only elements of physical groups when there are any
+            gmsh.model.addPhysicalGroup(3, vols, name="body")
+        premeshed = count_tets(gmsh) > 0
+        if premeshed:
+            log.info("'%s' meshes itself; its own element sizes are kept (mesh.size ignored)",
+                     path.name)
+        else:
+            try:
+                volume = float(sum(gmsh.model.occ.getMass(3, v) for v in vols)) * scale ** 3
+            except Exception:  # built-in kernel entities: no OCC volume to estimate with
+                volume = float(np.prod(extent(gmsh, scale)))
+            check_size(volume, spec, str(path))
+            mesh_options(gmsh, spec, scale, from_points=True)
+            try:
+                gmsh.model.mesh.generate(3)
+            except Exception as exc:
+                raise MeshError(f"gmsh could not mesh '{path}' with mesh.size = {spec.size:g} m: "
+                                f"{gmsh_error(gmsh, exc)}") from None
+        gmsh.option.setNumber("Mesh.ElementOrder", 1)
+        gmsh.option.setNumber("Mesh.Binary", 1)
+        gmsh.option.setNumber("Mesh.ScalingFactor", scale)
+        if count_tets(gmsh) == 0:
+            raise MeshError(f"gmsh made no tetrahedra for '{path}'; expected a tetrahedral "
+                            "volume mesh")
+        write_gmsh(gmsh, out_path)
+    return out_path
+
+
+def mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> tuple[BodyMesh, Path]:
+    """The ``geo`` source: (mesh, its file ``out_path``)."""
+    return read_mesh(_mesh_geo(geometry, spec, out_path)), out_path
+
+
+SOURCES["geo"] = mesh_geo

@@ -1,0 +1,118 @@
+"""The finite-element stage record: :class:`FEModel`, built by :func:`build_fe_model`.
+
+Config -> mesh (gmsh or a mesh file) -> P1/P2 vector space -> named regions -> K, M
+assembled once -> body properties -> supports. K (N/m) and M (kg) are kept on the free
+DOFs only (n_free x n_free, CSR); DOF 3*p+c is component c of mesh point p. The
+unsupported matrices (n_dofs x n_dofs) are kept as well only when the config has
+connection points, whose models need the free body.
+
+Memory: K is assembled straight onto the free DOFs (the full K is never built for a
+clamped body unless connections need it), and M is restricted in place when nothing
+else needs the full M, so no two copies of a matrix are alive at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, ContextManager, Mapping
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.config import Config
+from pipeline.fe.assemble import (assemble_blocks, block_pattern, mass_csr, restrict,
+                                  stiffness_csr)
+from pipeline.fe.body import BodyProperties, body_properties
+from pipeline.fe.mesh import mesh_body
+from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.resources import check_memory
+from pipeline.fe.space import FESpace, build_space
+
+log = logging.getLogger(__name__)
+
+#: progress(desc, total, unit) -> context manager yielding update(n) (tqdm-like bars)
+ProgressFactory = Callable[[str, int | None, str], Any]
+#: stage(name) -> context manager around one timed stage ("mesh", "assemble")
+StageTimer = Callable[[str], ContextManager[Any]]
+
+
+@dataclass(frozen=True)
+class FEModel:
+    """The discretised body, supported as the config says.
+
+    space: the FE space (mesh points, elements, DOF numbering).
+    regions: region name -> (n_f, 3) boundary triangles (vertex indices).
+    fixed, free: sorted DOF indices (int64), fixed + free = all 3 * n_points DOFs.
+    K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs.
+    K_full, M_full: (n_dofs, n_dofs) unsupported matrices, or None (kept only when
+    connection points need them).
+    props: mass, centre of mass, inertia and rigid mass matrix from M.
+    mesh_path: the mesh file; n_elements: number of tetrahedra.
+    """
+
+    space: FESpace
+    regions: Mapping[str, np.ndarray]
+    fixed: np.ndarray
+    free: np.ndarray
+    K: sp.csr_matrix
+    M: sp.csr_matrix
+    props: BodyProperties
+    mesh_path: Path
+    n_elements: int
+    K_full: sp.csr_matrix | None = None
+    M_full: sp.csr_matrix | None = None
+
+
+@contextlib.contextmanager
+def _no_progress(desc: str, total: int | None, unit: str):
+    yield lambda n=1: None
+
+
+def _untimed(name: str) -> ContextManager[Any]:
+    return contextlib.nullcontext()
+
+
+def build_fe_model(cfg: Config, mesh_dir: str | Path = "meshes",
+                   progress: ProgressFactory | None = None,
+                   stage: StageTimer | None = None) -> FEModel:
+    """Mesh, space, regions (stage ``mesh``), memory check, assembly and supports (stage
+    ``assemble``) for ``cfg``; the mesh file goes to ``mesh_dir``.
+
+    ``progress(desc, total, unit)``, if given, is a context manager yielding an
+    ``update(n)`` callable; ``stage(name)``, if given, wraps each of the two stages (the
+    pipeline times them).
+    """
+    progress = progress or _no_progress
+    stage = stage or _untimed
+    with stage("mesh"):
+        body, mesh_path = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
+        space = build_space(body, cfg.mesh.order)
+        regions = resolve_regions(space, cfg.regions)
+        log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
+                 space.n_nodes, space.n_dofs)
+    check_memory(space, cfg.modes.count)
+
+    with stage("assemble"):
+        pattern = block_pattern(space)
+        with progress("assemble", body.n_tetrahedra, "elem") as update:
+            kcomp, mblock = assemble_blocks(space, cfg.material, pattern=pattern,
+                                            progress=update)
+        M = mass_csr(pattern, mblock)
+        del mblock
+        props = body_properties(M, space.node_points)
+        fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
+        free = free_dofs(space.n_dofs, fixed)
+        # connection-point models need the unsupported body: keep it only then
+        full = (stiffness_csr(pattern, kcomp), M) if cfg.connections else (None, None)
+        # K straight onto the free DOFs (the full K is never built for a clamped body);
+        # M restricted in place when nothing else needs it: never two copies alive
+        K = stiffness_csr(pattern, kcomp, free)
+        del kcomp, pattern
+        M = restrict(M, free, overwrite=full[1] is None)
+        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+    return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
+                   props=props, mesh_path=Path(mesh_path), n_elements=body.n_tetrahedra,
+                   K_full=full[0], M_full=full[1])
