@@ -67,14 +67,3 @@ __all__ = [
     "steady_state",
     "decay_damping_ratio",
 ]
-
-
-def __getattr__(name: str):
-    """``add_simulate_parser`` and ``cmd_simulate`` now live in :mod:`pipeline.cli.simulate`;
-    kept reachable here only while ``pipeline.cli.main`` registers the command from
-    ``apps.simulate`` (imported on first use: the CLI layer sits above this one)."""
-    if name in ("add_simulate_parser", "cmd_simulate"):
-        import pipeline.cli.simulate as cli_simulate
-
-        return getattr(cli_simulate, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
