@@ -9,12 +9,13 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from pipeline.apps.batch import BatchResult, load_batch, run_batch
+from pipeline.cli.main import main as cli_main
 from pipeline.errors import ConfigError
 
-__all__ = ["cmd_batch", "add_batch_parser", "main"]
+__all__ = ["add_batch_parser", "cmd_batch", "main"]
 
 
 def print_result(result: BatchResult) -> None:
@@ -90,7 +91,5 @@ def add_batch_parser(subparsers) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m pipeline.apps.batch FILE ...``: the same as ``python -m pipeline batch
     FILE ...`` (one CLI, one error handling: :func:`pipeline.cli.main.main`)."""
-    from pipeline.cli.main import main as cli_main  # deferred: cli.main imports this module
-
     argv = list(sys.argv[1:] if argv is None else argv)
     return cli_main(argv if argv[:1] == ["batch"] else ["batch", *argv])

@@ -37,17 +37,41 @@ import importlib
 from typing import Any
 
 from pipeline.apps.batch.cache import CaseRecord
-from pipeline.apps.batch.cases import (Case, case_key, estimate_case_memory, portable_config,
-                                       predict_mesh_size)
+from pipeline.apps.batch.cases import (
+    Case,
+    case_key,
+    estimate_case_memory,
+    portable_config,
+    predict_mesh_size,
+)
 from pipeline.apps.batch.outcome import BatchResult, CaseOutcome
-from pipeline.apps.batch.scheduler import admit, plan_local_workers, run_batch, split_by_budget
+from pipeline.apps.batch.scheduler import (
+    admit,
+    plan_local_workers,
+    run_batch,
+    split_by_budget,
+)
 from pipeline.apps.batch.spec import BatchSpec, load_batch
 from pipeline.apps.batch.worker import TaskResult, run_case_task
 
-__all__ = ["BatchSpec", "BatchResult", "CaseOutcome", "Case", "CaseRecord", "TaskResult",
-           "load_batch", "case_key", "estimate_case_memory", "predict_mesh_size",
-           "portable_config", "run_batch", "run_case_task", "admit", "split_by_budget",
-           "plan_local_workers"]
+__all__ = [
+    "BatchResult",
+    "BatchSpec",
+    "Case",
+    "CaseOutcome",
+    "CaseRecord",
+    "TaskResult",
+    "admit",
+    "case_key",
+    "estimate_case_memory",
+    "load_batch",
+    "plan_local_workers",
+    "portable_config",
+    "predict_mesh_size",
+    "run_batch",
+    "run_case_task",
+    "split_by_budget",
+]
 
 #: TRANSITIONAL: pipeline.cli.main still registers the subcommand as
 #: ("apps.batch", "add_batch_parser"); once it names ("cli.batch", ...) this goes.

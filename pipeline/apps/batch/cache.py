@@ -22,9 +22,10 @@ import dataclasses
 import json
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -33,14 +34,23 @@ from pipeline._util.atomic import write_text
 from pipeline.apps.batch.cases import RECORD_VERSION, Case, portable_config
 from pipeline.config import config_to_yaml
 from pipeline.errors import FileFormatError
+
 # TODO(store.read): import open_verified, read_strings from pipeline.store.read once it
 # re-exports them explicitly
 from pipeline.store.h5file import open_verified, read_strings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CaseRecord", "write_record", "read_record", "record_from_file", "finish_record",
-           "cached_record", "clean_partials", "h5_path"]
+__all__ = [
+    "CaseRecord",
+    "cached_record",
+    "clean_partials",
+    "finish_record",
+    "h5_path",
+    "read_record",
+    "record_from_file",
+    "write_record",
+]
 
 
 @dataclass(frozen=True)

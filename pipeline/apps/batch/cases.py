@@ -21,16 +21,29 @@ import itertools
 import json
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 from pipeline import __version__
 from pipeline.config import Config, apply_overrides, config_from_dict, config_to_yaml
 from pipeline.errors import ConfigError
 from pipeline.run import estimate_memory_bytes
 
-__all__ = ["Case", "CaseEntry", "RECORD_VERSION", "format_value", "sweep_points", "resolve_cases",
-           "case_key", "portable_config", "predict_mesh_size", "estimate_case_memory"]
+__all__ = [
+    "RECORD_VERSION",
+    "Case",
+    "CaseEntry",
+    "Override",
+    "case_key",
+    "estimate_case_memory",
+    "file_digest",
+    "format_value",
+    "portable_config",
+    "predict_mesh_size",
+    "resolve_cases",
+    "sweep_points",
+]
 
 #: version of the case record and of the key's recipe (a change recomputes every case)
 RECORD_VERSION = 1
@@ -156,7 +169,7 @@ def predict_mesh_size(cfg: Config) -> tuple[int, int] | None:
     x = area * h / volume
     n_tet = volume / h ** 3 * (4.0 + 1.6 * x + 0.25 * x * x)
     per_tet = (1.35 + 0.5 * x) if cfg.mesh.order == 2 else (0.17 + 0.12 * x)
-    return int(math.ceil(n_tet * per_tet)), int(math.ceil(n_tet))
+    return math.ceil(n_tet * per_tet), math.ceil(n_tet)
 
 
 def estimate_case_memory(cfg: Config) -> int | None:

@@ -22,7 +22,7 @@ from pipeline.store.h5file import open_verified, read_strings
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ReducedModel", "read_statespace", "position_rows", "dc_gains", "bode_magnitude"]
+__all__ = ["ReducedModel", "bode_magnitude", "dc_gains", "position_rows", "read_statespace"]
 
 
 @dataclass(frozen=True, eq=False)

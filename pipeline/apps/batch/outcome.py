@@ -13,7 +13,7 @@ from pipeline.apps.batch.cache import CaseRecord
 from pipeline.apps.batch.cases import Case
 from pipeline.apps.batch.spec import BatchSpec
 
-__all__ = ["CaseOutcome", "BatchResult", "NO_RECORD", "STATUSES"]
+__all__ = ["NO_RECORD", "STATUSES", "BatchResult", "CaseOutcome"]
 
 #: outcome of a case in one run
 STATUSES = ("done", "cached", "failed", "not run")

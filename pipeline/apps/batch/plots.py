@@ -21,8 +21,9 @@ import io
 import json
 import logging
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,10 +34,22 @@ from pipeline.config import config_to_dict
 
 log = logging.getLogger(__name__)
 
-__all__ = ["lookup", "value_text", "case_values", "mode_frequencies", "label_order",
-           "plot_frequency_vs_parameter", "plot_frequency_by_case", "convergence_groups",
-           "convergence_rows", "ConvergenceRow", "plot_convergence", "plot_bode", "png_bytes",
-           "Figure"]
+__all__ = [
+    "ConvergenceRow",
+    "Figure",
+    "case_values",
+    "convergence_groups",
+    "convergence_rows",
+    "label_order",
+    "lookup",
+    "mode_frequencies",
+    "plot_bode",
+    "plot_convergence",
+    "plot_frequency_by_case",
+    "plot_frequency_vs_parameter",
+    "png_bytes",
+    "value_text",
+]
 
 MAX_PANELS = 6
 MAX_PAIRS = 4

@@ -25,8 +25,9 @@ import io
 import json
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from pipeline import __version__
 from pipeline._util.atomic import write_bytes, write_text
@@ -37,7 +38,7 @@ from pipeline.apps.batch.plots import ConvergenceRow, case_values, value_text
 
 log = logging.getLogger(__name__)
 
-__all__ = ["write_outputs", "summary_table", "write_summary_csv", "STAGES", "PNG_PATTERNS"]
+__all__ = ["PNG_PATTERNS", "STAGES", "summary_table", "write_outputs", "write_summary_csv"]
 
 STAGES = ("mesh", "assemble", "modes", "reduce", "write")
 PNG_PATTERNS = ("freq_vs_*.png", "freq_by_case.png", "convergence.png", "bode.png")

@@ -28,24 +28,38 @@ import os
 import secrets
 import sys
 import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 from pipeline._util.atomic import write_bytes, write_text
 from pipeline.apps.batch import report
-from pipeline.apps.batch.cache import (CaseRecord, cached_record, clean_partials, failure,
-                                       finish_record, h5_path, read_record, record_from_file,
-                                       write_record)
+from pipeline.apps.batch.cache import (
+    CaseRecord,
+    cached_record,
+    clean_partials,
+    failure,
+    finish_record,
+    h5_path,
+    read_record,
+    record_from_file,
+    write_record,
+)
 from pipeline.apps.batch.cases import Case, portable_config
 from pipeline.apps.batch.outcome import NO_RECORD, BatchResult, CaseOutcome
 from pipeline.apps.batch.spec import BatchSpec, load_batch
-from pipeline.apps.batch.worker import EVENT_TOPIC, TOKEN_FILE, TaskResult, run_case_task
+from pipeline.apps.batch.worker import (
+    EVENT_TOPIC,
+    TOKEN_FILE,
+    TaskResult,
+    run_case_task,
+)
 from pipeline.errors import FileFormatError, PipelineError
 from pipeline.run import available_memory_bytes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_batch", "admit", "split_by_budget", "plan_local_workers", "BUDGET_FRACTION"]
+__all__ = ["BUDGET_FRACTION", "admit", "plan_local_workers", "run_batch", "split_by_budget"]
 
 # Share of a local worker's memory limit it advertises to cases (Dask pauses a worker at
 # 80 % of its limit)

@@ -26,16 +26,23 @@ key and, for an invalid case, the case (all invalid cases, not just the first).
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import read_yaml
-from pipeline.apps.batch.cases import Case, CaseEntry, Override, resolve_cases, sweep_points
+from pipeline.apps.batch.cases import (
+    Case,
+    CaseEntry,
+    Override,
+    resolve_cases,
+    sweep_points,
+)
 from pipeline.errors import ConfigError
 
-__all__ = ["BatchSpec", "load_batch", "BATCH_KEYS", "CASE_KEYS", "COMBINE"]
+__all__ = ["BATCH_KEYS", "CASE_KEYS", "COMBINE", "BatchSpec", "load_batch"]
 
 BATCH_KEYS = ("name", "description", "base", "set", "sweep", "combine", "cases")
 CASE_KEYS = ("label", "set")

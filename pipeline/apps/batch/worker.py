@@ -28,15 +28,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline._util.atomic import write_text
 from pipeline.apps.batch.cache import CaseRecord, failure
 from pipeline.config import Config
 from pipeline.errors import PipelineError
-from pipeline._util.atomic import write_text
 from pipeline.run import preload_stage_modules, run_pipeline
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TaskResult", "run_case_task", "EVENT_TOPIC", "KILL_FRACTION", "TOKEN_FILE"]
+__all__ = ["EVENT_TOPIC", "KILL_FRACTION", "TOKEN_FILE", "TaskResult", "run_case_task"]
 
 EVENT_TOPIC = "fe-reduced-body-batch"
 # a case is stopped when its own RSS passes this share of the worker's memory limit
