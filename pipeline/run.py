@@ -18,6 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.config import Config, config_to_yaml
+from pipeline.fe import resources
 from pipeline.fe.body import node_volume_weights
 from pipeline.fe.model import build_fe_model
 from pipeline.solve.stage import compute_modes
@@ -31,6 +32,40 @@ ProgressFactory = Callable[[str, int | None, str], Any]  # same as pipeline.fe.m
 def peak_memory_mb() -> float:
     """Peak resident memory of this process so far, MB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int) -> int:
+    """Peak bytes of :func:`run_pipeline` on a mesh of ``n_nodes`` nodes and ``n_elements``
+    tetrahedra of ``order`` with ``n_modes`` modes (the model of
+    :mod:`pipeline.fe.resources`), for callers above the FE layer (batch scheduling)."""
+    return resources.estimate_memory_bytes(n_nodes, n_elements, order, n_modes)
+
+
+def available_memory_bytes() -> int:
+    """Bytes this process may use: MemAvailable, capped by a cgroup limit if any."""
+    return resources.available_memory_bytes()
+
+
+#: the modules :func:`run_pipeline` imports when it runs (see :func:`preload_stage_modules`)
+STAGE_MODULES = ("numpy", "scipy.sparse", "scipy.sparse.linalg", "scipy.linalg", "h5py",
+                 "meshio", "skfem", "yaml", "gmsh", "pipeline.fe.mesh", "pipeline.fe.space",
+                 "pipeline.fe.assemble", "pipeline.fe.body", "pipeline.fe.model",
+                 "pipeline.solve.eigen", "pipeline.solve.stage", "pipeline.fe.regions",
+                 "pipeline.fe.resources", "pipeline.store.h5file", "pipeline.solve.factorize",
+                 "pipeline.reduce.build")
+
+
+def preload_stage_modules() -> None:
+    """Import every module a run needs (heavy: gmsh, scikit-fem, MKL), so that processes
+    forked afterwards (batch cases) start at once. A module that cannot be imported is
+    skipped: the run itself reports real problems."""
+    import importlib
+
+    for name in STAGE_MODULES:
+        try:
+            importlib.import_module(name)
+        except Exception:  # an optional module (e.g. no PARDISO)
+            log.debug("preload: %s not importable", name)
 
 
 @contextlib.contextmanager

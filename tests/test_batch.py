@@ -1,4 +1,4 @@
-"""Batch runs (pipeline.apps.batch, pipeline.apps.report) on tiny cantilever meshes.
+"""Batch runs (pipeline.apps.batch, pipeline.cli.batch) on tiny cantilever meshes.
 
 Every case here is the reference cantilever at mesh.size >= 0.01 (~11-17k DOFs, about
 2 s), 4 modes and a 1-input reduced model, so a batch of three takes seconds. The
@@ -32,13 +32,13 @@ pytest.importorskip("distributed", reason="the batch extra (dask[distributed]) i
 from pipeline.apps.batch import (  # noqa: E402
     Case,
     load_batch,
-    main,
     predict_mesh_size,
     run_batch,
     admit,
     split_by_budget,
-    _plan_local_workers,
 )
+from pipeline.apps.batch import plan_local_workers as _plan_local_workers  # noqa: E402
+from pipeline.cli.batch import main  # noqa: E402
 from pipeline.errors import ConfigError  # noqa: E402
 from pipeline.store.h5file import open_verified  # noqa: E402
 
@@ -176,7 +176,7 @@ batch: {base: base.yaml, combine: zip,
 def test_key_follows_a_geometry_file_and_the_cli_parser(tmp_path):
     import argparse
 
-    from pipeline.apps.batch import add_batch_parser, cmd_batch
+    from pipeline.cli.batch import add_batch_parser, cmd_batch
 
     text = BASE.replace("geometry: {kind: box, length: 0.5, height: 0.02, depth: 0.05}",
                         "geometry: {kind: geo, path: part.geo}")
@@ -360,7 +360,7 @@ batch:
 """)
     spec = load_batch(path)
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.apps.batch", str(path), "--workers", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "batch", str(path), "--workers", "1",
                              "-o", str(out)], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     try:
