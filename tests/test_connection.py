@@ -295,7 +295,7 @@ def test_one_call_builders_write_a_valid_file(beam, tmp_path):
                                              beam.M_full, conns, 4,
                                              DampingSpec("uniform", ratio=0.02),
                                              backend="superlu")
-    np.testing.assert_allclose(ss.damping_ratio, 0.02)
+    np.testing.assert_allclose(ss.attrs["damping_ratio"], 0.02)
     cb, cb_tree = build_craig_bampton(beam.space, beam.regions, beam.K_full, beam.M_full,
                                       conns, 4, backend="superlu")
     inv, ffrf_tree = build_ffrf(beam.M_full, beam.K_full, beam.space.node_points, cb=cb)

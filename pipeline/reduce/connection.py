@@ -75,6 +75,7 @@ import scipy.sparse as sp
 
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.errors import RegionError, SolverError
+from pipeline.reduce.statespace import StateSpace
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -97,7 +98,6 @@ __all__ = [
     "interface_transformation",
     "ConnectionModel",
     "connection_model",
-    "ConnectionStateSpace",
     "connection_statespace",
     "connection_datasets",
     "connections_datasets",
@@ -509,32 +509,6 @@ def connection_model_from_modes(parent: Interface, node_points: np.ndarray, M_fu
 
 
 # --------------------------------------------------------------------------- state space
-@dataclass(frozen=True)
-class ConnectionStateSpace:
-    """x' = A x + B u, y = C x + D u; u = [a_P; W_1; ...], y = [W_P; a_1; ...],
-    x = [eta; eta'] (eta in m kg^1/2). Units per name in input_units / output_units."""
-
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    state_names: tuple[str, ...]
-    input_units: tuple[str, ...]
-    output_units: tuple[str, ...]
-    damping_ratio: np.ndarray
-
-    def frequency_response(self, s: complex) -> np.ndarray:
-        """G(s) = C (s I - A)^-1 B + D."""
-        n = self.A.shape[0]
-        return self.C @ np.linalg.solve(s * np.eye(n) - self.A, self.B) + self.D
-
-    def dc_gain(self) -> np.ndarray:
-        """G(0) = D - C A^-1 B."""
-        return self.D - self.C @ np.linalg.solve(self.A, self.B)
-
-
 ACC_UNITS = ("m/s^2",) * 3 + ("rad/s^2",) * 3
 WRENCH_UNITS = ("N",) * 3 + ("N m",) * 3
 ACC_NAMES = ("ax", "ay", "az", "alpha_x", "alpha_y", "alpha_z")
@@ -548,8 +522,11 @@ def _xi(damping_ratio, n: int) -> np.ndarray:
     return xi
 
 
-def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> ConnectionStateSpace:
-    """The 6(1 + n_c)-input, 6(1 + n_c)-output model of the module docstring.
+def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> StateSpace:
+    """The 6(1 + n_c)-input, 6(1 + n_c)-output model of the module docstring, a
+    :class:`StateSpace` labelled ``"connection"``: u = [a_P; W_1; ...], y = [W_P; a_1; ...],
+    x = [eta; eta'] (eta in m kg^1/2), units per name in ``input_units`` /
+    ``output_units``; ``attrs["damping_ratio"]`` holds the (n,) modal damping ratios.
 
     ``damping_ratio``: one ratio for every clamped mode, or one per mode.
     """
@@ -574,8 +551,10 @@ def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> Connecti
         in_units += WRENCH_UNITS
         out_units += ACC_UNITS
     states = [f"eta_{i + 1}" for i in range(n)] + [f"eta_{i + 1}_dot" for i in range(n)]
-    return ConnectionStateSpace(A, B, C, D, tuple(in_names), tuple(out_names), tuple(states),
-                                tuple(in_units), tuple(out_units), xi)
+    return StateSpace(A, B, C, D, input_names=tuple(in_names), output_names=tuple(out_names),
+                      state_names=tuple(states), input_units=tuple(in_units),
+                      output_units=tuple(out_units), label="connection",
+                      attrs={"damping_ratio": xi})
 
 
 # --------------------------------------------------------------------------- HDF5
@@ -598,7 +577,7 @@ def effective_mass_table(model: ConnectionModel, count: int | None = None,
     return lines
 
 
-def connection_datasets(model: ConnectionModel, ss: ConnectionStateSpace | None = None,
+def connection_datasets(model: ConnectionModel, ss: StateSpace | None = None,
                         group: str | None = None, include_shapes: bool = False
                         ) -> dict[str, Dataset]:
     """HDF5 datasets of one connection model, keyed ``"<group>/<name>"`` with group
@@ -657,7 +636,7 @@ def connection_datasets(model: ConnectionModel, ss: ConnectionStateSpace | None 
                                            zip(ss.output_names, ss.output_units))
                 + "; states eta [m kg^1/2], eta_dot [m kg^1/2 / s]"}
         tree.update({
-            f"{g}/damping_ratio": Dataset(ss.damping_ratio, "1", "modal damping ratio xi_i"),
+            f"{g}/damping_ratio": Dataset(ss.attrs["damping_ratio"], "1", "modal damping ratio xi_i"),
             f"{s}/A": Dataset(ss.A, "mixed", "state matrix of x' = A x + B u, x = [eta; eta']",
                               note),
             f"{s}/B": Dataset(ss.B, "mixed", "input matrix: inputs [a_P; W_children]", note),
@@ -691,7 +670,7 @@ def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
 def build_connection_model(space, regions: Mapping[str, np.ndarray], K_full: sp.spmatrix,
                            M_full: sp.spmatrix, connections: Sequence[Any], n_modes: int,
                            damping=0.0, backend: str = "auto", include_shapes: bool = False
-                           ) -> tuple[ConnectionModel, ConnectionStateSpace, dict[str, Dataset]]:
+                           ) -> tuple[ConnectionModel, StateSpace, dict[str, Dataset]]:
     """Everything for ``/connections/<parent>``, in one call.
 
     ``connections``: the config's records (name, region, point, coupling); the first is

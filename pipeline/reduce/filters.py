@@ -32,20 +32,18 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import NamedTuple
-
 import numpy as np
 
 from pipeline.errors import ConfigError
 from pipeline.store.tree import Dataset
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel, _statespace_tree
+from pipeline.reduce.statespace import StateSpace
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "FILTER_KINDS",
     "CUTOFF_MARGIN",
-    "FilterMatrices",
     "first_order_filter",
     "third_order_position_filter",
     "filtered_model",
@@ -59,15 +57,6 @@ FILTER_KINDS = ("none", "first_order", "third_order")
 CUTOFF_MARGIN = 5.0
 
 
-class FilterMatrices(NamedTuple):
-    """State-space matrices (A, B, C, D) of a filter; unpacks as a 4-tuple."""
-
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-
-
 def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
     K = float(cutoff_rad_s)
     if not math.isfinite(K) or K <= 0:
@@ -76,7 +65,7 @@ def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
     return K
 
 
-def first_order_filter(n_channels: int, cutoff_rad_s: float) -> FilterMatrices:
+def first_order_filter(n_channels: int, cutoff_rad_s: float) -> StateSpace:
     """n_channels independent filters K / (s + K), K in rad/s.
 
     A = -K I, B = K I, C = I, D = 0 (all n_channels x n_channels); state i is the
@@ -84,10 +73,11 @@ def first_order_filter(n_channels: int, cutoff_rad_s: float) -> FilterMatrices:
     """
     K = _check_cutoff_rad_s(cutoff_rad_s)
     I = np.eye(n_channels)
-    return FilterMatrices(-K * I, K * I, I.copy(), np.zeros((n_channels, n_channels)))
+    return StateSpace(-K * I, K * I, I.copy(), np.zeros((n_channels, n_channels)),
+                      label="first_order filter")
 
 
-def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> FilterMatrices:
+def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> StateSpace:
     """Third-order filter K^3/(s+K)^3 on n_ports position signals, giving p, v, a.
 
     Inputs: the n_ports position signals y. Outputs (3 n_ports): all filtered
@@ -107,13 +97,13 @@ def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> FilterMatr
         C[i, 3 * i] = 1.0               # p = z1
         C[n + i, 3 * i + 1] = K         # v = K z2
         C[2 * n + i, 3 * i + 2] = K * K  # a = K^2 z3
-    return FilterMatrices(A, B, C, np.zeros((3 * n, n)))
+    return StateSpace(A, B, C, np.zeros((3 * n, n)), label="third_order filter")
 
 
-def _series(plant: StateSpaceModel, filt: FilterMatrices, rows: slice) -> tuple[np.ndarray, ...]:
+def _series(plant: StateSpace, filt: StateSpace, rows: slice) -> tuple[np.ndarray, ...]:
     """filter * plant, the filter fed by the plant outputs ``rows``."""
     Ap, Bp, Cp, Dp = plant.A, plant.B, plant.C[rows], plant.D[rows]
-    Af, Bf, Cf, Df = filt
+    Af, Bf, Cf, Df = filt.A, filt.B, filt.C, filt.D
     nf = Af.shape[0]
     A = np.block([[Ap, np.zeros((Ap.shape[0], nf))], [Bf @ Cp, Af]])
     B = np.vstack([Bp, Bf @ Dp])
@@ -175,9 +165,11 @@ def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: 
         filt = third_order_position_filter(len(ports), K)
         A, B, C, D = _series(plant, filt, plant.output_rows("position"))
         extra = tuple(f"filter/{p}/{s}" for p in ports for s in ("w", "w_dot", "w_ddot"))
-    return StateSpaceModel(A, B, C, D, plant.state_names + extra, plant.input_names,
-                           plant.output_names, plant.omega2, plant.damping_ratios,
-                           n_retained=plant.n_retained, filter_kind=kind, cutoff_hz=f_c)
+    return StateSpaceModel(A, B, C, D, input_names=plant.input_names,
+                           output_names=plant.output_names,
+                           state_names=plant.state_names + extra, label="filtered",
+                           filter_kind=kind, cutoff_hz=f_c, omega2=plant.omega2,
+                           damping_ratios=plant.damping_ratios, n_retained=plant.n_retained)
 
 
 def filter_group_attrs(kind: str, cutoff_hz: float | None,

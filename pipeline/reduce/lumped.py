@@ -51,6 +51,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.reduce.statespace import StateSpace
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -410,7 +411,8 @@ class LumpedModel:
     force of a unit tip force along input_direction. T: (1, n_q) tip displacement along
     output_direction per unit q. tip_compliance: m/N, tip displacement along the force per
     newton. tip_force: N. tip_deflection: (3,) m, the tip displacement under ``tip_force``
-    N along input_direction. A (2n_q, 2n_q), B (2n_q, 1), C (3, 2n_q), D (3, 1): METHODS
+    N along input_direction. statespace: a :class:`StateSpace` (also read as A, B, C, D and
+    the names), A (2n_q, 2n_q), B (2n_q, 1), C (3, 2n_q), D (3, 1): METHODS
     section 3 with all modes; state [eta; eta'], output [position; velocity; acceleration]
     of the tip along output_direction.
     """
@@ -447,13 +449,36 @@ class LumpedModel:
     tip_compliance: float
     tip_force: float
     tip_deflection: np.ndarray
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    state_names: tuple[str, ...]
+    statespace: StateSpace
+
+    # the chain's state space, also as the flat attributes its users read
+    @property
+    def A(self) -> np.ndarray:
+        return self.statespace.A
+
+    @property
+    def B(self) -> np.ndarray:
+        return self.statespace.B
+
+    @property
+    def C(self) -> np.ndarray:
+        return self.statespace.C
+
+    @property
+    def D(self) -> np.ndarray:
+        return self.statespace.D
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.statespace.input_names
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.statespace.output_names
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return self.statespace.state_names
 
     @property
     def kind(self) -> str:
@@ -617,11 +642,13 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
         damping_beta=beta, damping_reference_hz=float(f_ref), frequencies_hz=f_hz,
         mode_labels=labels_sorted, mode_shapes=Phi, modal_damping_ratios=zeta,
         input_direction=d_in, output_direction=d_out, F=F, T=T, tip_compliance=compliance,
-        tip_force=P, tip_deflection=P * u_unit, A=A, B=B, C=C, D=D,
-        input_names=("tip_force",),
-        output_names=("tip_position", "tip_velocity", "tip_acceleration"),
-        state_names=tuple(f"eta_{i + 1}" for i in range(nq))
-        + tuple(f"eta_dot_{i + 1}" for i in range(nq)),
+        tip_force=P, tip_deflection=P * u_unit,
+        statespace=StateSpace(
+            A, B, C, D, input_names=("tip_force",),
+            output_names=("tip_position", "tip_velocity", "tip_acceleration"),
+            state_names=tuple(f"eta_{i + 1}" for i in range(nq))
+            + tuple(f"eta_dot_{i + 1}" for i in range(nq)),
+            label="lumped"),
     )
 
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -41,6 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from pipeline.errors import ConfigError, SolverError
+from pipeline.reduce.statespace import StateSpace
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -309,50 +310,32 @@ def _ro(a) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class StateSpaceModel:
-    """A continuous-time LTI model x' = A x + B u, y = C x + D u (SI units).
+class StateSpaceModel(StateSpace):
+    """The modal model: a :class:`~pipeline.reduce.statespace.StateSpace` (same
+    constructor and checks) that also records its structural modes.
 
-    A (n_x x n_x), B (n_x x n_u), C (n_out x n_x), D (n_out x n_u), read-only arrays.
     For the modal model n_x = 2 n_m (state [eta; eta'], ``eta_i`` in m kg^1/2) and
     n_out = 3 n_y, rows ordered: every port's position, then every port's velocity, then
     every port's acceleration, named ``"<port>/position"``, ``"<port>/velocity"``,
-    ``"<port>/acceleration"``. ``omega2`` (rad^2/s^2) and ``damping_ratios`` are those of
-    the structural modes in the model; ``n_retained`` of them are modes the user asked
-    for (the rest are the high Ritz modes of an augmented basis). ``filter_kind`` and
-    ``cutoff_hz`` describe an output filter in series (``"none"`` for the plant).
+    ``"<port>/acceleration"``. ``omega2`` (rad^2/s^2) and ``damping_ratios`` (n_m,) are
+    those of the structural modes in the model; ``n_retained`` of them are modes the user
+    asked for (the rest are the high Ritz modes of an augmented basis). ``filter_kind``
+    and ``cutoff_hz`` (inherited) describe an output filter in series (``"none"`` for the
+    plant). Build it with keywords.
     """
 
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    state_names: tuple[str, ...]
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    omega2: np.ndarray
-    damping_ratios: np.ndarray
+    omega2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    damping_ratios: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_retained: int | None = None
-    filter_kind: str = "none"
-    cutoff_hz: float | None = None
 
     def __post_init__(self):
-        for name in ("A", "B", "C", "D", "omega2", "damping_ratios"):
-            object.__setattr__(self, name, _ro(getattr(self, name)))
-        for name in ("state_names", "input_names", "output_names"):
-            object.__setattr__(self, name, tuple(str(s) for s in getattr(self, name)))
-        nx, nu, ny = len(self.state_names), len(self.input_names), len(self.output_names)
-        for name, shape in (("A", (nx, nx)), ("B", (nx, nu)), ("C", (ny, nx)), ("D", (ny, nu))):
-            if getattr(self, name).shape != shape:
-                raise ValueError(f"StateSpaceModel.{name} has shape {getattr(self, name).shape}, "
-                                 f"expected {shape} from the names")
+        super().__post_init__()
+        for name in ("omega2", "damping_ratios"):
+            object.__setattr__(self, name, _ro(np.asarray(getattr(self, name)).reshape(-1)))
         if self.omega2.shape != self.damping_ratios.shape:
             raise ValueError("omega2 and damping_ratios differ in length")
         if self.n_retained is None:
             object.__setattr__(self, "n_retained", int(self.omega2.size))
-
-    @property
-    def n_states(self) -> int:
-        return len(self.state_names)
 
     @property
     def port_names(self) -> tuple[str, ...]:
@@ -417,7 +400,8 @@ def modal_statespace(omega2, xi, Sigma, Theta, residual=None, input_names=None,
         raise ValueError(f"{len(inputs)} input names for {n_u} inputs or {len(ports)} output "
                          f"names for {n_y} outputs")
     states = tuple(f"eta_{i + 1}" for i in range(n)) + tuple(f"eta_dot_{i + 1}" for i in range(n))
-    return StateSpaceModel(A, B, C, D, states, inputs, output_names_for(ports), omega2, xi,
+    return StateSpaceModel(A, B, C, D, input_names=inputs, output_names=output_names_for(ports),
+                           state_names=states, label="plant", omega2=omega2, damping_ratios=xi,
                            n_retained=n if n_retained is None else n_retained)
 
 
@@ -450,8 +434,7 @@ class ReducedModel:
     def dc_gain_position(self) -> np.ndarray:
         """Static gain of the position outputs, -C_pos A^-1 B + D_pos (n_y x n_u)."""
         ss = self.statespace
-        rows = ss.output_rows("position")
-        return ss.D[rows] - ss.C[rows] @ np.linalg.solve(ss.A, ss.B)
+        return ss.dc_gain()[ss.output_rows("position")]
 
 
 def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, int]:
