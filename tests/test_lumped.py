@@ -268,15 +268,15 @@ def test_section_that_is_not_a_beam_refused():
     stocky = lp.box_section(0.3, 0.05)
     with pytest.raises(ConfigError, match=r"geometry\.length: got 0\.5 m.*0\.3 m.*L >= 2"):
         lp.lumped_model(stocky, E, NU, RHO, L, 3)
-    with pytest.raises(ConfigError, match=r"geometry\.height: got -0\.02"):
+    with pytest.raises(ConfigError, match=r"geometry\.height'?: got -0\.02"):
         lp.box_section(-0.02, 0.05)
-    with pytest.raises(ConfigError, match=r"geometry\.depth: got 0"):
+    with pytest.raises(ConfigError, match=r"geometry\.depth'?: got 0"):
         lp.box_section(0.02, 0)
-    with pytest.raises(ConfigError, match=r"lumped\.constants: got 'exact'"):
+    with pytest.raises(ConfigError, match=r"lumped\.constants'?: got 'exact'"):
         lp.spring_constants(SEC, E, NU, L, 3, "exact")
-    with pytest.raises(ConfigError, match=r"material\.nu: got 0\.5"):
+    with pytest.raises(ConfigError, match=r"material\.nu'?: got 0\.5"):
         lp.spring_constants(SEC, E, 0.5, L, 3)
-    with pytest.raises(ConfigError, match=r"damping\.ratio: got -0\.1"):
+    with pytest.raises(ConfigError, match=r"damping\.ratio'?: got -0\.1"):
         model(3, xi=-0.1)
 
 

@@ -34,7 +34,7 @@ import logging
 import math
 import numpy as np
 
-from pipeline.errors import ConfigError
+from pipeline._util import validate
 from pipeline.store.tree import Dataset
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel, _statespace_tree
 from pipeline.reduce.statespace import StateSpace
@@ -58,11 +58,8 @@ CUTOFF_MARGIN = 5.0
 
 
 def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
-    K = float(cutoff_rad_s)
-    if not math.isfinite(K) or K <= 0:
-        raise ValueError(f"filter cutoff must be a positive finite rad/s value, "
-                         f"got {cutoff_rad_s!r}")
-    return K
+    return validate.number({"cutoff_rad_s": cutoff_rad_s}, "cutoff_rad_s", "", lo=0.0,
+                           lo_open=True)
 
 
 def first_order_filter(n_channels: int, cutoff_rad_s: float) -> StateSpace:
@@ -113,16 +110,15 @@ def _series(plant: StateSpace, filt: StateSpace, rows: slice) -> tuple[np.ndarra
 
 
 def _validate(kind: str, cutoff_hz) -> float | None:
-    if kind not in FILTER_KINDS:
-        raise ConfigError(f"filter.kind: got {kind!r}, expected one of " + ", ".join(FILTER_KINDS))
+    """The filter kind and its cutoff in Hz (None for ``"none"``), through the one field
+    checker (pipeline._util.validate)."""
+    kind = validate.choice({"filter.kind": kind}, "filter.kind", "", FILTER_KINDS)
     if kind == "none":
         return None
-    number = (int, float, np.integer, np.floating)
-    if isinstance(cutoff_hz, bool) or not isinstance(cutoff_hz, number) \
-            or not math.isfinite(float(cutoff_hz)) or float(cutoff_hz) <= 0:
-        raise ConfigError(f"filter.cutoff_hz: got {cutoff_hz!r}, expected a positive "
-                          f"frequency in Hz for filter kind {kind}")
-    return float(cutoff_hz)
+    if isinstance(cutoff_hz, np.generic):
+        cutoff_hz = cutoff_hz.item()
+    return validate.number({"filter.cutoff_hz": cutoff_hz}, "filter.cutoff_hz", "", lo=0.0,
+                           lo_open=True)
 
 
 def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None

@@ -44,12 +44,12 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
+from pipeline._util import validate
 from pipeline.errors import ConfigError
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store.tree import Dataset
@@ -97,52 +97,25 @@ SLENDER_WARN = 10.0
 
 
 # --------------------------------------------------------------------------- checks
-def _describe(value: Any) -> str:
-    return repr(value) if not isinstance(value, float) else f"{value:g}"
+# Raw values from library callers go through the one field checker
+# (pipeline._util.validate); values from a Config have passed it already.
+def _field(key: str, value: Any) -> dict:
+    """The one-entry mapping the field checker reads; numpy scalars as Python numbers."""
+    return {key: value.item() if isinstance(value, np.generic) else value}
 
 
-def _real(value: Any, name: str, expected: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ConfigError(f"{name}: got {_describe(value)}, expected {expected}")
-    return float(value)
-
-
-def _positive(value: Any, name: str, unit: str) -> float:
-    expected = f"a finite number > 0 ({unit})"
-    v = _real(value, name, expected)
-    if v <= 0.0:
-        raise ConfigError(f"{name}: got {_describe(value)}, expected {expected}")
-    return v
+def _positive(value: Any, name: str) -> float:
+    return validate.number(_field(name, value), name, "", lo=0.0, lo_open=True)
 
 
 def _poisson(value: Any, name: str = "material.nu") -> float:
-    expected = "a Poisson's ratio in (-1, 0.5)"
-    v = _real(value, name, expected)
-    if not -1.0 < v < 0.5:
-        raise ConfigError(f"{name}: got {_describe(value)}, expected {expected}")
-    return v
-
-
-def _count(value: Any, name: str = "lumped.elements",
-           what: str = "the number of rigid elements") -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ConfigError(f"{name}: got {_describe(value)}, expected an integer >= 1 ({what})")
-    return int(value)
-
-
-def _choice(value: Any, name: str, choices: Sequence[str]) -> str:
-    if not isinstance(value, str) or value not in choices:
-        raise ConfigError(f"{name}: got {_describe(value)}, expected one of {' | '.join(choices)}")
-    return value
+    return validate.number(_field(name, value), name, "", lo=-1.0, hi=0.5, lo_open=True,
+                           hi_open=True)
 
 
 def _direction(value: Any, name: str) -> np.ndarray:
-    try:
-        d = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        d = np.zeros(0)
-    if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0.0:
-        raise ConfigError(f"{name}: got {value!r}, expected a non-zero 3-vector (x, y, z)")
+    raw = value.tolist() if isinstance(value, np.ndarray) else value
+    d = np.asarray(validate.vector(_field(name, raw), name, "", nonzero=True), dtype=float)
     return d / np.linalg.norm(d)
 
 
@@ -202,8 +175,8 @@ def box_section(height: float, depth: float, centroid: tuple[float, float] = (0.
     :func:`rectangle_torsion_constant`, source ``"analytic box"``. ``centroid`` (y, z)
     places the beam axis (e.g. (h/2, d/2) for a box spanning y in [0, h], z in [0, d]).
     """
-    h = _positive(height, "geometry.height", "m")
-    d = _positive(depth, "geometry.depth", "m")
+    h = _positive(height, "geometry.height")
+    d = _positive(depth, "geometry.depth")
     c = (float(centroid[0]), float(centroid[1]))
     I_y = h * d**3 / 12.0
     I_z = d * h**3 / 12.0
@@ -301,20 +274,23 @@ def check_beam(section: SectionProperties, length: float) -> float:
     deformation, which neither the chain nor Euler-Bernoulli theory has, is then no
     longer small.
     """
-    L = _positive(length, "geometry.length", "m")
+    L = _positive(length, "geometry.length")
     for name in ("area", "I_y", "I_z", "J"):
-        _positive(getattr(section, name), f"section.{name}", "m^2" if name == "area" else "m^4")
+        _positive(getattr(section, name), f"section.{name}")
     if abs(section.I_yz) > 1e-6 * math.sqrt(section.I_y * section.I_z):
         angle = 0.5 * math.degrees(math.atan2(-2.0 * section.I_yz, section.I_z - section.I_y))
         raise ConfigError(
             f"section.I_yz: got {section.I_yz:g} m^4, expected 0 (principal axes along y and z); "
-            f"the principal axes are rotated by about {angle:.3g} deg, rotate the section")
+            f"the principal axes are rotated by about {angle:.3g} deg, rotate the section",
+            key="section.I_yz", value=section.I_yz, expected="0 (principal axes along y and z)")
     size = max(section.height, section.depth)
     if L < SLENDER_MIN * size:
         raise ConfigError(
             f"geometry.length: got {L:g} m, expected a beam: length >= {SLENDER_MIN:g} x the "
             f"largest section dimension {size:g} m (rule L >= {SLENDER_MIN:g} max(height, depth)); "
-            "this body is not slender enough for a lumped beam model")
+            "this body is not slender enough for a lumped beam model",
+            key="geometry.length", value=L,
+            expected=f"length >= {SLENDER_MIN:g} max(height, depth) = {SLENDER_MIN * size:g} m")
     if L < SLENDER_WARN * size:
         log.warning("lumped model of a stocky beam: L / max(height, depth) = %.3g < %g; shear "
                     "deformation is not small and the chain (Euler-Bernoulli) will be too stiff",
@@ -360,9 +336,9 @@ def spring_constants(section: SectionProperties, E: float, nu: float, length: fl
     ``n < 1``, an unknown kind, a bad material or a section that is not a beam raise
     :class:`~pipeline.errors.ConfigError`.
     """
-    n = _count(n)
-    kind = _choice(kind, "lumped.constants", _KINDS)
-    E = _positive(E, "material.E", "Pa")
+    n = validate.integer(_field("lumped.elements", n), "lumped.elements", "", lo=1)
+    kind = validate.choice(_field("lumped.constants", kind), "lumped.constants", "", _KINDS)
+    E = _positive(E, "material.E")
     nu = _poisson(nu)
     L = check_beam(section, length)
     l = L / n
@@ -546,13 +522,11 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
     import scipy.linalg as sla
 
     constants = spring_constants(section, E, nu, length, n, kind)
-    rho = _positive(rho, "material.rho", "kg/m^3")
-    xi = _real(damping_ratio, "damping.ratio", "a damping ratio >= 0")
-    if xi < 0.0:
-        raise ConfigError(f"damping.ratio: got {_describe(damping_ratio)}, expected a damping ratio >= 0")
+    rho = _positive(rho, "material.rho")
+    xi = validate.number(_field("damping.ratio", damping_ratio), "damping.ratio", "", lo=0.0)
     d_in = _direction(input_direction, "lumped input_direction")
     d_out = _direction(output_direction, "lumped output_direction")
-    P = _real(tip_force, "tip_force", "a finite force in N")
+    P = validate.number(_field("tip_force", tip_force), "tip_force", "")
     E, nu, L = float(E), float(nu), float(length)
     n = constants.n
     dofs = constants.dofs
@@ -604,7 +578,7 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
 
     # stiffness-proportional joint damping
     f_ref = f_hz[0] if damping_reference_hz is None else _positive(
-        damping_reference_hz, "damping_reference_hz", "Hz")
+        damping_reference_hz, "damping_reference_hz")
     beta = 2.0 * xi / (2.0 * np.pi * f_ref)
     Cq = beta * K
     zeta = 0.5 * beta * omega
@@ -696,11 +670,11 @@ def beam_theory_frequencies_hz(section: SectionProperties, E: float, rho: float,
     omega_k = (beta_k L)^2 sqrt(E I / (rho A L^4)). axial: (2k - 1)/(4L) sqrt(E / rho).
     torsion (needs nu): (2k - 1)/(4L) sqrt(G J / (rho I_p)).
     """
-    count = _count(count, "count", "the number of frequencies")
-    axis = _choice(axis, "axis", _AXES)
-    E = _positive(E, "material.E", "Pa")
-    rho = _positive(rho, "material.rho", "kg/m^3")
-    L = _positive(length, "geometry.length", "m")
+    count = validate.integer(_field("count", count), "count", "", lo=1)
+    axis = validate.choice(_field("axis", axis), "axis", "", _AXES)
+    E = _positive(E, "material.E")
+    rho = _positive(rho, "material.rho")
+    L = _positive(length, "geometry.length")
     k = np.arange(1, count + 1)
     if axis == "axial":
         return (2 * k - 1) / (4.0 * L) * math.sqrt(E / rho)
@@ -722,10 +696,10 @@ def beam_theory_tip_deflection(section: SectionProperties, E: float, length: flo
     bending_z / bending_y: P L^3 / (3 E I) (m, P the tip force in N, I = I_z / I_y).
     axial: P L / (E A) (m). torsion (needs nu): T L / (G J) (rad, T the tip torque N m).
     """
-    axis = _choice(axis, "axis", _AXES)
-    E = _positive(E, "material.E", "Pa")
-    L = _positive(length, "geometry.length", "m")
-    P = _real(load, "load", "a finite load")
+    axis = validate.choice(_field("axis", axis), "axis", "", _AXES)
+    E = _positive(E, "material.E")
+    L = _positive(length, "geometry.length")
+    P = validate.number(_field("load", load), "load", "")
     if axis == "axial":
         return P * L / (E * section.area)
     if axis == "torsion":
@@ -780,7 +754,7 @@ def comparison_table(section: SectionProperties, E: float, nu: float, rho: float
     the same bending family (Hz), fe_tip_deflection: its static tip deflection (m, along
     the force) under ``load``; the caller fills these from the FE run.
     """
-    axis = _choice(axis, "axis", ("bending_z", "bending_y"))
+    axis = validate.choice(_field("axis", axis), "axis", "", ("bending_z", "bending_y"))
     force_dir = (0.0, -1.0, 0.0) if axis == "bending_z" else (0.0, 0.0, -1.0)
     f_beam = beam_theory_frequencies_hz(section, E, rho, length, count, axis)
     d_beam = beam_theory_tip_deflection(section, E, length, load, axis)

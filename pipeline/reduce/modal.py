@@ -40,7 +40,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from pipeline.errors import ConfigError, SolverError
+from pipeline._util import validate
+from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store.tree import Dataset
 
@@ -79,24 +80,16 @@ Solve = Callable[[np.ndarray], np.ndarray]
 
 
 # --------------------------------------------------------------------------- damping
-def _bad(key: str, value, expected: str) -> ConfigError:
-    return ConfigError(f"{key}: got {value!r}, expected {expected}")
-
-
-def _finite_number(key: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise _bad(key, value, "a number")
-    x = float(value)
-    if not math.isfinite(x):
-        raise _bad(key, value, "a finite number")
-    return x
+# Raw values from library callers go through the one field checker
+# (pipeline._util.validate); values from a Config have passed it already.
+def _number(key: str, value, **bounds) -> float:
+    raw = {key: value.item() if isinstance(value, np.generic) else value}
+    return validate.number(raw, key, "", **bounds)
 
 
 def _ratio(key: str, value) -> float:
-    x = _finite_number(key, value)
-    if x < 0.0 or x >= 1.0:
-        raise _bad(key, value, "a damping ratio in [0, 1) (underdamped modes)")
-    return x
+    """A damping ratio in [0, 1) (underdamped modes)."""
+    return _number(key, value, lo=0.0, hi=1.0, hi_open=True)
 
 
 def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=None
@@ -121,31 +114,31 @@ def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=N
     n = omega.size
     if kind == "uniform":
         if ratio is None:
-            raise _bad("damping.ratio", ratio, "a damping ratio in [0, 1) for kind uniform")
+            raise validate.fail("damping.ratio", ratio, "a damping ratio in [0, 1) for kind uniform")
         return np.full(n, _ratio("damping.ratio", ratio))
     if kind == "per_mode":
         if ratios is None or isinstance(ratios, (str, bytes)) or not hasattr(ratios, "__len__"):
-            raise _bad("damping.ratios", ratios, f"a list of {n} damping ratios (one per mode)")
+            raise validate.fail("damping.ratios", ratios, f"a list of {n} damping ratios (one per mode)")
         if len(ratios) != n:
-            raise _bad("damping.ratios", list(ratios),
+            raise validate.fail("damping.ratios", list(ratios),
                        f"a list of {n} damping ratios (one per retained mode), "
                        f"not {len(ratios)}")
         return np.array([_ratio(f"damping.ratios[{i}]", r) for i, r in enumerate(ratios)],
                         dtype=float)
     if kind == "rayleigh":
-        a = _finite_number("damping.alpha", 0.0 if alpha is None else alpha)
-        b = _finite_number("damping.beta", 0.0 if beta is None else beta)
+        a = _number("damping.alpha", 0.0 if alpha is None else alpha)
+        b = _number("damping.beta", 0.0 if beta is None else beta)
         if alpha is None and beta is None:
-            raise _bad("damping.alpha", alpha, "alpha (1/s) and/or beta (s) for kind rayleigh")
+            raise validate.fail("damping.alpha", alpha, "alpha (1/s) and/or beta (s) for kind rayleigh")
         if a < 0:
-            raise _bad("damping.alpha", alpha, "alpha >= 0 (1/s)")
+            raise validate.fail("damping.alpha", alpha, "alpha >= 0 (1/s)")
         if b < 0:
-            raise _bad("damping.beta", beta, "beta >= 0 (s)")
+            raise validate.fail("damping.beta", beta, "beta >= 0 (s)")
         xi = np.empty(n)
         for i, w in enumerate(omega):
             if w <= 0.0:
                 if a > 0.0:
-                    raise _bad("damping.alpha", alpha,
+                    raise validate.fail("damping.alpha", alpha,
                                f"alpha = 0: mode {i + 1} has zero frequency (rigid-body "
                                "mode) and mass-proportional damping would be infinite")
                 xi[i] = 0.0
@@ -155,11 +148,11 @@ def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=N
         if over.size:
             i = int(over[0])
             key = "damping.alpha" if a / (2.0 * omega[i]) >= b * omega[i] / 2.0 else "damping.beta"
-            raise _bad(key, alpha if key == "damping.alpha" else beta,
+            raise validate.fail(key, alpha if key == "damping.alpha" else beta,
                        f"Rayleigh damping below critical: mode {i + 1} "
                        f"(omega = {omega[i]:.6g} rad/s) gets xi = {xi[i]:.6g} >= 1")
         return xi
-    raise _bad("damping.kind", kind, "one of " + ", ".join(DAMPING_KINDS))
+    raise validate.fail("damping.kind", kind, "one of " + ", ".join(DAMPING_KINDS))
 
 
 @dataclass(frozen=True)
@@ -504,11 +497,11 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     n_avail = omega2.size
     if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) \
             or not 1 <= n_modes <= n_avail:
-        raise _bad("reduction.modes", n_modes,
+        raise validate.fail("reduction.modes", n_modes,
                    f"an integer from 1 to {n_avail} (the number of computed modes, modes.count)")
     n_modes = int(n_modes)
     if static_correction not in STATIC_CORRECTIONS:
-        raise _bad("reduction.static_correction", static_correction,
+        raise validate.fail("reduction.static_correction", static_correction,
                    "one of " + ", ".join(STATIC_CORRECTIONS))
     input_names, output_names = list(input_names), list(output_names)
     Fd = _dense(F)
@@ -531,7 +524,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     G = None
     if n_rigid:
         if static_correction != "none":
-            raise _bad("reduction.static_correction", static_correction,
+            raise validate.fail("reduction.static_correction", static_correction,
                        f"none: the body has {n_rigid} rigid-body mode(s) among the retained "
                        "ones, so it has no static compliance to correct towards")
         log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
