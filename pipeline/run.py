@@ -7,6 +7,7 @@ batch runs and the benchmarks call. It logs what each stage does and how long it
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import resource
 import time
@@ -17,6 +18,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.config import Config, config_to_yaml
+from pipeline.store.schema import models_tree
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -122,23 +124,25 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
         for f, lab in zip(modes.frequencies_hz, labels):
             log.info("mode %-14s %12.4f Hz", lab, f)
 
-    extras: dict[str, Any] = {}
+    models = None
     with _stage("reduce", times):
         if cfg.reduction is not None or cfg.lumped is not None:
             from pipeline.reduce.build import build_models
 
-            model_tree, model_attrs, extras = build_models(cfg, space, regions, K, M, free,
-                                                           modes, props, labels)
-            tree.update(model_tree)
-            group_attrs.update(model_attrs)
+            models = build_models(cfg, space, regions, K, M, free, modes, props, labels)
         del K, M
         if full is not None:
             from pipeline.reduce.build import build_connection_models
 
-            conn_tree, lines = build_connection_models(cfg, space, regions, *full, modes, shapes)
-            tree.update(conn_tree)
-            extras.setdefault("summary", []).extend(lines)
-            del full
+            models = build_connection_models(cfg, space, regions, *full, modes, shapes, models)
+        if models is not None:
+            model_tree, model_attrs = models_tree(models)
+            tree.update(model_tree)
+            group_attrs.update(model_attrs)
+            del model_tree
+            # the tree holds the CSR copies now: the full matrices are not kept alive
+            models = dataclasses.replace(models, fe_matrices=None)
+        del full
 
     tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
     group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
@@ -154,6 +158,11 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
 
         write_file(output, tree, group_attrs, {"name": cfg.name,
                                                "config_yaml": config_to_yaml(cfg)})
+    extras: dict[str, Any] = {}
+    if models is not None:
+        extras["summary"] = list(models.summary)
+        if models.reduced is not None:
+            extras.update(reduced=models.reduced, filtered=models.filtered)
     return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
                      modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
                      modes.backend, extras)

@@ -20,9 +20,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError
+from pipeline.store.schema import filter_datasets, filter_group_attrs
 from pipeline.reduce.filters import (
-    filter_datasets,
-    filter_group_attrs,
     filtered_model,
     first_order_filter,
     third_order_position_filter,

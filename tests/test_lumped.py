@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.reduce import lumped as lp
+from pipeline.store.schema import lumped_datasets
 from pipeline.errors import ConfigError
 from pipeline.store.tree import Dataset
 
@@ -296,7 +297,7 @@ def test_comparison_table_and_datasets():
     assert "beam theory" in lp.format_comparison(rows)
 
     m = model(3, "refined", 0.02)
-    tree = lp.lumped_datasets(m, rows)
+    tree = lumped_datasets(m, rows)
     assert all(isinstance(d, Dataset) and d.units for d in tree.values())
     assert all(k.startswith("lumped/") for k in tree)
     nq = m.M.shape[0]

@@ -76,7 +76,6 @@ import scipy.sparse as sp
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.errors import RegionError, SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +98,6 @@ __all__ = [
     "ConnectionModel",
     "connection_model",
     "connection_statespace",
-    "connection_datasets",
-    "connections_datasets",
     "effective_mass_table",
     "build_connection_model",
 ]
@@ -557,7 +554,7 @@ def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> StateSpa
                       attrs={"damping_ratio": xi})
 
 
-# --------------------------------------------------------------------------- HDF5
+# --------------------------------------------------------------------------- tables
 def effective_mass_table(model: ConnectionModel, count: int | None = None,
                          labels: Sequence[str] | None = None) -> list[str]:
     """Text table: frequency, effective masses and cumulative fractions per direction."""
@@ -577,87 +574,6 @@ def effective_mass_table(model: ConnectionModel, count: int | None = None,
     return lines
 
 
-def connection_datasets(model: ConnectionModel, ss: StateSpace | None = None,
-                        group: str | None = None, include_shapes: bool = False
-                        ) -> dict[str, Dataset]:
-    """HDF5 datasets of one connection model, keyed ``"<group>/<name>"`` with group
-    ``connections/<parent name>`` by default (see docs/hdf5-connection.md)."""
-    p = model.parent
-    g = group or f"connections/{p.name}"
-    blocks = {"units_blocks": TWIST_UNITS_BLOCKS, "order": list(DIRECTIONS)}
-    tree = {
-        f"{g}/point": Dataset(p.point, "m", "connection point P",
-                              {"region": p.region, "coupling": p.coupling}),
-        f"{g}/region_nodes": Dataset(p.nodes, "1", "nodes of the region tied to P"),
-        f"{g}/mass": Dataset(np.float64(model.rigid.mass), "kg", "body mass from R_P^T M R_P"),
-        f"{g}/center_of_mass": Dataset(model.rigid.center_of_mass, "m", "centre of mass G"),
-        f"{g}/inertia_G": Dataset(model.rigid.inertia_G, "kg m^2", "inertia about G"),
-        f"{g}/inertia_P": Dataset(model.rigid.inertia_P, "kg m^2", "inertia about P"),
-        f"{g}/D_P": Dataset(model.D_P, "mixed", "rigid-body mass matrix at P, R_P^T M R_P "
-                            "= tau_GP^T diag(m I, I_G) tau_GP, twist order [v; omega]", blocks),
-        f"{g}/L_P": Dataset(model.L_P, "mixed", "modal participation factors Phi_c^T M R_P "
-                            "(clamped modes x 6)", {"units_columns": "kg^1/2 (x,y,z) | "
-                                                    "kg^1/2 m (rx,ry,rz)",
-                                                    "columns": list(DIRECTIONS)}),
-        f"{g}/D_P0": Dataset(model.D_P0, "mixed", "residual mass D_P - L_P^T L_P "
-                             "(symmetric positive definite)", blocks),
-        f"{g}/omega": Dataset(np.sqrt(np.maximum(model.omega2, 0.0)), "rad/s",
-                              "circular frequencies of the modes clamped at P"),
-        f"{g}/frequencies_hz": Dataset(model.frequencies_hz, "Hz",
-                                       "frequencies of the modes clamped at P"),
-        f"{g}/effective_mass": Dataset(model.effective_mass, "mixed",
-                                       "effective modal mass L_P[i, d]^2 per mode and direction",
-                                       {"units_columns": "kg (x,y,z) | kg m^2 (rx,ry,rz about P)",
-                                        "columns": list(DIRECTIONS)}),
-        f"{g}/effective_mass_cumulative_fraction": Dataset(
-            model.effective_mass_cumulative_fraction, "1",
-            "cumulative effective mass of modes 1..i divided by diag(D_P)",
-            {"columns": list(DIRECTIONS)}),
-    }
-    if model.children:
-        tree[f"{g}/child_names"] = Dataset([c.name for c in model.children], "",
-                                           "child connection points, in input/output order")
-        tree[f"{g}/child_points"] = Dataset(np.array([c.point for c in model.children]), "m",
-                                            "child points C_k")
-        tree[f"{g}/tau_C"] = Dataset(model.tau_C, "mixed", "twist transport P -> C_k, "
-                                     "stacked (6 n_c x 6)", {"units_blocks": "1 | m ; 0 | 1"})
-        tree[f"{g}/Phi_C"] = Dataset(model.Phi_C, "mixed", "clamped modes at the child "
-                                     "coordinates (6 n_c x N)",
-                                     {"units_rows": "m kg^-1/2 | rad kg^-1/2"})
-    if include_shapes:
-        n_nodes = model.shapes.shape[0] // 3
-        tree[f"{g}/shapes"] = Dataset(model.shapes.reshape(n_nodes, 3, -1), "kg^-1/2",
-                                      "M-orthonormal modes clamped at P, (n_points, 3, N)")
-    if ss is not None:
-        s = f"{g}/statespace"
-        note = {"units_note": "inputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                                     zip(ss.input_names, ss.input_units))
-                + "; outputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                           zip(ss.output_names, ss.output_units))
-                + "; states eta [m kg^1/2], eta_dot [m kg^1/2 / s]"}
-        tree.update({
-            f"{g}/damping_ratio": Dataset(ss.attrs["damping_ratio"], "1", "modal damping ratio xi_i"),
-            f"{s}/A": Dataset(ss.A, "mixed", "state matrix of x' = A x + B u, x = [eta; eta']",
-                              note),
-            f"{s}/B": Dataset(ss.B, "mixed", "input matrix: inputs [a_P; W_children]", note),
-            f"{s}/C": Dataset(ss.C, "mixed", "output matrix: outputs [W_P; a_children]", note),
-            f"{s}/D": Dataset(ss.D, "mixed", "feedthrough; top-left block D_P0", note),
-            f"{s}/input_names": Dataset(list(ss.input_names), "", "name of each input"),
-            f"{s}/input_units": Dataset(list(ss.input_units), "", "SI unit of each input"),
-            f"{s}/output_names": Dataset(list(ss.output_names), "", "name of each output"),
-            f"{s}/output_units": Dataset(list(ss.output_units), "", "SI unit of each output"),
-            f"{s}/state_names": Dataset(list(ss.state_names), "", "name of each state"),
-        })
-    return tree
-
-
-def connections_datasets(model: ConnectionModel, damping_ratio=0.0,
-                         include_shapes: bool = False) -> dict[str, Dataset]:
-    """:func:`connection_datasets` with its state space built at ``damping_ratio``."""
-    return connection_datasets(model, connection_statespace(model, damping_ratio),
-                               include_shapes=include_shapes)
-
-
 # --------------------------------------------------------------------------- one call
 def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
     """Damping ratios at ``omega2``: a number, a per-mode sequence, or an object with
@@ -669,16 +585,17 @@ def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
 
 def build_connection_model(space, regions: Mapping[str, np.ndarray], K_full: sp.spmatrix,
                            M_full: sp.spmatrix, connections: Sequence[Any], n_modes: int,
-                           damping=0.0, backend: str = "auto", include_shapes: bool = False
-                           ) -> tuple[ConnectionModel, StateSpace, dict[str, Dataset]]:
+                           damping=0.0, backend: str = "auto"
+                           ) -> tuple[ConnectionModel, StateSpace]:
     """Everything for ``/connections/<parent>``, in one call.
 
     ``connections``: the config's records (name, region, point, coupling); the first is
     the parent point P, the others child points. ``K_full``, ``M_full``: assembled
     matrices of the unsupported body. ``damping``: a ratio, one per mode, or a
-    :class:`pipeline.reduce.modal.DampingSpec`. Returns (model, state space, datasets).
+    :class:`pipeline.reduce.modal.DampingSpec`. Returns (model, state space); the datasets
+    are :func:`pipeline.store.schema.connection_datasets`.
     """
     interfaces = make_interfaces(space, regions, connections)
     model = connection_model(space, K_full, M_full, interfaces, n_modes, backend=backend)
     ss = connection_statespace(model, _ratios(damping, model.omega2))
-    return model, ss, connection_datasets(model, ss, include_shapes=include_shapes)
+    return model, ss

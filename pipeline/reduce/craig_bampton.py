@@ -40,11 +40,10 @@ import scipy.sparse as sp
 from pipeline.reduce.connection import (DIRECTIONS, Interface, check_interfaces, interface_transformation,
                          project)
 from pipeline.errors import RegionError
-from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CraigBamptonModel", "craig_bampton", "craig_bampton_datasets", "build_craig_bampton"]
+__all__ = ["CraigBamptonModel", "craig_bampton", "build_craig_bampton"]
 
 COORD_UNITS = {"x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad"}
 MODAL_UNITS = "m kg^1/2"
@@ -166,46 +165,8 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
                              omega2, residuals)
 
 
-def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",
-                           include_shapes: bool = True) -> dict[str, Dataset]:
-    """HDF5 datasets of the reduced model (see docs/hdf5-connection.md)."""
-    note = {"coordinates": list(cb.coordinate_names), "coordinate_units": list(cb.coordinate_units)}
-    w_free = cb.frequencies_hz()
-    tree = {
-        f"{group}/M": Dataset(cb.M, "mixed", "reduced mass matrix; entry (i, j) in "
-                              "kg m^2 / (u_i u_j), u the coordinate units", note),
-        f"{group}/K": Dataset(cb.K, "mixed", "reduced stiffness matrix; entry (i, j) in "
-                              "N m / (u_i u_j), u the coordinate units", note),
-        f"{group}/coordinate_names": Dataset(list(cb.coordinate_names), "",
-                                             "label of each reduced coordinate"),
-        f"{group}/coordinate_units": Dataset(list(cb.coordinate_units), "",
-                                             "SI unit of each reduced coordinate"),
-        f"{group}/interface_names": Dataset([i.name for i in cb.interfaces], "",
-                                            "interfaces in coordinate order"),
-        f"{group}/interface_regions": Dataset([i.region for i in cb.interfaces], "",
-                                              "region of each interface"),
-        f"{group}/interface_couplings": Dataset([i.coupling for i in cb.interfaces], "",
-                                                "rigid (RBE2) or distributing (RBE3)"),
-        f"{group}/interface_points": Dataset(np.array([i.point for i in cb.interfaces]), "m",
-                                             "point of each interface"),
-        f"{group}/fixed_interface_frequencies_hz": Dataset(
-            cb.fixed_interface_frequencies_hz, "Hz", "modes with every interface clamped"),
-        f"{group}/free_frequencies_hz": Dataset(
-            w_free, "Hz", "eigenfrequencies of (K, M), the free reduced body (6 rigid zeros)"),
-    }
-    if include_shapes:
-        n_nodes = cb.shapes.shape[0] // 3
-        tree[f"{group}/shapes"] = Dataset(
-            cb.shapes.reshape(n_nodes, 3, -1), "mixed",
-            "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
-            "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
-    return tree
-
-
 def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix,
-                        connections, n_modes: int, backend: str = "auto",
-                        include_shapes: bool = True
-                        ) -> tuple[CraigBamptonModel, dict[str, Dataset]]:
+                        connections, n_modes: int, backend: str = "auto") -> CraigBamptonModel:
     """Everything for ``/craig_bampton``, in one call: one interface per record of
     ``connections`` (name, region, point, coupling), checked before any solve;
     ``n_modes`` fixed-interface modes; matrices of the unsupported body."""
@@ -213,4 +174,4 @@ def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix
 
     interfaces = make_interfaces(space, regions, connections)
     cb = craig_bampton(space, K_full, M_full, interfaces, n_modes, backend=backend)
-    return cb, craig_bampton_datasets(cb, include_shapes=include_shapes)
+    return cb

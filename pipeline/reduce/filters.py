@@ -35,8 +35,7 @@ import math
 import numpy as np
 
 from pipeline._util import validate
-from pipeline.store.tree import Dataset
-from pipeline.reduce.modal import ReducedModel, StateSpaceModel, _statespace_tree
+from pipeline.reduce.modal import ReducedModel, StateSpaceModel
 from pipeline.reduce.statespace import StateSpace
 
 log = logging.getLogger(__name__)
@@ -47,8 +46,6 @@ __all__ = [
     "first_order_filter",
     "third_order_position_filter",
     "filtered_model",
-    "filter_datasets",
-    "filter_group_attrs",
 ]
 
 FILTER_KINDS = ("none", "first_order", "third_order")
@@ -109,7 +106,7 @@ def _series(plant: StateSpace, filt: StateSpace, rows: slice) -> tuple[np.ndarra
     return A, B, C, D
 
 
-def _validate(kind: str, cutoff_hz) -> float | None:
+def check_filter(kind: str, cutoff_hz) -> float | None:
     """The filter kind and its cutoff in Hz (None for ``"none"``), through the one field
     checker (pipeline._util.validate)."""
     kind = validate.choice({"filter.kind": kind}, "filter.kind", "", FILTER_KINDS)
@@ -138,7 +135,7 @@ def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: 
     :class:`ConfigError` naming ``filter.cutoff_hz``.
     """
     plant = model.statespace if isinstance(model, ReducedModel) else model
-    f_c = _validate(kind, cutoff_hz)
+    f_c = check_filter(kind, cutoff_hz)
     if f_c is None:
         return plant
     if plant.filter_kind != "none":
@@ -166,37 +163,3 @@ def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: 
                            state_names=plant.state_names + extra, label="filtered",
                            filter_kind=kind, cutoff_hz=f_c, omega2=plant.omega2,
                            damping_ratios=plant.damping_ratios, n_retained=plant.n_retained)
-
-
-def filter_group_attrs(kind: str, cutoff_hz: float | None,
-                       group: str = "statespace_filtered") -> dict[str, dict]:
-    """Group attributes ``{group: {"filter_kind": kind, "cutoff_hz": Hz}}`` (NaN: none)."""
-    f_c = _validate(kind, cutoff_hz)
-    return {group: {"filter_kind": kind, "cutoff_hz": float("nan") if f_c is None else f_c}}
-
-
-def filter_datasets(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None,
-                    group: str = "statespace_filtered") -> dict[str, Dataset]:
-    """HDF5 datasets of the filtered model, keyed ``"<group>/<name>"``.
-
-    ``model`` is the plant (a :class:`ReducedModel` or its ``statespace``; it is
-    filtered here with :func:`filtered_model`) or a model :func:`filtered_model`
-    already returned with this same kind and cutoff. Datasets: A, B, C, D, the names,
-    ``damping_ratios`` and ``frequencies_hz`` as in
-    :func:`pipeline.reduce.modal.statespace_datasets`, plus ``cutoff_hz`` (Hz, NaN for
-    none); A, B, C, D carry the attributes ``filter_kind`` and ``cutoff_hz``. The same
-    two values as group attributes: :func:`filter_group_attrs`.
-    """
-    ss = model.statespace if isinstance(model, ReducedModel) else model
-    f_c = _validate(kind, cutoff_hz)
-    if ss.filter_kind == "none":
-        ss = filtered_model(ss, kind, f_c)
-    elif ss.filter_kind != kind or not math.isclose(ss.cutoff_hz, f_c or 0.0, rel_tol=1e-12):
-        raise ValueError(f"model was filtered with {ss.filter_kind} at {ss.cutoff_hz} Hz, "
-                         f"not {kind} at {cutoff_hz} Hz")
-    stored = float("nan") if f_c is None else f_c
-    tree = _statespace_tree(ss, group, {"filter_kind": kind, "cutoff_hz": stored})
-    tree[f"{group}/cutoff_hz"] = Dataset(np.float64(stored), "Hz",
-                                         f"cutoff of the {kind} output filter (NaN: no filter)")
-    return tree
-

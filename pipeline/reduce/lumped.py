@@ -52,7 +52,6 @@ import numpy as np
 from pipeline._util import validate
 from pipeline.errors import ConfigError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -76,15 +75,13 @@ __all__ = [
     "cantilever_beta_l",
     "comparison_table",
     "format_comparison",
-    "lumped_datasets",
-    "lumped_group_attrs",
 ]
 
 JOINT_DOFS: tuple[str, ...] = ("axial", "torsion", "bend_y", "bend_z")
 """The joint DOFs of the refined chain, in the order they appear at every joint."""
 
-_DOF_KIND = {"axial": "prismatic", "torsion": "revolute", "bend_y": "revolute", "bend_z": "revolute"}
-_DOF_AXIS = {"axial": (1.0, 0.0, 0.0), "torsion": (1.0, 0.0, 0.0),
+DOF_KIND = {"axial": "prismatic", "torsion": "revolute", "bend_y": "revolute", "bend_z": "revolute"}
+DOF_AXIS = {"axial": (1.0, 0.0, 0.0), "torsion": (1.0, 0.0, 0.0),
              "bend_y": (0.0, 1.0, 0.0), "bend_z": (0.0, 0.0, 1.0)}
 _DOF_LABEL = {"axial": "axial", "torsion": "torsion", "bend_y": "bending_y", "bend_z": "bending_z"}
 _KINDS = ("simple", "refined")
@@ -796,129 +793,3 @@ def format_comparison(rows: Sequence[ComparisonRow]) -> str:
             if math.isfinite(r.tip_deflection) else f"{'-':>12}{'':>9}"
         lines.append(f"{r.model:<12}{'' if r.n is None else r.n:>4}{cells}{tip}")
     return "\n".join(lines)
-
-
-# --------------------------------------------------------------------------- HDF5
-def _q_units(model: LumpedModel) -> list[str]:
-    return ["m" if _DOF_KIND[d] == "prismatic" else "rad" for d in model.dof_names]
-
-
-def lumped_datasets(model: LumpedModel, comparison: Sequence[ComparisonRow] | None = None,
-                    prefix: str = "lumped") -> dict[str, Dataset]:
-    """The HDF5 contents of the chain under ``prefix/`` (every dataset with units).
-
-    Joint coordinates q are listed in ``stiffness.attrs['dof_names']`` (``j<joint>.<dof>``,
-    joint 1-based); matrices over q carry units ``mixed`` with per-DOF units in attrs.
-    ``joint_table/<column>``: one row per joint DOF, parallel arrays, directly usable by a
-    rigid-body code: joint (1-based), dof, kind (revolute | prismatic), position (m,
-    x y z), axis (unit vector), stiffness (N/m or N m/rad), damping (N s/m or N m s/rad).
-    """
-    p = prefix.rstrip("/")
-    nq = model.M.shape[0]
-    names = [f"j{j + 1}.{d}" for j, d in zip(model.dof_joint, model.dof_names)]
-    qu = _q_units(model)
-    kinds = [_DOF_KIND[d] for d in model.dof_names]
-    k_units = ["N/m" if k == "prismatic" else "N m/rad" for k in kinds]
-    c_units = ["N s/m" if k == "prismatic" else "N m s/rad" for k in kinds]
-    q_attrs = {"dof_names": names, "dof_units": qu}
-    mixed_spring = {"prismatic": "N/m", "revolute": "N m/rad"}
-    mixed_damper = {"prismatic": "N s/m", "revolute": "N m s/rad"}
-    ss_attrs = {"input_names": list(model.input_names), "output_names": list(model.output_names),
-                "state_names": list(model.state_names),
-                "input_direction": model.input_direction.tolist(),
-                "output_direction": model.output_direction.tolist()}
-    sec = model.section
-    jp = model.joint_positions
-    out: dict[str, Dataset] = {
-        "joint_positions": Dataset(jp, "m", "joint positions (x, y, z), on the beam axis"),
-        "element_mass": Dataset(model.element_mass, "kg", "mass of each moving rigid body"),
-        "element_com": Dataset(model.element_com, "m", "centre of mass of each rigid body"),
-        "element_extent": Dataset(model.element_extent, "m",
-                                  "x at the two ends of each rigid body (joint b to joint b+1)"),
-        "element_inertia": Dataset(model.element_inertia, "kg m^2",
-                                   "inertia tensor of each body about its centre of mass, x y z axes"),
-        "stiffness": Dataset(model.K, "mixed", "joint stiffness matrix K (diagonal) over q",
-                             {**q_attrs, **mixed_spring}),
-        "mass_matrix": Dataset(model.M, "mixed", "chain mass matrix M over q: kg (m, m), "
-                               "kg m (m, rad), kg m^2 (rad, rad)", q_attrs),
-        "damping": Dataset(model.damping_matrix, "mixed",
-                           "joint damping matrix C = beta K (diagonal) over q",
-                           {**q_attrs, **mixed_damper, "rule": "stiffness-proportional",
-                            "beta_s": model.damping_beta, "ratio": model.damping_ratio,
-                            "reference_hz": model.damping_reference_hz}),
-        "frequencies_hz": Dataset(model.frequencies_hz, "Hz", "natural frequencies of the chain"),
-        "mode_labels": Dataset(list(model.mode_labels), "1",
-                               "family of each mode: axial | torsion | bending_y | bending_z"),
-        "mode_shapes": Dataset(model.mode_shapes, "mixed",
-                               "M-normalised mode shapes over q (columns), rows in dof_names order",
-                               q_attrs),
-        "modal_damping_ratios": Dataset(model.modal_damping_ratios, "1",
-                                        "damping ratio of each mode, xi omega_i / omega_ref"),
-        "tip_compliance": Dataset(np.float64(model.tip_compliance), "m/N",
-                                  "static tip displacement along the tip force per newton",
-                                  {"force_direction": model.input_direction.tolist()}),
-        "static_tip_deflection": Dataset(model.tip_deflection, "m",
-                                         "static tip displacement (x, y, z) under the tip force",
-                                         {"tip_force_N": model.tip_force,
-                                          "force_direction": model.input_direction.tolist()}),
-        "section/area": Dataset(np.float64(sec.area), "m^2", "section area", {"source": sec.source}),
-        "section/I_y": Dataset(np.float64(sec.I_y), "m^4", "second moment about y (int z^2 dA)",
-                               {"source": sec.source}),
-        "section/I_z": Dataset(np.float64(sec.I_z), "m^4", "second moment about z (int y^2 dA)",
-                               {"source": sec.source}),
-        "section/J": Dataset(np.float64(sec.J), "m^4", "Saint-Venant torsion constant",
-                             {"source": sec.source}),
-        "section/I_p": Dataset(np.float64(sec.I_p), "m^4", "polar moment I_y + I_z",
-                               {"source": sec.source}),
-        "statespace/A": Dataset(model.A, "mixed", "state matrix, state [eta; eta'] (modal)",
-                                {**ss_attrs, "units_note": "1/s^2 and 1/s entries"}),
-        "statespace/B": Dataset(model.B, "mixed", "input matrix, input: tip force (N)", ss_attrs),
-        "statespace/C": Dataset(model.C, "mixed",
-                                "output matrix, outputs: tip position (m), velocity (m/s), "
-                                "acceleration (m/s^2) along output_direction", ss_attrs),
-        "statespace/D": Dataset(model.D, "mixed", "feedthrough, nonzero only in the acceleration "
-                                "row: (m/s^2)/N", ss_attrs),
-        "joint_table/joint": Dataset(model.dof_joint + 1, "1", "joint index (1-based, 1 at the clamp end)"),
-        "joint_table/dof": Dataset(list(model.dof_names), "1", "axial | torsion | bend_y | bend_z"),
-        "joint_table/kind": Dataset(kinds, "1", "revolute (about axis) | prismatic (along axis)"),
-        "joint_table/position": Dataset(jp[model.dof_joint], "m", "joint position (x, y, z)"),
-        "joint_table/axis": Dataset(np.array([_DOF_AXIS[d] for d in model.dof_names]).reshape(nq, 3),
-                                    "1", "joint axis unit vector (x, y, z)"),
-        "joint_table/stiffness": Dataset(np.diag(model.K).copy(), "mixed",
-                                         "spring constant of the joint DOF",
-                                         {**mixed_spring, "row_units": k_units}),
-        "joint_table/damping": Dataset(model.joint_damping, "mixed",
-                                       "damper constant of the joint DOF",
-                                       {**mixed_damper, "row_units": c_units}),
-    }
-    if comparison:
-        count = len(comparison[0].frequencies_hz)
-        out.update({
-            "comparison/model": Dataset([r.model for r in comparison], "1",
-                                        "beam theory | FE | simple | refined"),
-            "comparison/n": Dataset(np.array([-1 if r.n is None else r.n for r in comparison]), "1",
-                                    "number of elements (-1 for the references)"),
-            "comparison/frequencies_hz": Dataset(
-                np.array([r.frequencies_hz for r in comparison]).reshape(-1, count), "Hz",
-                "lowest bending frequencies per row (NaN where absent)"),
-            "comparison/tip_deflection": Dataset(np.array([r.tip_deflection for r in comparison]),
-                                                 "m", "static tip deflection along the force"),
-            "comparison/frequency_error": Dataset(
-                np.array([r.frequency_error for r in comparison]).reshape(-1, count), "1",
-                "relative error against beam theory"),
-            "comparison/deflection_error": Dataset(
-                np.array([r.deflection_error for r in comparison]), "1",
-                "relative error against beam theory"),
-        })
-    return {f"{p}/{k}": v for k, v in out.items()}
-
-
-def lumped_group_attrs(model: LumpedModel, prefix: str = "lumped") -> dict[str, dict[str, Any]]:
-    """Attributes of the ``prefix`` group: kind, n, element length, section source, damping rule."""
-    return {prefix.rstrip("/"): {
-        "constants": model.kind, "elements": model.n,
-        "element_length_m": model.constants.element_length,
-        "joint_dofs": list(model.constants.dofs), "section_source": model.section.source,
-        "damping_rule": "stiffness-proportional C = beta K, beta = 2 xi / omega_ref",
-        "coordinates": "joint coordinates q, joint-major; linearised about the straight beam",
-    }}

@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg as sla
@@ -43,7 +43,6 @@ import scipy.sparse.linalg as spla
 from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +60,6 @@ __all__ = [
     "static_compliance",
     "modal_statespace",
     "reduce_model",
-    "statespace_datasets",
 ]
 
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
@@ -560,63 +558,3 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         log.info("reduced model: %d states, static correction %s, DC gain error %.3g "
                  "(relative to T K^-1 F)", ss.n_states, static_correction, rel)
     return model
-
-
-# --------------------------------------------------------------------------- HDF5
-_NAMES_NOTE = ("inputs in the unit of each input port (N for a force, N m for a moment); "
-               "outputs position/velocity/acceleration in m, m/s, m/s^2 for a displacement "
-               "port (rad, rad/s, rad/s^2 for a rotation); modal states eta in m kg^1/2, "
-               "eta_dot in m kg^1/2/s (mode shapes are M-orthonormal, kg^-1/2)")
-
-
-def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | None = None
-                     ) -> dict[str, Dataset]:
-    attrs = dict(extra_attrs or {})
-    note = {"units_note": _NAMES_NOTE, **attrs}
-    tree = {
-        f"{group}/A": Dataset(ss.A, "mixed", "state matrix A of x' = A x + B u", note),
-        f"{group}/B": Dataset(ss.B, "mixed", "input matrix B of x' = A x + B u", note),
-        f"{group}/C": Dataset(ss.C, "mixed", "output matrix C of y = C x + D u; rows: "
-                              "positions, velocities, accelerations of every port", note),
-        f"{group}/D": Dataset(ss.D, "mixed", "feedthrough matrix D of y = C x + D u", note),
-        f"{group}/input_names": Dataset(list(ss.input_names), "",
-                                        "name of each input (columns of B, D)"),
-        f"{group}/output_names": Dataset(list(ss.output_names), "",
-                                         "name of each output (rows of C, D)"),
-        f"{group}/state_names": Dataset(list(ss.state_names), "", "name of each state (rows of A)"),
-        f"{group}/damping_ratios": Dataset(ss.damping_ratios, "1",
-                                           "modal damping ratio of every mode in the model"),
-        f"{group}/frequencies_hz": Dataset(ss.frequencies_hz, "Hz",
-                                           "undamped natural frequency of every mode in the model",
-                                           {"n_retained": int(ss.n_retained)}),
-    }
-    return tree
-
-
-def statespace_datasets(model: ReducedModel, group: str = "statespace",
-                        compliance_units: str = "m/N") -> dict[str, Dataset]:
-    """HDF5 datasets of the (unfiltered) reduced model, keyed ``"<group>/<name>"``.
-
-    A, B, C, D (units ``"mixed"``, attribute ``units_note`` says which), the names
-    (string datasets), ``damping_ratios`` (1), ``frequencies_hz`` (Hz) and
-    ``static_compliance`` (n_y x n_u, ``compliance_units``; "m/N" for force inputs and
-    displacement outputs, pass "mixed" otherwise) when the body has statics; for
-    ``residual`` also ``residual_flexibility``. A carries ``static_correction``,
-    ``n_modes`` and ``n_basis`` as attributes.
-    """
-    ss = model.statespace
-    tree = _statespace_tree(ss, group)
-    a = tree[f"{group}/A"]
-    tree[f"{group}/A"] = Dataset(a.data, a.units, a.description,
-                                 {**a.attrs, "static_correction": model.static_correction,
-                                  "n_modes": int(model.n_modes), "n_basis": int(model.n_basis)})
-    if model.static_compliance is not None:
-        tree[f"{group}/static_compliance"] = Dataset(
-            model.static_compliance, compliance_units,
-            "exact FE static compliance T K^-1 F (outputs x inputs), full solve",
-            {"rows": list(ss.port_names), "columns": list(ss.input_names)})
-    if model.residual is not None:
-        tree[f"{group}/residual_flexibility"] = Dataset(
-            model.residual, compliance_units,
-            "T K^-1 F - Theta Omega2^-1 Sigma, added to the position rows of D")
-    return tree
