@@ -27,11 +27,12 @@ import scipy.sparse as sp
 from conftest import ALUMINIUM, build_model
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.store.schema import connection_datasets
-from pipeline.reduce.connection import (check_interface, check_residual_mass, connection_model,
-                                 connection_model_from_modes, connection_statespace,
-                                 effective_mass_table, interface_transformation,
-                                 make_interface, make_interfaces, project, rbe3_matrix,
-                                 rigid_properties_at, twist_transform)
+from pipeline.reduce.connection import (check_residual_mass, connection_model,
+                                        connection_model_from_modes, connection_statespace,
+                                        effective_mass_table)
+from pipeline.reduce.interfaces import (check_interface, interface_transformation,
+                                        make_interface, make_interfaces, project, rbe3_matrix,
+                                        rigid_properties_at, twist_transform)
 from pipeline.errors import RegionError, SolverError
 from pipeline.solve.eigen import solve_modes
 

@@ -263,7 +263,7 @@ def test_craig_bampton_basis_is_exported_without_the_reference_interface(small_f
     modes of the first interface (the frame follows it), as Exudyn's own HCB modes do."""
     from types import SimpleNamespace
 
-    from pipeline.reduce.connection import make_interfaces
+    from pipeline.reduce.interfaces import make_interfaces
     from pipeline.reduce.craig_bampton import craig_bampton
 
     m, _, _, path = small_file

@@ -17,7 +17,7 @@ import pytest
 
 from conftest import ALUMINIUM, build_model
 from pipeline.fe.body import rigid_body_modes
-from pipeline.reduce.connection import make_interfaces
+from pipeline.reduce.interfaces import make_interfaces
 from pipeline.reduce.craig_bampton import craig_bampton
 from pipeline.reduce.ffrf import craig_bampton_basis, ffrf_invariants, free_free_basis
 from pipeline.store.schema import ffrf_datasets

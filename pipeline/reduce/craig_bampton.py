@@ -22,7 +22,7 @@ the interface point, and the fixed-interface modes are the modes clamped there. 
 free body (no support), K_bb has six zero eigenvalues (the rigid motions) and the
 lowest nonzero eigenvalues of (K_cb, M_cb) approximate the free-free modes.
 
-Interface sets are checked before any solve (:func:`pipeline.reduce.connection.make_interfaces`):
+Interface sets are checked before any solve (:func:`pipeline.reduce.interfaces.make_interfaces`):
 a region that cannot carry six DOFs, or two interfaces sharing nodes, raise RegionError
 naming the region.
 """
@@ -37,9 +37,11 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from pipeline.reduce.connection import (DIRECTIONS, Interface, check_interfaces, interface_transformation,
-                         project)
 from pipeline.errors import RegionError
+from pipeline.reduce import connection  # module, so clamped_modes is looked up at call time
+from pipeline.reduce.interfaces import (DIRECTIONS, Interface, check_interfaces,
+                                        interface_transformation, make_interfaces, project)
+from pipeline.solve.factorize import factorize
 
 log = logging.getLogger(__name__)
 
@@ -118,13 +120,10 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
 
     ``space``: the FESpace (or the node coordinates (n_nodes, 3)). ``K_full``, ``M_full``:
     (n_dofs x n_dofs) matrices of the UNSUPPORTED body (before support condensation).
-    ``interfaces``: from :func:`pipeline.reduce.connection.make_interfaces` (at least one).
+    ``interfaces``: from :func:`pipeline.reduce.interfaces.make_interfaces` (at least one).
     ``backend``: auto | pardiso | superlu (shift-invert eigsh), or ``dense`` for small
     models (``n_modes=None`` then keeps every fixed-interface mode).
     """
-    from pipeline.reduce.connection import clamped_modes
-    from pipeline.solve.factorize import factorize
-
     interfaces = tuple(interfaces)
     if not interfaces:
         raise RegionError("craig_bampton: expected at least one interface (connections)")
@@ -136,7 +135,7 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Kt = project(K_full, tr.T)
     Mt = project(M_full, tr.T)
     Kzz, Mzz = Kt[:nz, :nz].tocsr(), Mt[:nz, :nz].tocsr()
-    omega2, Phi, residuals = clamped_modes(Kzz, Mzz, n_modes, backend, tolerance)
+    omega2, Phi, residuals = connection.clamped_modes(Kzz, Mzz, n_modes, backend, tolerance)
     n_modes = omega2.size
     fact = factorize(Kzz, "superlu" if backend == "dense" else backend, positive_definite=True)
     try:
@@ -170,8 +169,6 @@ def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix
     """Everything for ``/craig_bampton``, in one call: one interface per record of
     ``connections`` (name, region, point, coupling), checked before any solve;
     ``n_modes`` fixed-interface modes; matrices of the unsupported body."""
-    from pipeline.reduce.connection import make_interfaces
-
     interfaces = make_interfaces(space, regions, connections)
     cb = craig_bampton(space, K_full, M_full, interfaces, n_modes, backend=backend)
     return cb

@@ -32,10 +32,11 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.reduce.connection import DIRECTIONS, TWIST_UNITS_BLOCKS, ConnectionModel
+from pipeline.reduce.connection import ConnectionModel
 from pipeline.reduce.craig_bampton import CraigBamptonModel
 from pipeline.reduce.ffrf import MODAL_UNIT, FFRFInvariants
 from pipeline.reduce.filters import check_filter, filtered_model
+from pipeline.reduce.interfaces import DIRECTIONS, TWIST_UNITS_BLOCKS
 from pipeline.reduce.lumped import DOF_AXIS, DOF_KIND, ComparisonRow, LumpedModel
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel
 from pipeline.reduce.models import Models
