@@ -61,6 +61,7 @@ from pipeline.reduce.interfaces import (DIRECTIONS, Interface, RigidProperties,
                                         make_interfaces, project, rigid_properties_at,
                                         twist_transform)
 from pipeline.reduce.statespace import StateSpace
+from pipeline.solve import eigen  # module: solve_modes is looked up at call time
 
 log = logging.getLogger(__name__)
 
@@ -162,11 +163,9 @@ def clamped_modes(K: sp.spmatrix, M: sp.spmatrix, n_modes: int | None, backend: 
         res = np.linalg.norm(Kd @ V - (Md @ V) * w, axis=0) / np.maximum(
             np.linalg.norm(Kd @ V, axis=0), 1e-300)
         return w, V, res
-    from pipeline.solve.eigen import solve_modes
-
     if n_modes is None:
         raise SolverError("n_modes=None (every mode) needs backend='dense'")
-    modes = solve_modes(K, M, n_modes, supported=True, backend=backend, tolerance=tolerance)
+    modes = eigen.solve_modes(K, M, n_modes, supported=True, backend=backend, tolerance=tolerance)
     return modes.omega2, modes.shapes, modes.residuals
 
 

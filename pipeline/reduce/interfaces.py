@@ -45,6 +45,8 @@ import scipy.sparse as sp
 
 from pipeline.errors import RegionError, SolverError
 from pipeline.fe.body import rigid_body_modes, skew
+from pipeline.fe.regions import get_region
+from pipeline.fe.space import region_nodes, surface_region
 
 __all__ = [
     "COUPLINGS",
@@ -185,8 +187,6 @@ def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: 
     :func:`pipeline.fe.regions.resolve_regions`. ``key`` names the config entry in messages
     (default ``connections.<name>``). Raises RegionError naming the region.
     """
-    from pipeline.fe.space import region_nodes, surface_region
-    from pipeline.fe.regions import get_region
 
     key = key or f"connections.{name}"
     if coupling not in COUPLINGS:
