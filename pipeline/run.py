@@ -7,6 +7,7 @@ batch runs and the benchmarks call. It logs what each stage does and how long it
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import resource
 import time
@@ -18,10 +19,13 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.config import Config, config_to_yaml
-from pipeline.fe import resources
+from pipeline._util import resources
 from pipeline.fe.body import node_volume_weights
 from pipeline.fe.model import build_fe_model
+from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.stage import compute_modes
+from pipeline.store.h5file import write_file
+from pipeline.store.schema import models_tree
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -37,7 +41,7 @@ def peak_memory_mb() -> float:
 def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int) -> int:
     """Peak bytes of :func:`run_pipeline` on a mesh of ``n_nodes`` nodes and ``n_elements``
     tetrahedra of ``order`` with ``n_modes`` modes (the model of
-    :mod:`pipeline.fe.resources`), for callers above the FE layer (batch scheduling)."""
+    :mod:`pipeline._util.resources`), for callers above the FE layer (batch scheduling)."""
     return resources.estimate_memory_bytes(n_nodes, n_elements, order, n_modes)
 
 
@@ -51,7 +55,7 @@ STAGE_MODULES = ("numpy", "scipy.sparse", "scipy.sparse.linalg", "scipy.linalg",
                  "meshio", "skfem", "yaml", "gmsh", "pipeline.fe.mesh", "pipeline.fe.space",
                  "pipeline.fe.assemble", "pipeline.fe.body", "pipeline.fe.model",
                  "pipeline.solve.eigen", "pipeline.solve.stage", "pipeline.fe.regions",
-                 "pipeline.fe.resources", "pipeline.store.h5file", "pipeline.solve.factorize",
+                 "pipeline._util.resources", "pipeline.store.h5file", "pipeline.solve.factorize",
                  "pipeline.reduce.build")
 
 
@@ -135,23 +139,22 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     del fe
     shapes, labels = modes.shapes_full, list(modes.labels)
 
-    extras: dict[str, Any] = {}
+    models = None
     with _stage("reduce", times):
         if cfg.reduction is not None or cfg.lumped is not None:
-            from pipeline.reduce.build import build_models
-
-            model_tree, model_attrs, extras = build_models(cfg, space, regions, K, M, free,
-                                                           modes, props, labels)
-            tree.update(model_tree)
-            group_attrs.update(model_attrs)
+            models = build_models(cfg, space, regions, K, M, free, modes, props, labels,
+                                  solve=modes.solve)
         del K, M
         if full is not None:
-            from pipeline.reduce.build import build_connection_models
-
-            conn_tree, lines = build_connection_models(cfg, space, regions, *full, modes, shapes)
-            tree.update(conn_tree)
-            extras.setdefault("summary", []).extend(lines)
-            del full
+            models = build_connection_models(cfg, space, regions, *full, modes, shapes, models)
+        if models is not None:
+            model_tree, model_attrs = models_tree(models)
+            tree.update(model_tree)
+            group_attrs.update(model_attrs)
+            del model_tree
+            # the tree holds the CSR copies now: the full matrices are not kept alive
+            models = dataclasses.replace(models, fe_matrices=None)
+        del full
 
     modes.release_factorization()  # idempotent: freed when K was dropped
     tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
@@ -164,10 +167,14 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
         group_attrs["run"] = {f"{k}_s": v for k, v in times.items()}
         group_attrs["run"]["peak_memory_mb"] = peak_memory_mb()
         group_attrs["run"]["solver"] = modes.backend
-        from pipeline.store.h5file import write_file
 
         write_file(output, tree, group_attrs, {"name": cfg.name,
                                                "config_yaml": config_to_yaml(cfg)})
+    extras: dict[str, Any] = {}
+    if models is not None:
+        extras["summary"] = list(models.summary)
+        if models.reduced is not None:
+            extras.update(reduced=models.reduced, filtered=models.filtered)
     return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
                      modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
                      modes.backend, extras)

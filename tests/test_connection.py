@@ -26,11 +26,13 @@ import scipy.sparse as sp
 
 from conftest import ALUMINIUM, build_model
 from pipeline.fe.body import rigid_body_modes, skew
-from pipeline.reduce.connection import (check_interface, check_residual_mass, connection_datasets, connection_model,
-                                 connection_model_from_modes, connection_statespace,
-                                 effective_mass_table, interface_transformation,
-                                 make_interface, make_interfaces, project, rbe3_matrix,
-                                 rigid_properties_at, twist_transform)
+from pipeline.store.schema import connection_datasets
+from pipeline.reduce.connection import (check_residual_mass, connection_model,
+                                        connection_model_from_modes, connection_statespace,
+                                        effective_mass_table)
+from pipeline.reduce.interfaces import (check_interface, interface_transformation,
+                                        make_interface, make_interfaces, project, rbe3_matrix,
+                                        rigid_properties_at, twist_transform)
 from pipeline.errors import RegionError, SolverError
 from pipeline.solve.eigen import solve_modes
 
@@ -288,17 +290,21 @@ def test_one_call_builders_write_a_valid_file(beam, tmp_path):
     from pipeline.reduce.ffrf import build_ffrf
     from pipeline.reduce.modal import DampingSpec
     from pipeline.store.h5file import open_verified, write_file
+    from pipeline.store.schema import craig_bampton_datasets, ffrf_datasets
 
     conns = (Connection("root", "root", (0.0, 0.0, 0.0), "rigid"),
              Connection("tip", "tip", (L, 0.01, 0.025), "distributing"))
-    model, ss, tree = build_connection_model(beam.space, beam.regions, beam.K_full,
+    model, ss = build_connection_model(beam.space, beam.regions, beam.K_full,
                                              beam.M_full, conns, 4,
                                              DampingSpec("uniform", ratio=0.02),
                                              backend="superlu")
-    np.testing.assert_allclose(ss.damping_ratio, 0.02)
-    cb, cb_tree = build_craig_bampton(beam.space, beam.regions, beam.K_full, beam.M_full,
-                                      conns, 4, backend="superlu")
-    inv, ffrf_tree = build_ffrf(beam.M_full, beam.K_full, beam.space.node_points, cb=cb)
+    tree = connection_datasets(model, ss)
+    np.testing.assert_allclose(ss.attrs["damping_ratio"], 0.02)
+    cb = build_craig_bampton(beam.space, beam.regions, beam.K_full, beam.M_full,
+                             conns, 4, backend="superlu")
+    cb_tree = craig_bampton_datasets(cb)
+    inv = build_ffrf(beam.M_full, beam.K_full, beam.space.node_points, cb=cb)
+    ffrf_tree = ffrf_datasets(inv)
     assert inv.n == 6 + 4 and "tip" in inv.basis_kind + inv.coordinate_names[0]
     path = write_file(tmp_path / "c.h5", {**tree, **cb_tree, **ffrf_tree})
     with open_verified(path) as h5:

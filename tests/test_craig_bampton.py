@@ -24,8 +24,9 @@ import pytest
 
 from conftest import build_model
 from pipeline.fe.body import rigid_body_modes
-from pipeline.reduce.connection import make_interfaces
-from pipeline.reduce.craig_bampton import craig_bampton, craig_bampton_datasets
+from pipeline.reduce.interfaces import make_interfaces
+from pipeline.reduce.craig_bampton import craig_bampton
+from pipeline.store.schema import craig_bampton_datasets
 from pipeline.errors import RegionError
 from pipeline.solve.eigen import solve_modes
 

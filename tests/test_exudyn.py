@@ -24,9 +24,9 @@ import pytest
 
 from conftest import build_model
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.apps.exports import EXPORTERS, csr_datasets, default_output, export, read_csr
-from pipeline.apps.exports.exudyn import (boundary_faces, export_exudyn, exudyn_datasets,
-                                     region_node_weights)
+from pipeline.apps.exports import EXPORTERS, default_output, export, read_csr
+from pipeline.apps.exports.exudyn import boundary_faces, export_exudyn, region_node_weights
+from pipeline.store.schema import craig_bampton_datasets, csr_datasets, exudyn_datasets
 from pipeline.store.tree import Dataset
 from pipeline.solve.eigen import solve_modes
 from pipeline.store.h5file import content_digest, write_file
@@ -263,8 +263,8 @@ def test_craig_bampton_basis_is_exported_without_the_reference_interface(small_f
     modes of the first interface (the frame follows it), as Exudyn's own HCB modes do."""
     from types import SimpleNamespace
 
-    from pipeline.reduce.connection import make_interfaces
-    from pipeline.reduce.craig_bampton import craig_bampton, craig_bampton_datasets
+    from pipeline.reduce.interfaces import make_interfaces
+    from pipeline.reduce.craig_bampton import craig_bampton
 
     m, _, _, path = small_file
     ifs = make_interfaces(m.space, m.regions, [

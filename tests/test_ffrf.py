@@ -17,10 +17,10 @@ import pytest
 
 from conftest import ALUMINIUM, build_model
 from pipeline.fe.body import rigid_body_modes
-from pipeline.reduce.connection import make_interfaces
+from pipeline.reduce.interfaces import make_interfaces
 from pipeline.reduce.craig_bampton import craig_bampton
-from pipeline.reduce.ffrf import (craig_bampton_basis, ffrf_datasets, ffrf_invariants,
-                           free_free_basis)
+from pipeline.reduce.ffrf import craig_bampton_basis, ffrf_invariants, free_free_basis
+from pipeline.store.schema import ffrf_datasets
 from pipeline.solve.eigen import solve_modes
 
 L, H, W = 0.5, 0.02, 0.05

@@ -20,9 +20,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError
+from pipeline.store.schema import filter_datasets, filter_group_attrs
 from pipeline.reduce.filters import (
-    filter_datasets,
-    filter_group_attrs,
     filtered_model,
     first_order_filter,
     third_order_position_filter,
@@ -58,7 +57,8 @@ def K_of(cutoff_hz=CUTOFF_HZ):
 
 # --------------------------------------------------------------------------- filters alone
 def test_first_order_filter_alone():
-    A, B, C, D = first_order_filter(3, K_of())
+    f = first_order_filter(3, K_of())
+    A, B, C, D = f.A, f.B, f.C, f.D
     assert not np.any(D)
     assert np.allclose(ct.dcgain(ct.ss(A, B, C, D)), np.eye(3), rtol=1e-14, atol=1e-14)
     assert np.allclose(np.linalg.eigvals(A), -K_of(), rtol=1e-15)
@@ -72,12 +72,12 @@ def test_third_order_filter_alone():
     f = third_order_position_filter(n, K)
     assert f.A.shape == (6, 6) and f.B.shape == (6, 2) and f.C.shape == (6, 6)
     assert not np.any(f.D)
-    dc = ct.dcgain(ct.ss(*f))
+    dc = ct.dcgain(ss(f))
     # unit DC gain on the positions, zero static velocity and acceleration
     assert np.allclose(dc, np.vstack([np.eye(n), np.zeros((2 * n, n))]), rtol=0, atol=1e-12)
     # the transfer functions K^3/(s+K)^3 times 1, s, s^2 at a few frequencies
     for s in (0.3j * K, 1j * K, 1.0 + 7j * K):
-        H = ct.ss(*f)(s)
+        H = ss(f)(s)
         base = K**3 / (s + K) ** 3
         for k, factor in enumerate((1, s, s * s)):
             assert np.allclose(H[k * n:(k + 1) * n], factor * base * np.eye(n), rtol=1e-12)
@@ -96,11 +96,11 @@ def test_filtered_model_is_the_series_connection(plant, kind):
     assert f.state_names[:p.n_states] == p.state_names
     assert f.filter_kind == kind and f.cutoff_hz == CUTOFF_HZ
     if kind == "first_order":
-        ref = ct.series(ss(p), ct.ss(*first_order_filter(6, K_of())))
+        ref = ct.series(ss(p), ss(first_order_filter(6, K_of())))
         assert f.state_names[p.n_states:] == tuple(f"filter/{o}" for o in p.output_names)
     else:
         pos = ct.ss(p.A, p.B, p.C[:2], p.D[:2])
-        ref = ct.series(pos, ct.ss(*third_order_position_filter(2, K_of())))
+        ref = ct.series(pos, ss(third_order_position_filter(2, K_of())))
         assert f.state_names[p.n_states:p.n_states + 3] == (
             "filter/x_end/w", "filter/x_end/w_dot", "filter/x_end/w_ddot")
     assert f.n_states == p.n_states + 6

@@ -25,8 +25,8 @@ from pipeline.reduce.modal import (
     modal_statespace,
     reduce_model,
     static_compliance,
-    statespace_datasets,
 )
+from pipeline.store.schema import statespace_datasets
 
 L, H, W = 0.5, 0.02, 0.05  # m: the reference cantilever (METHODS section 1)
 E, NU, RHO = 69e9, 0.33, 2700.0

@@ -229,7 +229,7 @@ def test_residual_mass_not_positive_definite_is_refused():
 # --------------------------------------------------------------------------- memory
 def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatch):
     import pipeline.fe.assemble as assemble
-    import pipeline.fe.resources as resources
+    import pipeline._util.resources as resources
 
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: 200 * 2**20)
 
@@ -247,7 +247,7 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
 
 
 def test_cli_reports_a_mesh_too_big_with_exit_code_6(tmp_path):
-    code = ("import sys, pipeline.fe.resources as r; r.available_memory_bytes = lambda: 200 * 2**20;"
+    code = ("import sys, pipeline._util.resources as r; r.available_memory_bytes = lambda: 200 * 2**20;"
             "from pipeline.cli import main; sys.exit(main(sys.argv[1:]))")
     proc = subprocess.run([sys.executable, "-c", code, "-q", "run", str(CONFIG), "--set",
                            "mesh.size=0.02", "-o", str(tmp_path / "big.h5"), "--mesh-dir",
@@ -259,7 +259,7 @@ def test_cli_reports_a_mesh_too_big_with_exit_code_6(tmp_path):
 
 
 def test_memory_estimate_grows_with_the_mesh():
-    from pipeline.fe.resources import estimate_memory_bytes
+    from pipeline._util.resources import estimate_memory_bytes
 
     small = estimate_memory_bytes(1_000, 500, 2, 10)
     big = estimate_memory_bytes(1_000_000, 600_000, 2, 10)

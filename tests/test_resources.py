@@ -9,7 +9,7 @@ import numpy as np
 
 import pytest
 
-from pipeline.fe import resources
+from pipeline._util import resources
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ResourceError
 from pipeline.fe.space import build_space

@@ -28,7 +28,7 @@ from pipeline.fe.assemble import (assemble_blocks, block_pattern, mass_csr, rest
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
-from pipeline.fe.resources import check_memory
+from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
 log = logging.getLogger(__name__)

@@ -1,26 +1,39 @@
-"""Reduced-model stage: the modal state space (with its filtered twin) and the lumped
-chain, from the FE matrices and modes. Called by :func:`pipeline.run.run_pipeline`.
+"""Reduced-model stage: from the FE matrices and modes to the :class:`Models` record.
+Called by :func:`pipeline.run.run_pipeline`.
 
-Returns HDF5 datasets (``statespace``, ``statespace_filtered``, ``lumped``) and a short
-text summary for the CLI.
+:func:`build_models`: the modal state space (with its filtered twin) and the lumped
+chain; :func:`build_connection_models`: the connection-point model, Craig-Bampton, the
+floating-frame invariants and the FE matrices of the unsupported body. Both return a
+:class:`~pipeline.reduce.models.Models` record (with text summary lines for the CLI);
+:func:`pipeline.store.schema.models_tree` turns it into HDF5 datasets.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 
 from pipeline.config import Config
-from pipeline.store.tree import Dataset
+from pipeline.fe.ports import port_matrices
+from pipeline.reduce.connection import build_connection_model, effective_mass_table
+from pipeline.reduce.craig_bampton import build_craig_bampton
+from pipeline.reduce.ffrf import build_ffrf
+from pipeline.reduce.filters import filtered_model
+from pipeline.reduce.lumped import (box_section, comparison_table, format_comparison,
+                                    lumped_model)
+from pipeline.reduce.modal import DampingSpec, reduce_model
+from pipeline.reduce.models import Models
+from pipeline.solve.factorize import factorize
 
 log = logging.getLogger(__name__)
 
+__all__ = ["Models", "build_models", "build_statespace", "build_lumped",
+           "build_connection_models"]
 
-def _damping_spec(cfg: Config):
-    from pipeline.reduce.modal import DampingSpec
 
+def _damping_spec(cfg: Config) -> DampingSpec:
     d = cfg.damping
     if d.kind == "uniform":
         return DampingSpec("uniform", ratio=d.ratio)
@@ -34,20 +47,15 @@ def _factorize(backend: str, solve=None):
     factorisation of this K, owned and freed by the caller), else a new factorisation."""
     if solve is not None:
         return lambda K: solve
-    from pipeline.solve.factorize import factorize
-
     return lambda K: factorize(K, backend, positive_definite=True).solve
 
 
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
-    """The reduced model (pipeline.reduce.modal.ReducedModel) and its filtered twin.
+    """The ports, the reduced model (pipeline.reduce.modal.ReducedModel) and its filtered
+    twin (None without a filter).
 
     ``solve``: b -> K^-1 b for this K; default: the factorisation the modes stage kept
     (``modes.solve``), else K is factorised here."""
-    from pipeline.reduce.filters import filtered_model
-    from pipeline.fe.ports import port_matrices
-    from pipeline.reduce.modal import reduce_model
-
     ports = port_matrices(space, regions, cfg.ports)
     F = ports.F[free].toarray()
     T = ports.T[:, free]
@@ -69,32 +77,20 @@ def _compliance_units(ports) -> str:
 
 
 def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=None,
-                 solve=None
-                 ) -> tuple[dict[str, Dataset], dict[str, dict[str, Any]], dict[str, Any]]:
-    """All configured reduced models: (datasets, group attributes, extras for the CLI).
+                 solve=None) -> Models:
+    """All configured reduced models of ``cfg.reduction`` and ``cfg.lumped``.
 
     ``solve``: b -> K^-1 b for this K, see :func:`build_statespace`."""
-    tree: dict[str, Dataset] = {}
-    attrs: dict[str, dict[str, Any]] = {}
+    fields: dict = {}
     summary: list[str] = []
-    extras: dict[str, Any] = {"summary": summary}
     fe_deflection = None
     if cfg.reduction is not None:
-        from pipeline.reduce.filters import filter_datasets, filter_group_attrs
-        from pipeline.reduce.modal import statespace_datasets
-
         ports, reduced, filtered = build_statespace(cfg, space, regions, K, M, free, modes,
                                                      solve)
-        tree.update(statespace_datasets(reduced, "statespace", _compliance_units(ports)))
-        attrs["statespace"] = {"static_correction": reduced.static_correction,
-                               "n_modes": reduced.n_modes, "n_basis": reduced.n_basis,
-                               "input_units": list(ports.input_units),
-                               "output_units": list(ports.output_units)}
-        if filtered is not None:
-            tree.update(filter_datasets(filtered, cfg.filter.kind, cfg.filter.cutoff_hz))
-            attrs.update(filter_group_attrs(cfg.filter.kind, cfg.filter.cutoff_hz))
-        extras["reduced"] = reduced
-        extras["filtered"] = filtered
+        fields.update(reduced=reduced, filtered=filtered,
+                      input_units=tuple(ports.input_units),
+                      output_units=tuple(ports.output_units),
+                      compliance_units=_compliance_units(ports))
         exact = reduced.static_compliance
         dc = reduced.dc_gain_position if exact is not None else None
         summary.append(f"reduced model: {reduced.n_modes} modes ({reduced.n_basis} basis "
@@ -118,18 +114,15 @@ def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=N
             if abs(abs(cos) - 1) < 1e-12:
                 fe_deflection = float(exact[0, 0] * cos)
     if cfg.lumped is not None:
-        tree_l, attrs_l, lines = build_lumped(cfg, modes, labels, fe_deflection)
-        tree.update(tree_l)
-        attrs.update(attrs_l)
+        lumped, rows, lines = build_lumped(cfg, modes, labels, fe_deflection)
+        fields.update(lumped=lumped, comparison=tuple(rows))
         summary.extend(lines)
-    return tree, attrs, extras
+    return Models(**fields, summary=tuple(summary))
 
 
 def build_lumped(cfg: Config, modes, labels, fe_deflection):
-    """The lumped chain of ``cfg.lumped`` and its comparison with FE and beam theory."""
-    from pipeline.reduce.lumped import (box_section, comparison_table, format_comparison, lumped_datasets,
-                         lumped_group_attrs, lumped_model)
-
+    """The lumped chain of ``cfg.lumped``, its comparison rows with FE and beam theory,
+    and the summary lines."""
     g, mat = cfg.geometry, cfg.material
     section = box_section(g.height, g.depth, centroid=(g.height / 2, g.depth / 2))
     d_in, d_out = (0.0, -1.0, 0.0), (0.0, 1.0, 0.0)
@@ -151,42 +144,34 @@ def build_lumped(cfg: Config, modes, labels, fe_deflection):
     lines = [f"lumped chain: {cfg.lumped.elements} elements, {cfg.lumped.constants} constants; "
              "x-y bending, 1 N tip force:"]
     lines += ["  " + line for line in format_comparison(rows).splitlines()]
-    return lumped_datasets(model, rows), lumped_group_attrs(model), lines
+    return model, rows, lines
 
 
-def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, shapes
-                            ) -> tuple[dict[str, Dataset], list[str]]:
+def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, shapes,
+                            models: Models | None = None) -> Models:
     """Connection-point (6x6) model, Craig-Bampton (``craig_bampton.modes`` > 0), the
-    floating-frame invariants and the FE matrices Exudyn needs, for ``cfg.connections``.
+    floating-frame invariants and the FE matrices Exudyn needs, for ``cfg.connections``:
+    ``models`` (default empty) with those fields set and the summary lines appended.
 
     K_full, M_full: matrices of the unsupported body (n_dofs x n_dofs).
     shapes: (n_points, 3, n_m) modes of the run (used for the invariants without CB).
     """
-    from pipeline.reduce.connection import build_connection_model, effective_mass_table
-    from pipeline.apps.exports.exudyn import exudyn_datasets
-    from pipeline.reduce.ffrf import build_ffrf
-
-    tree: dict[str, Dataset] = {}
-    model, _, conn_tree = build_connection_model(
+    models = models if models is not None else Models()
+    model, ss = build_connection_model(
         space, regions, K_full, M_full, cfg.connections, cfg.modes.count,
         damping=_damping_spec(cfg), backend=cfg.modes.solver)
-    tree.update(conn_tree)
     parent = cfg.connections[0]
     lines = [f"connection point '{parent.name}' at {list(parent.point)} ({parent.coupling}): "
              "effective modal masses (kg, kg m^2) and cumulative fractions"]
     lines += ["  " + line for line in effective_mass_table(model, cfg.modes.count)]
     cb = None
     if cfg.craig_bampton_modes > 0:
-        from pipeline.reduce.craig_bampton import build_craig_bampton
-
-        cb, cb_tree = build_craig_bampton(space, regions, K_full, M_full, cfg.connections,
-                                          cfg.craig_bampton_modes, backend=cfg.modes.solver)
-        tree.update(cb_tree)
+        cb = build_craig_bampton(space, regions, K_full, M_full, cfg.connections,
+                                 cfg.craig_bampton_modes, backend=cfg.modes.solver)
         lines.append(f"Craig-Bampton: {len(cfg.connections)} interface(s), "
                      f"{cfg.craig_bampton_modes} fixed-interface modes")
-    _, ffrf_tree = build_ffrf(M_full, K_full, space.node_points, cb=cb, shapes=shapes,
-                              omega2=modes.omega2, n_rigid=modes.n_rigid,
-                              supported=bool(cfg.supports))
-    tree.update(ffrf_tree)
-    tree.update(exudyn_datasets(K_full, M_full))
-    return tree, lines
+    inv = build_ffrf(M_full, K_full, space.node_points, cb=cb, shapes=shapes,
+                     omega2=modes.omega2, n_rigid=modes.n_rigid, supported=bool(cfg.supports))
+    return replace(models, connection=model, connection_statespace=ss, craig_bampton=cb,
+                   ffrf=inv, fe_matrices=(K_full, M_full),
+                   summary=models.summary + tuple(lines))

@@ -1,35 +1,11 @@
-"""Connection points of a flexible body: rigid-body properties at a point, interface
-couplings (RBE2 / RBE3) and the hybrid-cantilever (6x6) model of METHODS section 5.
+"""Connection points of a flexible body: the hybrid-cantilever (6x6) model of METHODS
+section 5 at a parent point, with optional child points.
 
-Notation (SI; twist order [v; omega], wrench order [F; T]):
+Notation (SI; twist order [v; omega], wrench order [F; T]; ``R_P``, ``D_P``): as in
+:mod:`pipeline.reduce.interfaces`.
 
-- ``R_P`` (n_dofs x 6): nodal displacements of the whole body for a unit twist at P,
-  node j at x_j gets [I_3, -skew(x_j - P)] (:func:`pipeline.fe.body.rigid_body_modes`).
-- ``D_P = R_P^T M R_P`` (6 x 6): rigid-body mass matrix at P, equal to
-  ``tau_GP^T diag(m I_3, I_G) tau_GP`` with ``tau_GP = [[I_3, skew(P - G)], [0, I_3]]``
-  (moves a twist from P to G).
-
-Interfaces
-----------
-An interface ties the nodes of a named boundary region to a point with six DOFs q
-(a twist-like displacement [u_P; theta_P]):
-
-- ``rigid`` (RBE2): every region node follows the point rigidly, u_r = R_r q. The
-  region becomes a rigid patch (it stiffens the body locally).
-- ``distributing`` (RBE3): the point moves with the weighted least-squares rigid fit of
-  the region, q = G u_r with G = (R_r^T W R_r)^-1 R_r^T W, W the consistent area
-  weights of the nodes (:func:`pipeline.fe.space.surface_region`). The region keeps
-  deforming freely; only these six averages are tied. A wrench at P reaches the nodes
-  as f_r = G^T [F; T] (the classic RBE3 load distribution). G R_r = I_6.
-
-Both are written as one change of coordinates s = T [z; q_1; ...; q_k] of the body's
-DOFs s (:func:`interface_transformation`): N (columns for z) spans the motions with
-every interface point fixed, and E_k = R_k on the rows of region k (zero elsewhere) is
-a particular motion for a unit q_k. For RBE2, N keeps the DOFs outside the regions
-(the region DOFs are eliminated); for RBE3, N also keeps the region DOFs but for six
-per region, which are eliminated by the six constraints G_k u_r = 0 (chosen by a
-column-pivoted QR of G_k, so they are well conditioned). The clamped problem at the
-points is then K_c = N^T K N, M_c = N^T M N.
+Interfaces (RBE2 / RBE3 couplings, the clamping change of coordinates) are built by
+:mod:`pipeline.reduce.interfaces`.
 
 Hybrid-cantilever model (one parent point P, optional child points C_k)
 -----------------------------------------------------------------------
@@ -73,291 +49,27 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from pipeline.fe.body import rigid_body_modes, skew
+from pipeline.fe.body import rigid_body_modes
 from pipeline.errors import RegionError, SolverError
-from pipeline.store.tree import Dataset
+from pipeline.reduce.interfaces import (DIRECTIONS, Interface, RigidProperties,
+                                        check_interfaces, interface_transformation,
+                                        make_interfaces, project, rigid_properties_at,
+                                        twist_transform)
+from pipeline.reduce.statespace import StateSpace
+from pipeline.solve import eigen  # module: solve_modes is looked up at call time
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "COUPLINGS",
-    "DIRECTIONS",
-    "RigidProperties",
-    "rigid_properties_at",
-    "twist_transform",
-    "Interface",
-    "make_interface",
-    "make_interfaces",
-    "check_interface",
-    "check_interfaces",
     "clamped_modes",
     "connection_model_from_modes",
     "check_residual_mass",
-    "InterfaceTransformation",
-    "interface_transformation",
     "ConnectionModel",
     "connection_model",
-    "ConnectionStateSpace",
     "connection_statespace",
-    "connection_datasets",
-    "connections_datasets",
     "effective_mass_table",
     "build_connection_model",
 ]
-
-COUPLINGS = ("rigid", "distributing")
-#: names of the six components of a twist / wrench at a point
-DIRECTIONS = ("x", "y", "z", "rx", "ry", "rz")
-TWIST_UNITS_BLOCKS = "kg | kg m ; kg m | kg m^2"
-
-#: relative tolerance on the smallest eigenvalue of the (dimensionless) rigid-fit matrix of a
-#: region below which the region cannot carry six DOFs (its nodes lie on a line or a point).
-RANK_TOL = 1e-8
-
-
-# --------------------------------------------------------------------------- rigid body
-@dataclass(frozen=True)
-class RigidProperties:
-    """Rigid-body properties of the body about a point P.
-
-    mass (kg); center_of_mass G (3,) m; inertia_G (3, 3) kg m^2 about G; point P (3,) m;
-    inertia_P (3, 3) kg m^2 about P; D_P (6, 6) = R_P^T M R_P (blocks kg | kg m; kg m |
-    kg m^2), twist order [v; omega].
-    """
-
-    mass: float
-    center_of_mass: np.ndarray
-    inertia_G: np.ndarray
-    point: np.ndarray
-    inertia_P: np.ndarray
-    D_P: np.ndarray
-
-
-def twist_transform(from_point, to_point) -> np.ndarray:
-    """tau (6, 6) moving a twist [v; omega] from ``from_point`` A to ``to_point`` B:
-    v_B = v_A + omega x (B - A), i.e. tau = [[I, skew(A - B)], [0, I]].
-
-    ``twist_transform(P, G)`` is METHODS' tau_GP. Its transpose moves a wrench from B to A.
-    """
-    a = np.asarray(from_point, dtype=float)
-    b = np.asarray(to_point, dtype=float)
-    tau = np.eye(6)
-    tau[0:3, 3:6] = skew(a - b)
-    return tau
-
-
-def rigid_properties_at(M_full: sp.spmatrix, node_points: np.ndarray, point) -> RigidProperties:
-    """Mass, centre of mass, inertia at G and at ``point`` from the full (unsupported) mass
-    matrix ``M_full`` (n_dofs x n_dofs, kg) and the node coordinates (n_nodes, 3) m.
-
-    D_P = R_P^T M R_P directly; m, G and I_G are read off it (the translational-rotational
-    block of D_P is -m skew(G - P)).
-    """
-    P = np.asarray(point, dtype=float).reshape(3)
-    R = rigid_body_modes(node_points, P)
-    D = R.T @ (M_full @ R)
-    D = 0.5 * (D + D.T)
-    m = float(D[0, 0])
-    if not m > 0:
-        raise SolverError(f"rigid_properties_at: mass from R^T M R is {m:.6g} kg, expected > 0")
-    S = -D[0:3, 3:6] / m  # skew(G - P)
-    g = P + np.array([S[2, 1], S[0, 2], S[1, 0]])
-    I_P = D[3:6, 3:6]
-    d = g - P
-    I_G = I_P - m * (d @ d * np.eye(3) - np.outer(d, d))
-    return RigidProperties(m, g, 0.5 * (I_G + I_G.T), P, I_P.copy(), D)
-
-
-# --------------------------------------------------------------------------- interfaces
-@dataclass(frozen=True)
-class Interface:
-    """A region tied to a point with six DOFs.
-
-    name: the connection / interface name; region: the region name; point (3,) m;
-    coupling: ``rigid`` (RBE2) or ``distributing`` (RBE3); nodes (n_r,) node indices of
-    the region; weights (n_r,) m^2 consistent area weights (RBE3 weighting; zero for P2
-    corner nodes of flat faces).
-    """
-
-    name: str
-    region: str
-    point: np.ndarray
-    coupling: str
-    nodes: np.ndarray
-    weights: np.ndarray
-
-    @property
-    def coordinate_names(self) -> tuple[str, ...]:
-        return tuple(f"{self.name}.{d}" for d in DIRECTIONS)
-
-    def fit_weights(self) -> np.ndarray:
-        """Node weights of the rigid fit: 1 per node (RBE2), area weights (RBE3)."""
-        return np.ones(self.nodes.size) if self.coupling == "rigid" else self.weights
-
-
-def check_interface(iface: Interface, node_points: np.ndarray, key: str) -> None:
-    """Refuse a region whose (weighted) nodes cannot carry 3 translations and 3 rotations."""
-    w = iface.fit_weights()
-    used = w > 0
-    n_used = int(used.sum())
-    x = node_points[iface.nodes[used]]
-    if n_used >= 3:
-        c = (w[used, None] * x).sum(0) / w[used].sum()
-        r = x - c
-        scale = np.sqrt((w[used] * (r * r).sum(1)).sum() / w[used].sum())
-        if scale > 0:
-            R = rigid_body_modes(r / scale)  # dimensionless rigid fit about the centroid
-            A = R.T @ (np.repeat(w[used] / w[used].sum(), 3)[:, None] * R)
-            eig = np.linalg.eigvalsh(0.5 * (A + A.T))
-            if eig[0] > RANK_TOL * eig[-1]:
-                return
-    raise RegionError(
-        f"{key}: region '{iface.region}' cannot carry the six DOFs of interface "
-        f"'{iface.name}' ({iface.coupling} coupling): its {n_used} "
-        f"{'weighted ' if iface.coupling == 'distributing' else ''}node(s) lie on a point "
-        "or a line; expected a surface region with at least three non-collinear nodes")
-
-
-def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: str,
-                   point, coupling: str = "rigid", key: str | None = None) -> Interface:
-    """Resolve one interface on a region of ``space`` and check it carries six DOFs.
-
-    ``regions``: the name -> boundary triangles mapping of
-    :func:`pipeline.fe.regions.resolve_regions`. ``key`` names the config entry in messages
-    (default ``connections.<name>``). Raises RegionError naming the region.
-    """
-    from pipeline.fe.space import region_nodes, surface_region
-    from pipeline.fe.regions import get_region
-
-    key = key or f"connections.{name}"
-    if coupling not in COUPLINGS:
-        raise RegionError(f"{key}.coupling: got {coupling!r}, expected one of "
-                          f"{', '.join(COUPLINGS)}")
-    tris = get_region(regions, region, f"{key}.region")
-    sr = surface_region(space, region, tris)  # P2: edge nodes only (corners weigh 0)
-    nodes = np.unique(region_nodes(space, tris)).astype(np.int64)
-    weights = np.zeros(nodes.size)
-    weights[np.searchsorted(nodes, sr.nodes)] = sr.weights
-    iface = Interface(name, region, np.asarray(point, dtype=float).reshape(3), coupling,
-                      nodes, weights)
-    check_interface(iface, space.node_points, key)
-    return iface
-
-
-def check_interfaces(interfaces: Sequence[Interface], key: str = "connections") -> None:
-    """Refuse overlapping interfaces (a node tied to two points) and duplicate names,
-    before any solve. Raises RegionError naming both regions."""
-    seen: dict[str, int] = {}
-    for i, a in enumerate(interfaces):
-        if a.name in seen:
-            raise RegionError(f"{key}[{i}].name: interface name '{a.name}' is used twice")
-        seen[a.name] = i
-        for j in range(i):
-            b = interfaces[j]
-            common = np.intersect1d(a.nodes, b.nodes)
-            if common.size:
-                what = ("is the same region as" if a.region == b.region else "overlaps")
-                raise RegionError(
-                    f"{key}[{i}].region: region '{a.region}' (interface '{a.name}') {what} "
-                    f"region '{b.region}' (interface '{b.name}'): {common.size} node(s) in "
-                    "common; expected disjoint interface regions (a node can be tied to one "
-                    "point only)")
-
-
-def make_interfaces(space, regions: Mapping[str, np.ndarray], connections: Sequence[Any],
-                    key: str = "connections") -> list[Interface]:
-    """Interfaces for config records with ``name``, ``region``, ``point``, ``coupling``
-    (:class:`pipeline.config.Connection`), checked one by one and for overlaps."""
-    out = [make_interface(space, regions, c.name, c.region, c.point,
-                          getattr(c, "coupling", "rigid"), key=f"{key}[{i}]")
-           for i, c in enumerate(connections)]
-    check_interfaces(out, key)
-    return out
-
-
-# --------------------------------------------------------------------------- transformation
-@dataclass(frozen=True)
-class InterfaceTransformation:
-    """s = T [z; q_1; ...; q_k] (see the module docstring).
-
-    T: (n_dofs x (n_z + 6 k)) sparse CSC; n_z: number of interior coordinates z;
-    interfaces: in the order of the q blocks. ``q_slice(k)`` gives the columns of q_k.
-    """
-
-    T: sp.csc_matrix
-    n_z: int
-    interfaces: tuple[Interface, ...]
-
-    def q_slice(self, k: int) -> slice:
-        return slice(self.n_z + 6 * k, self.n_z + 6 * (k + 1))
-
-    @property
-    def N(self) -> sp.csc_matrix:
-        return self.T[:, : self.n_z]
-
-    @property
-    def E(self) -> sp.csc_matrix:
-        return self.T[:, self.n_z:]
-
-
-def rbe3_matrix(iface: Interface, node_points: np.ndarray) -> np.ndarray:
-    """G (6 x 3 n_r): q = G u_r, the weighted least-squares rigid fit of the region at the
-    interface point (G R_r = I_6)."""
-    R = rigid_body_modes(node_points[iface.nodes], iface.point)
-    w = np.repeat(iface.weights, 3)
-    A = R.T @ (w[:, None] * R)
-    return np.linalg.solve(A, R.T * w)
-
-
-def interface_transformation(n_dofs: int, node_points: np.ndarray,
-                             interfaces: Sequence[Interface]) -> InterfaceTransformation:
-    """The coordinates [z; q_1..q_k] of the body with ``interfaces`` (checked disjoint)."""
-    interfaces = tuple(interfaces)
-    region_dof_mask = np.zeros(n_dofs, dtype=bool)
-    rows_e, cols_e, vals_e = [], [], []
-    dependent = []  # (dofs (6,), X (6 x n_o), independent dofs (n_o,)) per RBE3 region
-    for k, iface in enumerate(interfaces):
-        dofs = (3 * iface.nodes[:, None] + np.arange(3)).ravel()
-        region_dof_mask[dofs] = True
-        R = rigid_body_modes(node_points[iface.nodes], iface.point)
-        r, c = np.nonzero(R)
-        rows_e.append(dofs[r])
-        cols_e.append(6 * k + c)
-        vals_e.append(R[r, c])
-        if iface.coupling == "distributing":
-            G = rbe3_matrix(iface, node_points)
-            _, _, piv = sla.qr(G, mode="economic", pivoting=True)
-            d_local, o_local = piv[:6], np.sort(piv[6:])
-            X = -np.linalg.solve(G[:, d_local], G[:, o_local])  # u_d = X u_o
-            dependent.append((dofs[d_local], X, dofs[o_local]))
-    keep = np.flatnonzero(~region_dof_mask)
-    for _, _, o_dofs in dependent:
-        keep = np.concatenate([keep, o_dofs])
-    keep = np.sort(keep)
-    n_z = keep.size
-    col_of = np.full(n_dofs, -1, dtype=np.int64)
-    col_of[keep] = np.arange(n_z)
-    rows = [keep]
-    cols = [np.arange(n_z)]
-    vals = [np.ones(n_z)]
-    for d_dofs, X, o_dofs in dependent:
-        rr, cc = np.nonzero(X)
-        rows.append(d_dofs[rr])
-        cols.append(col_of[o_dofs[cc]])
-        vals.append(X[rr, cc])
-    for r, c, v in zip(rows_e, cols_e, vals_e):
-        rows.append(r)
-        cols.append(n_z + c)
-        vals.append(v)
-    T = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(n_dofs, n_z + 6 * len(interfaces)))
-    return InterfaceTransformation(T, n_z, interfaces)
-
-
-def project(A: sp.spmatrix, T: sp.spmatrix) -> sp.csr_matrix:
-    """T^T A T, symmetrised (sparse)."""
-    B = (T.T @ (A @ T)).tocsr()
-    return ((B + B.T) * 0.5).tocsr()
 
 
 # --------------------------------------------------------------------------- 6x6 model
@@ -446,11 +158,9 @@ def clamped_modes(K: sp.spmatrix, M: sp.spmatrix, n_modes: int | None, backend: 
         res = np.linalg.norm(Kd @ V - (Md @ V) * w, axis=0) / np.maximum(
             np.linalg.norm(Kd @ V, axis=0), 1e-300)
         return w, V, res
-    from pipeline.solve.eigen import solve_modes
-
     if n_modes is None:
         raise SolverError("n_modes=None (every mode) needs backend='dense'")
-    modes = solve_modes(K, M, n_modes, supported=True, backend=backend, tolerance=tolerance)
+    modes = eigen.solve_modes(K, M, n_modes, supported=True, backend=backend, tolerance=tolerance)
     return modes.omega2, modes.shapes, modes.residuals
 
 
@@ -509,32 +219,6 @@ def connection_model_from_modes(parent: Interface, node_points: np.ndarray, M_fu
 
 
 # --------------------------------------------------------------------------- state space
-@dataclass(frozen=True)
-class ConnectionStateSpace:
-    """x' = A x + B u, y = C x + D u; u = [a_P; W_1; ...], y = [W_P; a_1; ...],
-    x = [eta; eta'] (eta in m kg^1/2). Units per name in input_units / output_units."""
-
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    state_names: tuple[str, ...]
-    input_units: tuple[str, ...]
-    output_units: tuple[str, ...]
-    damping_ratio: np.ndarray
-
-    def frequency_response(self, s: complex) -> np.ndarray:
-        """G(s) = C (s I - A)^-1 B + D."""
-        n = self.A.shape[0]
-        return self.C @ np.linalg.solve(s * np.eye(n) - self.A, self.B) + self.D
-
-    def dc_gain(self) -> np.ndarray:
-        """G(0) = D - C A^-1 B."""
-        return self.D - self.C @ np.linalg.solve(self.A, self.B)
-
-
 ACC_UNITS = ("m/s^2",) * 3 + ("rad/s^2",) * 3
 WRENCH_UNITS = ("N",) * 3 + ("N m",) * 3
 ACC_NAMES = ("ax", "ay", "az", "alpha_x", "alpha_y", "alpha_z")
@@ -548,8 +232,11 @@ def _xi(damping_ratio, n: int) -> np.ndarray:
     return xi
 
 
-def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> ConnectionStateSpace:
-    """The 6(1 + n_c)-input, 6(1 + n_c)-output model of the module docstring.
+def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> StateSpace:
+    """The 6(1 + n_c)-input, 6(1 + n_c)-output model of the module docstring, a
+    :class:`StateSpace` labelled ``"connection"``: u = [a_P; W_1; ...], y = [W_P; a_1; ...],
+    x = [eta; eta'] (eta in m kg^1/2), units per name in ``input_units`` /
+    ``output_units``; ``attrs["damping_ratio"]`` holds the (n,) modal damping ratios.
 
     ``damping_ratio``: one ratio for every clamped mode, or one per mode.
     """
@@ -574,11 +261,13 @@ def connection_statespace(model: ConnectionModel, damping_ratio=0.0) -> Connecti
         in_units += WRENCH_UNITS
         out_units += ACC_UNITS
     states = [f"eta_{i + 1}" for i in range(n)] + [f"eta_{i + 1}_dot" for i in range(n)]
-    return ConnectionStateSpace(A, B, C, D, tuple(in_names), tuple(out_names), tuple(states),
-                                tuple(in_units), tuple(out_units), xi)
+    return StateSpace(A, B, C, D, input_names=tuple(in_names), output_names=tuple(out_names),
+                      state_names=tuple(states), input_units=tuple(in_units),
+                      output_units=tuple(out_units), label="connection",
+                      attrs={"damping_ratio": xi})
 
 
-# --------------------------------------------------------------------------- HDF5
+# --------------------------------------------------------------------------- tables
 def effective_mass_table(model: ConnectionModel, count: int | None = None,
                          labels: Sequence[str] | None = None) -> list[str]:
     """Text table: frequency, effective masses and cumulative fractions per direction."""
@@ -598,87 +287,6 @@ def effective_mass_table(model: ConnectionModel, count: int | None = None,
     return lines
 
 
-def connection_datasets(model: ConnectionModel, ss: ConnectionStateSpace | None = None,
-                        group: str | None = None, include_shapes: bool = False
-                        ) -> dict[str, Dataset]:
-    """HDF5 datasets of one connection model, keyed ``"<group>/<name>"`` with group
-    ``connections/<parent name>`` by default (see docs/hdf5-connection.md)."""
-    p = model.parent
-    g = group or f"connections/{p.name}"
-    blocks = {"units_blocks": TWIST_UNITS_BLOCKS, "order": list(DIRECTIONS)}
-    tree = {
-        f"{g}/point": Dataset(p.point, "m", "connection point P",
-                              {"region": p.region, "coupling": p.coupling}),
-        f"{g}/region_nodes": Dataset(p.nodes, "1", "nodes of the region tied to P"),
-        f"{g}/mass": Dataset(np.float64(model.rigid.mass), "kg", "body mass from R_P^T M R_P"),
-        f"{g}/center_of_mass": Dataset(model.rigid.center_of_mass, "m", "centre of mass G"),
-        f"{g}/inertia_G": Dataset(model.rigid.inertia_G, "kg m^2", "inertia about G"),
-        f"{g}/inertia_P": Dataset(model.rigid.inertia_P, "kg m^2", "inertia about P"),
-        f"{g}/D_P": Dataset(model.D_P, "mixed", "rigid-body mass matrix at P, R_P^T M R_P "
-                            "= tau_GP^T diag(m I, I_G) tau_GP, twist order [v; omega]", blocks),
-        f"{g}/L_P": Dataset(model.L_P, "mixed", "modal participation factors Phi_c^T M R_P "
-                            "(clamped modes x 6)", {"units_columns": "kg^1/2 (x,y,z) | "
-                                                    "kg^1/2 m (rx,ry,rz)",
-                                                    "columns": list(DIRECTIONS)}),
-        f"{g}/D_P0": Dataset(model.D_P0, "mixed", "residual mass D_P - L_P^T L_P "
-                             "(symmetric positive definite)", blocks),
-        f"{g}/omega": Dataset(np.sqrt(np.maximum(model.omega2, 0.0)), "rad/s",
-                              "circular frequencies of the modes clamped at P"),
-        f"{g}/frequencies_hz": Dataset(model.frequencies_hz, "Hz",
-                                       "frequencies of the modes clamped at P"),
-        f"{g}/effective_mass": Dataset(model.effective_mass, "mixed",
-                                       "effective modal mass L_P[i, d]^2 per mode and direction",
-                                       {"units_columns": "kg (x,y,z) | kg m^2 (rx,ry,rz about P)",
-                                        "columns": list(DIRECTIONS)}),
-        f"{g}/effective_mass_cumulative_fraction": Dataset(
-            model.effective_mass_cumulative_fraction, "1",
-            "cumulative effective mass of modes 1..i divided by diag(D_P)",
-            {"columns": list(DIRECTIONS)}),
-    }
-    if model.children:
-        tree[f"{g}/child_names"] = Dataset([c.name for c in model.children], "",
-                                           "child connection points, in input/output order")
-        tree[f"{g}/child_points"] = Dataset(np.array([c.point for c in model.children]), "m",
-                                            "child points C_k")
-        tree[f"{g}/tau_C"] = Dataset(model.tau_C, "mixed", "twist transport P -> C_k, "
-                                     "stacked (6 n_c x 6)", {"units_blocks": "1 | m ; 0 | 1"})
-        tree[f"{g}/Phi_C"] = Dataset(model.Phi_C, "mixed", "clamped modes at the child "
-                                     "coordinates (6 n_c x N)",
-                                     {"units_rows": "m kg^-1/2 | rad kg^-1/2"})
-    if include_shapes:
-        n_nodes = model.shapes.shape[0] // 3
-        tree[f"{g}/shapes"] = Dataset(model.shapes.reshape(n_nodes, 3, -1), "kg^-1/2",
-                                      "M-orthonormal modes clamped at P, (n_points, 3, N)")
-    if ss is not None:
-        s = f"{g}/statespace"
-        note = {"units_note": "inputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                                     zip(ss.input_names, ss.input_units))
-                + "; outputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                           zip(ss.output_names, ss.output_units))
-                + "; states eta [m kg^1/2], eta_dot [m kg^1/2 / s]"}
-        tree.update({
-            f"{g}/damping_ratio": Dataset(ss.damping_ratio, "1", "modal damping ratio xi_i"),
-            f"{s}/A": Dataset(ss.A, "mixed", "state matrix of x' = A x + B u, x = [eta; eta']",
-                              note),
-            f"{s}/B": Dataset(ss.B, "mixed", "input matrix: inputs [a_P; W_children]", note),
-            f"{s}/C": Dataset(ss.C, "mixed", "output matrix: outputs [W_P; a_children]", note),
-            f"{s}/D": Dataset(ss.D, "mixed", "feedthrough; top-left block D_P0", note),
-            f"{s}/input_names": Dataset(list(ss.input_names), "", "name of each input"),
-            f"{s}/input_units": Dataset(list(ss.input_units), "", "SI unit of each input"),
-            f"{s}/output_names": Dataset(list(ss.output_names), "", "name of each output"),
-            f"{s}/output_units": Dataset(list(ss.output_units), "", "SI unit of each output"),
-            f"{s}/state_names": Dataset(list(ss.state_names), "", "name of each state"),
-        })
-    return tree
-
-
-def connections_datasets(model: ConnectionModel, damping_ratio=0.0,
-                         include_shapes: bool = False) -> dict[str, Dataset]:
-    """:func:`connection_datasets` with its state space built at ``damping_ratio``."""
-    return connection_datasets(model, connection_statespace(model, damping_ratio),
-                               include_shapes=include_shapes)
-
-
 # --------------------------------------------------------------------------- one call
 def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
     """Damping ratios at ``omega2``: a number, a per-mode sequence, or an object with
@@ -690,16 +298,17 @@ def _ratios(damping, omega2: np.ndarray) -> np.ndarray:
 
 def build_connection_model(space, regions: Mapping[str, np.ndarray], K_full: sp.spmatrix,
                            M_full: sp.spmatrix, connections: Sequence[Any], n_modes: int,
-                           damping=0.0, backend: str = "auto", include_shapes: bool = False
-                           ) -> tuple[ConnectionModel, ConnectionStateSpace, dict[str, Dataset]]:
+                           damping=0.0, backend: str = "auto"
+                           ) -> tuple[ConnectionModel, StateSpace]:
     """Everything for ``/connections/<parent>``, in one call.
 
     ``connections``: the config's records (name, region, point, coupling); the first is
     the parent point P, the others child points. ``K_full``, ``M_full``: assembled
     matrices of the unsupported body. ``damping``: a ratio, one per mode, or a
-    :class:`pipeline.reduce.modal.DampingSpec`. Returns (model, state space, datasets).
+    :class:`pipeline.reduce.modal.DampingSpec`. Returns (model, state space); the datasets
+    are :func:`pipeline.store.schema.connection_datasets`.
     """
     interfaces = make_interfaces(space, regions, connections)
     model = connection_model(space, K_full, M_full, interfaces, n_modes, backend=backend)
     ss = connection_statespace(model, _ratios(damping, model.omega2))
-    return model, ss, connection_datasets(model, ss, include_shapes=include_shapes)
+    return model, ss

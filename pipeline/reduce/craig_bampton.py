@@ -22,7 +22,7 @@ the interface point, and the fixed-interface modes are the modes clamped there. 
 free body (no support), K_bb has six zero eigenvalues (the rigid motions) and the
 lowest nonzero eigenvalues of (K_cb, M_cb) approximate the free-free modes.
 
-Interface sets are checked before any solve (:func:`pipeline.reduce.connection.make_interfaces`):
+Interface sets are checked before any solve (:func:`pipeline.reduce.interfaces.make_interfaces`):
 a region that cannot carry six DOFs, or two interfaces sharing nodes, raise RegionError
 naming the region.
 """
@@ -37,14 +37,15 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from pipeline.reduce.connection import (DIRECTIONS, Interface, check_interfaces, interface_transformation,
-                         project)
 from pipeline.errors import RegionError
-from pipeline.store.tree import Dataset
+from pipeline.reduce import connection  # module, so clamped_modes is looked up at call time
+from pipeline.reduce.interfaces import (DIRECTIONS, Interface, check_interfaces,
+                                        interface_transformation, make_interfaces, project)
+from pipeline.solve.factorize import factorize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CraigBamptonModel", "craig_bampton", "craig_bampton_datasets", "build_craig_bampton"]
+__all__ = ["CraigBamptonModel", "craig_bampton", "build_craig_bampton"]
 
 COORD_UNITS = {"x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad"}
 MODAL_UNITS = "m kg^1/2"
@@ -119,13 +120,10 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
 
     ``space``: the FESpace (or the node coordinates (n_nodes, 3)). ``K_full``, ``M_full``:
     (n_dofs x n_dofs) matrices of the UNSUPPORTED body (before support condensation).
-    ``interfaces``: from :func:`pipeline.reduce.connection.make_interfaces` (at least one).
+    ``interfaces``: from :func:`pipeline.reduce.interfaces.make_interfaces` (at least one).
     ``backend``: auto | pardiso | superlu (shift-invert eigsh), or ``dense`` for small
     models (``n_modes=None`` then keeps every fixed-interface mode).
     """
-    from pipeline.reduce.connection import clamped_modes
-    from pipeline.solve.factorize import factorize
-
     interfaces = tuple(interfaces)
     if not interfaces:
         raise RegionError("craig_bampton: expected at least one interface (connections)")
@@ -137,7 +135,7 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Kt = project(K_full, tr.T)
     Mt = project(M_full, tr.T)
     Kzz, Mzz = Kt[:nz, :nz].tocsr(), Mt[:nz, :nz].tocsr()
-    omega2, Phi, residuals = clamped_modes(Kzz, Mzz, n_modes, backend, tolerance)
+    omega2, Phi, residuals = connection.clamped_modes(Kzz, Mzz, n_modes, backend, tolerance)
     n_modes = omega2.size
     fact = factorize(Kzz, "superlu" if backend == "dense" else backend, positive_definite=True)
     try:
@@ -166,51 +164,11 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
                              omega2, residuals)
 
 
-def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",
-                           include_shapes: bool = True) -> dict[str, Dataset]:
-    """HDF5 datasets of the reduced model (see docs/hdf5-connection.md)."""
-    note = {"coordinates": list(cb.coordinate_names), "coordinate_units": list(cb.coordinate_units)}
-    w_free = cb.frequencies_hz()
-    tree = {
-        f"{group}/M": Dataset(cb.M, "mixed", "reduced mass matrix; entry (i, j) in "
-                              "kg m^2 / (u_i u_j), u the coordinate units", note),
-        f"{group}/K": Dataset(cb.K, "mixed", "reduced stiffness matrix; entry (i, j) in "
-                              "N m / (u_i u_j), u the coordinate units", note),
-        f"{group}/coordinate_names": Dataset(list(cb.coordinate_names), "",
-                                             "label of each reduced coordinate"),
-        f"{group}/coordinate_units": Dataset(list(cb.coordinate_units), "",
-                                             "SI unit of each reduced coordinate"),
-        f"{group}/interface_names": Dataset([i.name for i in cb.interfaces], "",
-                                            "interfaces in coordinate order"),
-        f"{group}/interface_regions": Dataset([i.region for i in cb.interfaces], "",
-                                              "region of each interface"),
-        f"{group}/interface_couplings": Dataset([i.coupling for i in cb.interfaces], "",
-                                                "rigid (RBE2) or distributing (RBE3)"),
-        f"{group}/interface_points": Dataset(np.array([i.point for i in cb.interfaces]), "m",
-                                             "point of each interface"),
-        f"{group}/fixed_interface_frequencies_hz": Dataset(
-            cb.fixed_interface_frequencies_hz, "Hz", "modes with every interface clamped"),
-        f"{group}/free_frequencies_hz": Dataset(
-            w_free, "Hz", "eigenfrequencies of (K, M), the free reduced body (6 rigid zeros)"),
-    }
-    if include_shapes:
-        n_nodes = cb.shapes.shape[0] // 3
-        tree[f"{group}/shapes"] = Dataset(
-            cb.shapes.reshape(n_nodes, 3, -1), "mixed",
-            "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
-            "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
-    return tree
-
-
 def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix,
-                        connections, n_modes: int, backend: str = "auto",
-                        include_shapes: bool = True
-                        ) -> tuple[CraigBamptonModel, dict[str, Dataset]]:
+                        connections, n_modes: int, backend: str = "auto") -> CraigBamptonModel:
     """Everything for ``/craig_bampton``, in one call: one interface per record of
     ``connections`` (name, region, point, coupling), checked before any solve;
     ``n_modes`` fixed-interface modes; matrices of the unsupported body."""
-    from pipeline.reduce.connection import make_interfaces
-
     interfaces = make_interfaces(space, regions, connections)
     cb = craig_bampton(space, K_full, M_full, interfaces, n_modes, backend=backend)
-    return cb, craig_bampton_datasets(cb, include_shapes=include_shapes)
+    return cb

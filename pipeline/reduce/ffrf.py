@@ -55,12 +55,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.fe.body import rigid_body_modes
-from pipeline.store.tree import Dataset
 
 MODAL_UNIT = "m kg^1/2"
 
 __all__ = ["FFRFInvariants", "ffrf_invariants", "free_free_basis", "craig_bampton_basis",
-           "ffrf_datasets", "skew_columns", "build_ffrf"]
+           "skew_columns", "build_ffrf"]
 
 
 @dataclass(frozen=True)
@@ -188,77 +187,10 @@ def craig_bampton_basis(cb, reference: int | str = 0
 
 #: units of each invariant for M-orthonormal modal coordinates (u = m kg^1/2), and the
 #: general rule in terms of the coordinate units u_k, u_l
-_UNITS = {
-    "translational_coupling": ("kg^1/2", "kg m / u_k"),
-    "rotational_coupling": ("kg^1/2 m", "kg m^2 / u_k"),
-    "modal_mass": ("1", "kg m^2 / (u_k u_l)"),
-    "modal_stiffness": ("rad^2/s^2", "N m / (u_k u_l)"),
-    "inertia_first_order": ("kg^1/2 m", "kg m^2 / u_k"),
-    "inertia_second_order": ("1", "kg m^2 / (u_k u_l)"),
-    "gyroscopic_coupling": ("1", "kg m^2 / (u_k u_l)"),
-    "basis": ("kg^-1/2", "m / u_k"),
-}
-
-
-def ffrf_datasets(inv: FFRFInvariants, group: str = "ffrf", include_basis: bool = False
-                  ) -> dict[str, Dataset]:
-    """HDF5 datasets of the invariants (see docs/hdf5-connection.md, section ffrf).
-
-    Units: for modal coordinates (every u_k = m kg^1/2) the simplified unit; otherwise
-    ``mixed`` with the attribute ``units_rule`` in terms of ``coordinate_units``.
-    """
-    attrs = {"coordinates": list(inv.coordinate_names), "basis": inv.basis_kind,
-             "coordinate_units": list(inv.coordinate_units)}
-    modal = all(u == MODAL_UNIT for u in inv.coordinate_units)
-
-    def units(term: str) -> str:
-        return _UNITS[term][0] if modal else "mixed"
-
-    def at(term: str) -> dict:
-        return attrs if modal else {**attrs, "units_rule": _UNITS[term][1]}
-    tree = {
-        f"{group}/origin": Dataset(inv.origin, "m", "frame origin O the invariants refer to",
-                                   {"basis": inv.basis_kind}),
-        f"{group}/coordinate_names": Dataset(list(inv.coordinate_names), "",
-                                             "elastic coordinate of each basis column"),
-        f"{group}/mass": Dataset(np.float64(inv.mass), "kg", "total mass, int rho dV"),
-        f"{group}/first_moment": Dataset(inv.first_moment, "kg m", "int rho x dV = m c (about O)"),
-        f"{group}/center_of_mass": Dataset(inv.center_of_mass, "m", "c, relative to O"),
-        f"{group}/inertia": Dataset(inv.inertia, "kg m^2",
-                                    "J0 = -int rho x~ x~ dV, inertia tensor about O"),
-        f"{group}/translational_coupling": Dataset(
-            inv.translational_coupling, units("translational_coupling"),
-            "C_t = int rho psi_k dV (3 x n)", at("translational_coupling")),
-        f"{group}/rotational_coupling": Dataset(
-            inv.rotational_coupling, units("rotational_coupling"),
-            "C_r = int rho x x psi_k dV (3 x n)", at("rotational_coupling")),
-        f"{group}/modal_mass": Dataset(inv.modal_mass, units("modal_mass"),
-                                       "Psi^T M Psi (n x n)", at("modal_mass")),
-        f"{group}/inertia_first_order": Dataset(
-            inv.inertia_first_order, units("inertia_first_order"),
-            "J1_k = -int rho (x~ psi_k~ + psi_k~ x~) dV, (n, 3, 3)", at("inertia_first_order")),
-        f"{group}/inertia_second_order": Dataset(
-            inv.inertia_second_order, units("inertia_second_order"),
-            "J2_kl = -int rho psi_k~ psi_l~ dV, (n, n, 3, 3)", at("inertia_second_order")),
-        f"{group}/gyroscopic_coupling": Dataset(
-            inv.gyroscopic_coupling, units("gyroscopic_coupling"),
-            "G_kl = int rho psi_k x psi_l dV, (n, n, 3)", at("gyroscopic_coupling")),
-    }
-    if inv.modal_stiffness is not None:
-        tree[f"{group}/modal_stiffness"] = Dataset(inv.modal_stiffness,
-                                                   units("modal_stiffness"),
-                                                   "Psi^T K Psi (n x n)", at("modal_stiffness"))
-    if include_basis:
-        n_nodes = inv.basis.shape[0] // 3
-        tree[f"{group}/basis"] = Dataset(inv.basis.reshape(n_nodes, 3, -1), units("basis"),
-                                         "Psi on every mesh point (n_points, 3, n)", at("basis"))
-    return tree
-
-
 def build_ffrf(M_full: sp.spmatrix, K_full: sp.spmatrix | None, node_points: np.ndarray, *,
                cb=None, shapes: np.ndarray | None = None, omega2: np.ndarray | None = None,
-               n_rigid: int = 0, supported: bool = False, origin=(0.0, 0.0, 0.0),
-               include_basis: bool = False) -> tuple[FFRFInvariants, dict[str, Dataset]]:
+               n_rigid: int = 0, supported: bool = False, origin=(0.0, 0.0, 0.0)
+               ) -> FFRFInvariants:
     """Everything for ``/ffrf``, in one call, from the best basis available:
 
     - ``cb`` (a :class:`pipeline.reduce.craig_bampton.CraigBamptonModel`): its basis without the
@@ -278,4 +210,4 @@ def build_ffrf(M_full: sp.spmatrix, K_full: sp.spmatrix | None, node_points: np.
         kind = "supported modes (frame = support)" if supported else "free-free elastic modes"
         inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind,
                               [f"mode_{i + 1}" for i in keep])
-    return inv, ffrf_datasets(inv, include_basis=include_basis)
+    return inv

@@ -32,25 +32,20 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import NamedTuple
-
 import numpy as np
 
-from pipeline.errors import ConfigError
-from pipeline.store.tree import Dataset
-from pipeline.reduce.modal import ReducedModel, StateSpaceModel, _statespace_tree
+from pipeline._util import validate
+from pipeline.reduce.modal import ReducedModel, StateSpaceModel
+from pipeline.reduce.statespace import StateSpace
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "FILTER_KINDS",
     "CUTOFF_MARGIN",
-    "FilterMatrices",
     "first_order_filter",
     "third_order_position_filter",
     "filtered_model",
-    "filter_datasets",
-    "filter_group_attrs",
 ]
 
 FILTER_KINDS = ("none", "first_order", "third_order")
@@ -59,24 +54,12 @@ FILTER_KINDS = ("none", "first_order", "third_order")
 CUTOFF_MARGIN = 5.0
 
 
-class FilterMatrices(NamedTuple):
-    """State-space matrices (A, B, C, D) of a filter; unpacks as a 4-tuple."""
-
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-
-
 def _check_cutoff_rad_s(cutoff_rad_s: float) -> float:
-    K = float(cutoff_rad_s)
-    if not math.isfinite(K) or K <= 0:
-        raise ValueError(f"filter cutoff must be a positive finite rad/s value, "
-                         f"got {cutoff_rad_s!r}")
-    return K
+    return validate.number({"cutoff_rad_s": cutoff_rad_s}, "cutoff_rad_s", "", lo=0.0,
+                           lo_open=True)
 
 
-def first_order_filter(n_channels: int, cutoff_rad_s: float) -> FilterMatrices:
+def first_order_filter(n_channels: int, cutoff_rad_s: float) -> StateSpace:
     """n_channels independent filters K / (s + K), K in rad/s.
 
     A = -K I, B = K I, C = I, D = 0 (all n_channels x n_channels); state i is the
@@ -84,10 +67,11 @@ def first_order_filter(n_channels: int, cutoff_rad_s: float) -> FilterMatrices:
     """
     K = _check_cutoff_rad_s(cutoff_rad_s)
     I = np.eye(n_channels)
-    return FilterMatrices(-K * I, K * I, I.copy(), np.zeros((n_channels, n_channels)))
+    return StateSpace(-K * I, K * I, I.copy(), np.zeros((n_channels, n_channels)),
+                      label="first_order filter")
 
 
-def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> FilterMatrices:
+def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> StateSpace:
     """Third-order filter K^3/(s+K)^3 on n_ports position signals, giving p, v, a.
 
     Inputs: the n_ports position signals y. Outputs (3 n_ports): all filtered
@@ -107,13 +91,13 @@ def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> FilterMatr
         C[i, 3 * i] = 1.0               # p = z1
         C[n + i, 3 * i + 1] = K         # v = K z2
         C[2 * n + i, 3 * i + 2] = K * K  # a = K^2 z3
-    return FilterMatrices(A, B, C, np.zeros((3 * n, n)))
+    return StateSpace(A, B, C, np.zeros((3 * n, n)), label="third_order filter")
 
 
-def _series(plant: StateSpaceModel, filt: FilterMatrices, rows: slice) -> tuple[np.ndarray, ...]:
+def _series(plant: StateSpace, filt: StateSpace, rows: slice) -> tuple[np.ndarray, ...]:
     """filter * plant, the filter fed by the plant outputs ``rows``."""
     Ap, Bp, Cp, Dp = plant.A, plant.B, plant.C[rows], plant.D[rows]
-    Af, Bf, Cf, Df = filt
+    Af, Bf, Cf, Df = filt.A, filt.B, filt.C, filt.D
     nf = Af.shape[0]
     A = np.block([[Ap, np.zeros((Ap.shape[0], nf))], [Bf @ Cp, Af]])
     B = np.vstack([Bp, Bf @ Dp])
@@ -122,17 +106,16 @@ def _series(plant: StateSpaceModel, filt: FilterMatrices, rows: slice) -> tuple[
     return A, B, C, D
 
 
-def _validate(kind: str, cutoff_hz) -> float | None:
-    if kind not in FILTER_KINDS:
-        raise ConfigError(f"filter.kind: got {kind!r}, expected one of " + ", ".join(FILTER_KINDS))
+def check_filter(kind: str, cutoff_hz) -> float | None:
+    """The filter kind and its cutoff in Hz (None for ``"none"``), through the one field
+    checker (pipeline._util.validate)."""
+    kind = validate.choice({"filter.kind": kind}, "filter.kind", "", FILTER_KINDS)
     if kind == "none":
         return None
-    number = (int, float, np.integer, np.floating)
-    if isinstance(cutoff_hz, bool) or not isinstance(cutoff_hz, number) \
-            or not math.isfinite(float(cutoff_hz)) or float(cutoff_hz) <= 0:
-        raise ConfigError(f"filter.cutoff_hz: got {cutoff_hz!r}, expected a positive "
-                          f"frequency in Hz for filter kind {kind}")
-    return float(cutoff_hz)
+    if isinstance(cutoff_hz, np.generic):
+        cutoff_hz = cutoff_hz.item()
+    return validate.number({"filter.cutoff_hz": cutoff_hz}, "filter.cutoff_hz", "", lo=0.0,
+                           lo_open=True)
 
 
 def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None
@@ -152,7 +135,7 @@ def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: 
     :class:`ConfigError` naming ``filter.cutoff_hz``.
     """
     plant = model.statespace if isinstance(model, ReducedModel) else model
-    f_c = _validate(kind, cutoff_hz)
+    f_c = check_filter(kind, cutoff_hz)
     if f_c is None:
         return plant
     if plant.filter_kind != "none":
@@ -175,40 +158,8 @@ def filtered_model(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: 
         filt = third_order_position_filter(len(ports), K)
         A, B, C, D = _series(plant, filt, plant.output_rows("position"))
         extra = tuple(f"filter/{p}/{s}" for p in ports for s in ("w", "w_dot", "w_ddot"))
-    return StateSpaceModel(A, B, C, D, plant.state_names + extra, plant.input_names,
-                           plant.output_names, plant.omega2, plant.damping_ratios,
-                           n_retained=plant.n_retained, filter_kind=kind, cutoff_hz=f_c)
-
-
-def filter_group_attrs(kind: str, cutoff_hz: float | None,
-                       group: str = "statespace_filtered") -> dict[str, dict]:
-    """Group attributes ``{group: {"filter_kind": kind, "cutoff_hz": Hz}}`` (NaN: none)."""
-    f_c = _validate(kind, cutoff_hz)
-    return {group: {"filter_kind": kind, "cutoff_hz": float("nan") if f_c is None else f_c}}
-
-
-def filter_datasets(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None,
-                    group: str = "statespace_filtered") -> dict[str, Dataset]:
-    """HDF5 datasets of the filtered model, keyed ``"<group>/<name>"``.
-
-    ``model`` is the plant (a :class:`ReducedModel` or its ``statespace``; it is
-    filtered here with :func:`filtered_model`) or a model :func:`filtered_model`
-    already returned with this same kind and cutoff. Datasets: A, B, C, D, the names,
-    ``damping_ratios`` and ``frequencies_hz`` as in
-    :func:`pipeline.reduce.modal.statespace_datasets`, plus ``cutoff_hz`` (Hz, NaN for
-    none); A, B, C, D carry the attributes ``filter_kind`` and ``cutoff_hz``. The same
-    two values as group attributes: :func:`filter_group_attrs`.
-    """
-    ss = model.statespace if isinstance(model, ReducedModel) else model
-    f_c = _validate(kind, cutoff_hz)
-    if ss.filter_kind == "none":
-        ss = filtered_model(ss, kind, f_c)
-    elif ss.filter_kind != kind or not math.isclose(ss.cutoff_hz, f_c or 0.0, rel_tol=1e-12):
-        raise ValueError(f"model was filtered with {ss.filter_kind} at {ss.cutoff_hz} Hz, "
-                         f"not {kind} at {cutoff_hz} Hz")
-    stored = float("nan") if f_c is None else f_c
-    tree = _statespace_tree(ss, group, {"filter_kind": kind, "cutoff_hz": stored})
-    tree[f"{group}/cutoff_hz"] = Dataset(np.float64(stored), "Hz",
-                                         f"cutoff of the {kind} output filter (NaN: no filter)")
-    return tree
-
+    return StateSpaceModel(A, B, C, D, input_names=plant.input_names,
+                           output_names=plant.output_names,
+                           state_names=plant.state_names + extra, label="filtered",
+                           filter_kind=kind, cutoff_hz=f_c, omega2=plant.omega2,
+                           damping_ratios=plant.damping_ratios, n_retained=plant.n_retained)

@@ -32,16 +32,18 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
-from typing import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from pipeline.errors import ConfigError, SolverError
-from pipeline.store.tree import Dataset
+from pipeline._util import validate
+from pipeline.errors import SolverError
+from pipeline.reduce.statespace import StateSpace
+from pipeline.solve.factorize import sparse_times_dense
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +61,6 @@ __all__ = [
     "static_compliance",
     "modal_statespace",
     "reduce_model",
-    "statespace_datasets",
 ]
 
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
@@ -78,24 +79,16 @@ Solve = Callable[[np.ndarray], np.ndarray]
 
 
 # --------------------------------------------------------------------------- damping
-def _bad(key: str, value, expected: str) -> ConfigError:
-    return ConfigError(f"{key}: got {value!r}, expected {expected}")
-
-
-def _finite_number(key: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise _bad(key, value, "a number")
-    x = float(value)
-    if not math.isfinite(x):
-        raise _bad(key, value, "a finite number")
-    return x
+# Raw values from library callers go through the one field checker
+# (pipeline._util.validate); values from a Config have passed it already.
+def _number(key: str, value, **bounds) -> float:
+    raw = {key: value.item() if isinstance(value, np.generic) else value}
+    return validate.number(raw, key, "", **bounds)
 
 
 def _ratio(key: str, value) -> float:
-    x = _finite_number(key, value)
-    if x < 0.0 or x >= 1.0:
-        raise _bad(key, value, "a damping ratio in [0, 1) (underdamped modes)")
-    return x
+    """A damping ratio in [0, 1) (underdamped modes)."""
+    return _number(key, value, lo=0.0, hi=1.0, hi_open=True)
 
 
 def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=None
@@ -120,31 +113,31 @@ def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=N
     n = omega.size
     if kind == "uniform":
         if ratio is None:
-            raise _bad("damping.ratio", ratio, "a damping ratio in [0, 1) for kind uniform")
+            raise validate.fail("damping.ratio", ratio, "a damping ratio in [0, 1) for kind uniform")
         return np.full(n, _ratio("damping.ratio", ratio))
     if kind == "per_mode":
         if ratios is None or isinstance(ratios, (str, bytes)) or not hasattr(ratios, "__len__"):
-            raise _bad("damping.ratios", ratios, f"a list of {n} damping ratios (one per mode)")
+            raise validate.fail("damping.ratios", ratios, f"a list of {n} damping ratios (one per mode)")
         if len(ratios) != n:
-            raise _bad("damping.ratios", list(ratios),
+            raise validate.fail("damping.ratios", list(ratios),
                        f"a list of {n} damping ratios (one per retained mode), "
                        f"not {len(ratios)}")
         return np.array([_ratio(f"damping.ratios[{i}]", r) for i, r in enumerate(ratios)],
                         dtype=float)
     if kind == "rayleigh":
-        a = _finite_number("damping.alpha", 0.0 if alpha is None else alpha)
-        b = _finite_number("damping.beta", 0.0 if beta is None else beta)
+        a = _number("damping.alpha", 0.0 if alpha is None else alpha)
+        b = _number("damping.beta", 0.0 if beta is None else beta)
         if alpha is None and beta is None:
-            raise _bad("damping.alpha", alpha, "alpha (1/s) and/or beta (s) for kind rayleigh")
+            raise validate.fail("damping.alpha", alpha, "alpha (1/s) and/or beta (s) for kind rayleigh")
         if a < 0:
-            raise _bad("damping.alpha", alpha, "alpha >= 0 (1/s)")
+            raise validate.fail("damping.alpha", alpha, "alpha >= 0 (1/s)")
         if b < 0:
-            raise _bad("damping.beta", beta, "beta >= 0 (s)")
+            raise validate.fail("damping.beta", beta, "beta >= 0 (s)")
         xi = np.empty(n)
         for i, w in enumerate(omega):
             if w <= 0.0:
                 if a > 0.0:
-                    raise _bad("damping.alpha", alpha,
+                    raise validate.fail("damping.alpha", alpha,
                                f"alpha = 0: mode {i + 1} has zero frequency (rigid-body "
                                "mode) and mass-proportional damping would be infinite")
                 xi[i] = 0.0
@@ -154,11 +147,11 @@ def damping_ratios(omega, kind: str, ratio=None, ratios=None, alpha=None, beta=N
         if over.size:
             i = int(over[0])
             key = "damping.alpha" if a / (2.0 * omega[i]) >= b * omega[i] / 2.0 else "damping.beta"
-            raise _bad(key, alpha if key == "damping.alpha" else beta,
+            raise validate.fail(key, alpha if key == "damping.alpha" else beta,
                        f"Rayleigh damping below critical: mode {i + 1} "
                        f"(omega = {omega[i]:.6g} rad/s) gets xi = {xi[i]:.6g} >= 1")
         return xi
-    raise _bad("damping.kind", kind, "one of " + ", ".join(DAMPING_KINDS))
+    raise validate.fail("damping.kind", kind, "one of " + ", ".join(DAMPING_KINDS))
 
 
 @dataclass(frozen=True)
@@ -215,8 +208,7 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
         raise SolverError(f"modal basis has shape {Phi.shape}, expected ({K.shape[0]}, "
                           f"{omega2.size}) to match K and omega2")
     n = omega2.size
-    from pipeline.solve.factorize import sparse_times_dense  # threaded MKL product: 2x scipy's at 1M DOFs
-
+    # sparse_times_dense: threaded MKL product, 2x scipy's at 1M DOFs
     Mr = Phi.T @ sparse_times_dense(M, Phi)
     Kr = Phi.T @ sparse_times_dense(K, Phi)
     eM = np.abs(Mr - np.eye(n))
@@ -282,8 +274,6 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarra
         raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
                           "(unsupported body?)")
     # a factorisation of a numerically singular K can return finite garbage: check
-    from pipeline.solve.factorize import sparse_times_dense
-
     residual = (np.linalg.norm(sparse_times_dense(K, X) - Fd, axis=0)
                 / np.maximum(np.linalg.norm(Fd, axis=0), 1e-300))
     if residual.max() > 1e-6:
@@ -309,50 +299,32 @@ def _ro(a) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class StateSpaceModel:
-    """A continuous-time LTI model x' = A x + B u, y = C x + D u (SI units).
+class StateSpaceModel(StateSpace):
+    """The modal model: a :class:`~pipeline.reduce.statespace.StateSpace` (same
+    constructor and checks) that also records its structural modes.
 
-    A (n_x x n_x), B (n_x x n_u), C (n_out x n_x), D (n_out x n_u), read-only arrays.
     For the modal model n_x = 2 n_m (state [eta; eta'], ``eta_i`` in m kg^1/2) and
     n_out = 3 n_y, rows ordered: every port's position, then every port's velocity, then
     every port's acceleration, named ``"<port>/position"``, ``"<port>/velocity"``,
-    ``"<port>/acceleration"``. ``omega2`` (rad^2/s^2) and ``damping_ratios`` are those of
-    the structural modes in the model; ``n_retained`` of them are modes the user asked
-    for (the rest are the high Ritz modes of an augmented basis). ``filter_kind`` and
-    ``cutoff_hz`` describe an output filter in series (``"none"`` for the plant).
+    ``"<port>/acceleration"``. ``omega2`` (rad^2/s^2) and ``damping_ratios`` (n_m,) are
+    those of the structural modes in the model; ``n_retained`` of them are modes the user
+    asked for (the rest are the high Ritz modes of an augmented basis). ``filter_kind``
+    and ``cutoff_hz`` (inherited) describe an output filter in series (``"none"`` for the
+    plant). Build it with keywords.
     """
 
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    state_names: tuple[str, ...]
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    omega2: np.ndarray
-    damping_ratios: np.ndarray
+    omega2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    damping_ratios: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_retained: int | None = None
-    filter_kind: str = "none"
-    cutoff_hz: float | None = None
 
     def __post_init__(self):
-        for name in ("A", "B", "C", "D", "omega2", "damping_ratios"):
-            object.__setattr__(self, name, _ro(getattr(self, name)))
-        for name in ("state_names", "input_names", "output_names"):
-            object.__setattr__(self, name, tuple(str(s) for s in getattr(self, name)))
-        nx, nu, ny = len(self.state_names), len(self.input_names), len(self.output_names)
-        for name, shape in (("A", (nx, nx)), ("B", (nx, nu)), ("C", (ny, nx)), ("D", (ny, nu))):
-            if getattr(self, name).shape != shape:
-                raise ValueError(f"StateSpaceModel.{name} has shape {getattr(self, name).shape}, "
-                                 f"expected {shape} from the names")
+        super().__post_init__()
+        for name in ("omega2", "damping_ratios"):
+            object.__setattr__(self, name, _ro(np.asarray(getattr(self, name)).reshape(-1)))
         if self.omega2.shape != self.damping_ratios.shape:
             raise ValueError("omega2 and damping_ratios differ in length")
         if self.n_retained is None:
             object.__setattr__(self, "n_retained", int(self.omega2.size))
-
-    @property
-    def n_states(self) -> int:
-        return len(self.state_names)
 
     @property
     def port_names(self) -> tuple[str, ...]:
@@ -417,7 +389,8 @@ def modal_statespace(omega2, xi, Sigma, Theta, residual=None, input_names=None,
         raise ValueError(f"{len(inputs)} input names for {n_u} inputs or {len(ports)} output "
                          f"names for {n_y} outputs")
     states = tuple(f"eta_{i + 1}" for i in range(n)) + tuple(f"eta_dot_{i + 1}" for i in range(n))
-    return StateSpaceModel(A, B, C, D, states, inputs, output_names_for(ports), omega2, xi,
+    return StateSpaceModel(A, B, C, D, input_names=inputs, output_names=output_names_for(ports),
+                           state_names=states, label="plant", omega2=omega2, damping_ratios=xi,
                            n_retained=n if n_retained is None else n_retained)
 
 
@@ -450,8 +423,7 @@ class ReducedModel:
     def dc_gain_position(self) -> np.ndarray:
         """Static gain of the position outputs, -C_pos A^-1 B + D_pos (n_y x n_u)."""
         ss = self.statespace
-        rows = ss.output_rows("position")
-        return ss.D[rows] - ss.C[rows] @ np.linalg.solve(ss.A, ss.B)
+        return ss.dc_gain()[ss.output_rows("position")]
 
 
 def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, int]:
@@ -521,11 +493,11 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     n_avail = omega2.size
     if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) \
             or not 1 <= n_modes <= n_avail:
-        raise _bad("reduction.modes", n_modes,
+        raise validate.fail("reduction.modes", n_modes,
                    f"an integer from 1 to {n_avail} (the number of computed modes, modes.count)")
     n_modes = int(n_modes)
     if static_correction not in STATIC_CORRECTIONS:
-        raise _bad("reduction.static_correction", static_correction,
+        raise validate.fail("reduction.static_correction", static_correction,
                    "one of " + ", ".join(STATIC_CORRECTIONS))
     input_names, output_names = list(input_names), list(output_names)
     Fd = _dense(F)
@@ -548,7 +520,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     G = None
     if n_rigid:
         if static_correction != "none":
-            raise _bad("reduction.static_correction", static_correction,
+            raise validate.fail("reduction.static_correction", static_correction,
                        f"none: the body has {n_rigid} rigid-body mode(s) among the retained "
                        "ones, so it has no static compliance to correct towards")
         log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
@@ -584,63 +556,3 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         log.info("reduced model: %d states, static correction %s, DC gain error %.3g "
                  "(relative to T K^-1 F)", ss.n_states, static_correction, rel)
     return model
-
-
-# --------------------------------------------------------------------------- HDF5
-_NAMES_NOTE = ("inputs in the unit of each input port (N for a force, N m for a moment); "
-               "outputs position/velocity/acceleration in m, m/s, m/s^2 for a displacement "
-               "port (rad, rad/s, rad/s^2 for a rotation); modal states eta in m kg^1/2, "
-               "eta_dot in m kg^1/2/s (mode shapes are M-orthonormal, kg^-1/2)")
-
-
-def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | None = None
-                     ) -> dict[str, Dataset]:
-    attrs = dict(extra_attrs or {})
-    note = {"units_note": _NAMES_NOTE, **attrs}
-    tree = {
-        f"{group}/A": Dataset(ss.A, "mixed", "state matrix A of x' = A x + B u", note),
-        f"{group}/B": Dataset(ss.B, "mixed", "input matrix B of x' = A x + B u", note),
-        f"{group}/C": Dataset(ss.C, "mixed", "output matrix C of y = C x + D u; rows: "
-                              "positions, velocities, accelerations of every port", note),
-        f"{group}/D": Dataset(ss.D, "mixed", "feedthrough matrix D of y = C x + D u", note),
-        f"{group}/input_names": Dataset(list(ss.input_names), "",
-                                        "name of each input (columns of B, D)"),
-        f"{group}/output_names": Dataset(list(ss.output_names), "",
-                                         "name of each output (rows of C, D)"),
-        f"{group}/state_names": Dataset(list(ss.state_names), "", "name of each state (rows of A)"),
-        f"{group}/damping_ratios": Dataset(ss.damping_ratios, "1",
-                                           "modal damping ratio of every mode in the model"),
-        f"{group}/frequencies_hz": Dataset(ss.frequencies_hz, "Hz",
-                                           "undamped natural frequency of every mode in the model",
-                                           {"n_retained": int(ss.n_retained)}),
-    }
-    return tree
-
-
-def statespace_datasets(model: ReducedModel, group: str = "statespace",
-                        compliance_units: str = "m/N") -> dict[str, Dataset]:
-    """HDF5 datasets of the (unfiltered) reduced model, keyed ``"<group>/<name>"``.
-
-    A, B, C, D (units ``"mixed"``, attribute ``units_note`` says which), the names
-    (string datasets), ``damping_ratios`` (1), ``frequencies_hz`` (Hz) and
-    ``static_compliance`` (n_y x n_u, ``compliance_units``; "m/N" for force inputs and
-    displacement outputs, pass "mixed" otherwise) when the body has statics; for
-    ``residual`` also ``residual_flexibility``. A carries ``static_correction``,
-    ``n_modes`` and ``n_basis`` as attributes.
-    """
-    ss = model.statespace
-    tree = _statespace_tree(ss, group)
-    a = tree[f"{group}/A"]
-    tree[f"{group}/A"] = Dataset(a.data, a.units, a.description,
-                                 {**a.attrs, "static_correction": model.static_correction,
-                                  "n_modes": int(model.n_modes), "n_basis": int(model.n_basis)})
-    if model.static_compliance is not None:
-        tree[f"{group}/static_compliance"] = Dataset(
-            model.static_compliance, compliance_units,
-            "exact FE static compliance T K^-1 F (outputs x inputs), full solve",
-            {"rows": list(ss.port_names), "columns": list(ss.input_names)})
-    if model.residual is not None:
-        tree[f"{group}/residual_flexibility"] = Dataset(
-            model.residual, compliance_units,
-            "T K^-1 F - Theta Omega2^-1 Sigma, added to the position rows of D")
-    return tree

@@ -112,6 +112,10 @@ class StateSpace:
                 raise ValueError(f"StateSpace: {len(units)} {kind} units for {n_k} {kind}s")
             object.__setattr__(self, f"{kind}_units", units)
 
+    def __iter__(self):
+        """Unpacks as the four matrices: ``A, B, C, D = ss``."""
+        return iter((self.A, self.B, self.C, self.D))
+
     # ------------------------------------------------------------------ sizes, names
     @property
     def n_states(self) -> int:

@@ -48,7 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
-from pipeline.fe.resources import check_factor_memory
+from pipeline._util.resources import check_factor_memory
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,6 @@ The command line (``python -m pipeline batch``) is :mod:`pipeline.cli.batch`.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
 
 from pipeline.apps.batch.cache import CaseRecord
 from pipeline.apps.batch.cases import (

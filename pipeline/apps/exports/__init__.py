@@ -7,7 +7,7 @@ CLI calls (``python -m pipeline export FILE.h5 --to FORMAT [-o OUT]``). To add a
 write its module here and add one line to :data:`EXPORTERS`.
 
 Helpers shared by exporters: :func:`read_csr` reads a sparse matrix stored by
-:func:`csr_datasets` (e.g. ``/fe/mass_matrix``).
+:func:`pipeline.store.schema.csr_datasets` (e.g. ``/fe/mass_matrix``).
 """
 
 from __future__ import annotations
@@ -16,13 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.store.tree import Dataset
 
-__all__ = ["Exporter", "EXPORTERS", "export", "default_output", "csr_datasets", "read_csr"]
+__all__ = ["Exporter", "EXPORTERS", "export", "default_output", "read_csr"]
 
 
 @dataclass(frozen=True)
@@ -86,32 +84,9 @@ def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None) ->
 
 
 # --------------------------------------------------------------------------- sparse I/O
-def csr_datasets(A: sp.spmatrix, group: str, units: str, description: str,
-                 symmetric: bool = True) -> dict[str, Dataset]:
-    """A sparse matrix as CSR arrays ``<group>/{data, indices, indptr, shape}``.
-
-    Explicit zeros are dropped. ``symmetric``: store only the upper triangle (diagonal
-    included); the ``data``
-    dataset then carries ``storage = "upper"`` (else ``"full"``). :func:`read_csr`
-    restores the full matrix.
-    """
-    A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
-    A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
-    A.sort_indices()
-    itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
-    storage = "upper" if symmetric else "full"
-    return {
-        f"{group}/data": Dataset(A.data.astype(np.float64), units, description,
-                                 {"storage": storage, "format": "csr"}),
-        f"{group}/indices": Dataset(A.indices.astype(itype), "1", "CSR column indices"),
-        f"{group}/indptr": Dataset(A.indptr.astype(np.int64), "1", "CSR row pointers"),
-        f"{group}/shape": Dataset(np.array(A.shape, dtype=np.int64), "1", "(rows, columns)"),
-    }
-
-
 def read_csr(h5, group: str) -> sp.csr_matrix:
     """The full sparse matrix stored at ``group`` of an open h5py file by
-    :func:`csr_datasets`. Raises FileFormatError if it is missing."""
+    :func:`pipeline.store.schema.csr_datasets`. Raises FileFormatError if it is missing."""
     if group not in h5 or "data" not in h5[group]:
         raise FileFormatError(f"file '{h5.filename}': has no sparse matrix /{group}")
     g = h5[group]

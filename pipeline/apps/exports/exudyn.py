@@ -39,7 +39,8 @@ every group and dataset carries ``datatype`` (``dict``, ``list``, ``csr_matrix``
 ``ndarray``, ``str``, ``int``); lists are groups of ``item_<i>``; and the file name must end
 in ``.hdf5``.
 
-Our HDF5 file holds M and K only when the run added :func:`exudyn_datasets`.
+Our HDF5 file holds M and K only when the run added
+:func:`pipeline.store.schema.exudyn_datasets`.
 """
 
 from __future__ import annotations
@@ -53,28 +54,16 @@ import scipy.sparse as sp
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
-from pipeline.store.tree import Dataset
-from pipeline.apps.exports import csr_datasets, read_csr
+from pipeline.apps.exports import read_csr
 
 log = logging.getLogger(__name__)
 
-__all__ = ["exudyn_datasets", "export_exudyn", "boundary_faces", "region_node_weights",
+__all__ = ["export_exudyn", "boundary_faces", "region_node_weights",
            "write_tagged_hdf5"]
 
 BASES = ("auto", "modes", "craig_bampton")
 # local edges of a tetra10, in column order 4..9
 _TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
-
-
-def exudyn_datasets(K_full: sp.spmatrix, M_full: sp.spmatrix) -> dict[str, Dataset]:
-    """What the export needs beyond the core file: the assembled M and K of the
-    unsupported body (before support condensation), as upper-triangle CSR arrays
-    ``fe/mass_matrix/*`` (kg) and ``fe/stiffness_matrix/*`` (N/m)."""
-    tree = csr_datasets(M_full, "fe/mass_matrix", "kg",
-                        "consistent mass matrix of the unsupported body, DOF 3*node+c")
-    tree.update(csr_datasets(K_full, "fe/stiffness_matrix", "N/m",
-                             "stiffness matrix of the unsupported body, DOF 3*node+c"))
-    return tree
 
 
 # --------------------------------------------------------------------------- mesh helpers
@@ -241,7 +230,7 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
                 raise FileFormatError(
                     f"file '{h5_path}': has no /{need}, which Exudyn needs (it computes its "
                     "reduced matrices and inertia invariants from the full M and K); re-run "
-                    "with the Exudyn datasets (pipeline.apps.exports.exudyn.exudyn_datasets)")
+                    "with the Exudyn datasets (pipeline.store.schema.exudyn_datasets)")
         points = h5["mesh/points"][()].astype(float)
         cell_key = "tetra10" if "mesh/cells/tetra10" in h5 else "tetra"
         cells = h5[f"mesh/cells/{cell_key}"][()].astype(np.int64)
