@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.store.read import ModeSet, open_verified, read_modes, read_strings
+from pipeline.store.read import ModeSet, load_model, open_verified, read_modes, read_strings
 
 ModeData = ModeSet  # what the pictures need: the mesh and modes of one file
 
@@ -457,7 +457,6 @@ def plot_bode(path: str | Path, out: str | Path) -> Path:
     """Bode magnitude of every input -> position output (plant solid, filtered dashed)."""
     from matplotlib.figure import Figure
 
-    from pipeline.store.read import load_model
 
     model = load_model(path, require_plant=True)
     units = _units(path)
@@ -507,7 +506,6 @@ def plot_step(path: str | Path, out: str | Path) -> Path:
     import control
     from matplotlib.figure import Figure
 
-    from pipeline.store.read import load_model
 
     model = load_model(path, require_plant=True)
     units = _units(path)

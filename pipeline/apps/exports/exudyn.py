@@ -54,6 +54,7 @@ import scipy.sparse as sp
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
+from pipeline.store.read import open_verified, read_strings
 from pipeline.apps.exports import read_csr
 
 log = logging.getLogger(__name__)
@@ -187,8 +188,6 @@ def write_tagged_hdf5(path: Path, data: dict[str, Any]) -> Path:
 # --------------------------------------------------------------------------- export
 def _basis(h5, basis: str, n_dofs: int) -> tuple[np.ndarray, str, str]:
     """(matrix (n_dofs, n), Exudyn type, description)."""
-    from pipeline.store.read import read_strings
-
     if basis == "auto":
         basis = "craig_bampton" if "craig_bampton/shapes" in h5 else "modes"
     if basis == "craig_bampton":
@@ -218,7 +217,6 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
     """Write the Exudyn FEMinterface file ``out_path`` (must end in ``.hdf5``) from our
     HDF5 file ``h5_path``. Returns ``out_path``. See the module docstring."""
     from pipeline import __version__
-    from pipeline.store.read import open_verified
 
     out = Path(out_path)
     if out.suffix.lower() != ".hdf5":
