@@ -21,6 +21,9 @@ and an output whose sidecar would overwrite the input file is refused.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -110,13 +113,24 @@ def export_xdmf(h5_path: str | Path, out_path: str | Path) -> Path:
         raise ConfigError(f"export output: '{out_path}' would write its data to '{sidecar}', "
                           "the input file itself; expected another name (the default is "
                           "<stem>.modes.xdmf)")
-    mesh = mode_mesh(h5_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    meshio.write(out_path, mesh, file_format="xdmf")
     import h5py
 
-    with h5py.File(sidecar, "a") as side:
-        side.create_dataset("frequencies_hz", data=mesh.field_data["frequencies_hz"])
+    mesh = mode_mesh(h5_path)
+    # meshio names the sidecar after the .xdmf, so both are made under their final names
+    # in a private folder beside the target, then each is moved into place through the
+    # atomic writer (sidecar first: a .xdmf under its final name always finds its data)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out_path.name}.", suffix=".partial",
+                                 dir=out_path.parent))
+    try:
+        meshio.write(work / out_path.name, mesh, file_format="xdmf")
+        with h5py.File(work / sidecar.name, "a") as side:
+            side.create_dataset("frequencies_hz", data=mesh.field_data["frequencies_hz"])
+        for final in (sidecar, out_path):
+            with atomic_path(final) as tmp:
+                os.replace(work / final.name, tmp)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     log.info("wrote %s and %s", out_path, sidecar)
     return out_path
 
