@@ -233,7 +233,7 @@ def test_export_command_parses_and_dispatches(result_h5, tmp_path):
         assert (tmp_path / f"out_{fmt}.{fmt}").stat().st_size > 100
     with pytest.raises(SystemExit):
         parser.parse_args(["export", str(result_h5), "--to", "stl"])
-    with pytest.raises(ConfigError, match=r"export format: got 'stl', expected one of exudyn, json, mat"):
+    with pytest.raises(ConfigError, match=r"export format: got .stl., expected one of exudyn, fmu, json, mat"):
         run_export(result_h5, "stl")
 
 

@@ -18,15 +18,17 @@ def formats() -> list[str]:
     return sorted(EXPORTERS)
 
 
-def run_export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None) -> Path:
-    """Export ``h5_path`` to ``fmt``; ``out_path`` defaults to ``<stem><suffix>`` beside it."""
+def run_export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None,
+               **options) -> Path:
+    """Export ``h5_path`` to ``fmt``; ``out_path`` defaults to ``<stem><suffix>`` beside it;
+    ``options`` (e.g. ``model='filtered'`` for fmu) go to the format's writer."""
     from pipeline.apps.exports import export
 
-    return Path(export(Path(h5_path), fmt, out_path))
+    return Path(export(Path(h5_path), fmt, out_path, **options))
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    print(run_export(args.file, args.to, args.output))
+    print(run_export(args.file, args.to, args.output, model=getattr(args, "model", None)))
     return 0
 
 
@@ -37,9 +39,13 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
         "export", help="write an HDF5 result in another tool's format",
         description="mat: MATLAB/Simulink/Octave state space (A, B, C, D of every model, "
         "names, frequencies); vtu/xdmf: mesh with every mode shape for ParaView; json: "
-        "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file.")
+        "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file; fmu: "
+        "FMI 2.0 FMU (Model Exchange + Co-Simulation) of the plant or filtered model. "
+        "See docs/exports.md.")
     p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
     p.add_argument("--to", required=True, choices=names, help="output format")
     p.add_argument("-o", "--output", help="output file (default: beside FILE, named after it)")
+    p.add_argument("--model", choices=("plant", "filtered"),
+                   help="fmu: which model goes into the FMU (default plant)")
     p.set_defaults(func=cmd_export)
     return p

@@ -27,24 +27,25 @@ __all__ = ["Exporter", "EXPORTERS", "export", "default_output", "read_csr"]
 class Exporter:
     """write(h5_path, out_path) -> the path written; suffix: default ending; description."""
 
-    write: Callable[[Path, Path], Path]
+    write: Callable[..., Path]
     suffix: str
     description: str
+    options: tuple[str, ...] = ()  # keyword options write() takes (e.g. fmu's ``model``)
 
 
-def _exudyn(h5_path: Path, out_path: Path) -> Path:
+def _exudyn(h5_path: Path, out_path: Path, **options) -> Path:
     from pipeline.apps.exports.exudyn import export_exudyn
 
-    return export_exudyn(h5_path, out_path)
+    return export_exudyn(h5_path, out_path, **options)
 
 
 def _lazy(module: str, func: str = "export") -> Callable[[Path, Path], Path]:
     """A writer that imports ``pipeline.apps.exports.<module>`` only when it runs."""
 
-    def write(h5_path: Path, out_path: Path) -> Path:
+    def write(h5_path: Path, out_path: Path, **options) -> Path:
         from importlib import import_module
 
-        return getattr(import_module(f"{__name__}.{module}"), func)(h5_path, out_path)
+        return getattr(import_module(f"{__name__}.{module}"), func)(h5_path, out_path, **options)
 
     return write
 
@@ -63,24 +64,39 @@ EXPORTERS: dict[str, Exporter] = {
                      "XDMF (+ <stem>.modes.h5) for ParaView: mesh and every mode shape"),
     "json": Exporter(_lazy("summary_json"), ".json",
                      "small JSON summary: frequencies, labels, ports, DC gains"),
+    "fmu": Exporter(_lazy("fmu", "export_fmu"), ".fmu",
+                    "FMI 2.0 FMU (Model Exchange + Co-Simulation, C sources inside) of the "
+                    "plant or the filtered model (--model); compiled with gcc at export",
+                    options=("model",)),
 }
 
 
-def default_output(h5_path: str | Path, fmt: str) -> Path:
-    """``<h5 stem><suffix of fmt>`` beside the input file."""
+def default_output(h5_path: str | Path, fmt: str, model: str | None = None) -> Path:
+    """``<h5 stem>[.<model>]<suffix of fmt>`` beside the input file."""
     h5_path = Path(h5_path)
-    return h5_path.with_name(h5_path.stem + EXPORTERS[fmt].suffix)
+    middle = f".{model}" if model else ""
+    return h5_path.with_name(h5_path.stem + middle + EXPORTERS[fmt].suffix)
 
 
-def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None) -> Path:
+def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None,
+           **options) -> Path:
     """Export ``h5_path`` (a file written by :func:`pipeline.run.run_pipeline`) to format
     ``fmt`` (a key of :data:`EXPORTERS`) at ``out_path`` (default :func:`default_output`).
+    ``options`` (None values dropped) go to formats that take them (``model`` for fmu).
     Returns the path written."""
     if fmt not in EXPORTERS:
         raise ConfigError(f"export format: got {fmt!r}, expected one of "
                           f"{', '.join(sorted(EXPORTERS))}")
-    out = Path(out_path) if out_path is not None else default_output(h5_path, fmt)
-    return EXPORTERS[fmt].write(Path(h5_path), out)
+    options = {k: v for k, v in options.items() if v is not None}
+    extra = sorted(set(options) - set(EXPORTERS[fmt].options))
+    if extra:
+        raise ConfigError(f"export --{extra[0]}: does not apply to --to {fmt} (it applies to "
+                          + (", ".join(f for f, e in EXPORTERS.items() if extra[0] in e.options)
+                             or "no format") + ")", key=f"--{extra[0]}",
+                          value=options[extra[0]], expected="not given")
+    out = (Path(out_path) if out_path is not None
+           else default_output(h5_path, fmt, options.get("model")))
+    return EXPORTERS[fmt].write(Path(h5_path), out, **options)
 
 
 # --------------------------------------------------------------------------- sparse I/O
