@@ -38,7 +38,8 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "export", help="write an HDF5 result in another tool's format",
         description="mat: MATLAB/Simulink/Octave state space (A, B, C, D of every model, "
-        "names, frequencies); vtu/xdmf: mesh with every mode shape for ParaView; json: "
+        "connection-point and Craig-Bampton models, names, frequencies); simscape: Reduced "
+        "Order Flexible Solid parameters (.mat + .m); vtu/xdmf: mesh with every mode shape for ParaView; json: "
         "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file; fmu: "
         "FMI 2.0 FMU (Model Exchange + Co-Simulation) of the plant or filtered model. "
         "See docs/exports.md.")

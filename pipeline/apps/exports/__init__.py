@@ -64,6 +64,9 @@ EXPORTERS: dict[str, Exporter] = {
                      "XDMF (+ <stem>.modes.h5) for ParaView: mesh and every mode shape"),
     "json": Exporter(_lazy("summary_json"), ".json",
                      "small JSON summary: frequencies, labels, ports, DC gains"),
+    "simscape": Exporter(_lazy("simscape"), "_simscape.mat",
+                         "Simscape Multibody Reduced Order Flexible Solid parameters (.mat + "
+                         ".m script): interface frame origins, Craig-Bampton K, M, damping"),
     "fmu": Exporter(_lazy("fmu", "export_fmu"), ".fmu",
                     "FMI 2.0 FMU (Model Exchange + Co-Simulation, C sources inside) of the "
                     "plant or the filtered model (--model); compiled with gcc at export",
