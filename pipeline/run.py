@@ -206,3 +206,23 @@ def _core_tree(space, regions, fixed, props, modes, shapes, labels) -> dict[str,
         tree[f"mesh/regions/{name}"] = Dataset(tris.astype(np.int64), "1",
                                                "boundary triangles (vertex node indices)")
     return tree
+
+
+
+def stored_fe_data(path: str | Path, assemble: bool = True):
+    """What ``export --to exudyn`` needs beyond a result file, rebuilt on its stored mesh
+    with its stored config (never re-meshing): :class:`pipeline.fe.stored.StoredFE` with
+    K and M of the unsupported body (when ``assemble``; for a file without ``/fe``) and
+    the input-port loads F (for the exporter's static modes)."""
+    import yaml
+
+    from pipeline.config.parse import config_from_dict
+    from pipeline.fe.stored import matrices_of_stored_mesh
+    from pipeline.store.read import open_verified, read_modes
+
+    mesh = read_modes(path)
+    with open_verified(path, verify_checksum=False) as h5:
+        text = str(h5.attrs.get("config_yaml", ""))
+    cfg = config_from_dict(yaml.safe_load(text) or {}, source=f"{path} (stored config)")
+    return matrices_of_stored_mesh(cfg, mesh.points, mesh.cells, mesh.regions, str(path),
+                                   assemble=assemble)

@@ -4,11 +4,14 @@ The format tests need only h5py. The integration test needs Exudyn (PyPI ``exudy
 the ``test`` extra): it is skipped, with the reason, only where ``import exudyn`` fails.
 
 Tolerances:
-- Exudyn's static tip deflection and first frequency against our own reduced model: 2%
-  (the issue's bound). Exudyn uses the 10 exported clamped modes without static
-  correction, so its deflection misses the truncated modes' flexibility (0.07% at this
-  mesh), while our state space is corrected to the exact FE compliance; the first
-  frequency is the same eigenvalue (1e-6 observed).
+- Exudyn's static tip deflection against the full-FE compliance stored in the file
+  (T K^-1 F, a full solve): the export appends the static mode K^-1 F of the input port
+  to the 10 clamped modes (issue 20), so the deflection is in the basis and Exudyn's
+  linear static solve (Newton, relative tolerance 1e-10) reproduces it to the solver's
+  tolerance and the round-off of K^-1 F (cond(K) eps ~ 1e-8 at this mesh): 1e-6.
+  Without the static mode it was 0.07% stiffer (the truncated modes' flexibility).
+- Frequencies: the same eigenvalues of the same projected (K, M); the static mode is
+  M- and K-orthogonal to the modes, so the first 10 Ritz values are unchanged: 1e-6.
 - Exudyn's inertia invariants against ours: both are the same finite sums over the same
   M and basis, so round-off, 1e-10 relative to the largest entry of each term.
 - Geometry of the exported boundary: exact sums, 1e-12.
@@ -88,6 +91,9 @@ def test_export_writes_the_tagged_layout_exudyn_loads(small_file, tmp_path):
         assert set(h5) >= {"nodes", "elements", "massMatrix", "stiffnessMatrix", "surface",
                            "nodeSets", "modeBasis", "eigenValues", "metaData"}
         assert h5["massMatrix"].attrs["datatype"] == "csr_matrix"
+        # no port loads given (the Python API, no fe_data): the file says its statics
+        # are the truncated ones
+        assert h5["metaData/statics"][()].decode().startswith("truncated")
         assert h5["elements/item_0/Tet10"].shape == m.space.element_nodes.shape
         np.testing.assert_array_equal(h5["nodes/Position"][()], m.space.node_points)
         basis = h5["modeBasis/matrix"][()]
@@ -110,8 +116,12 @@ def test_export_refusals_and_registry(small_file, tmp_path):
     _, _, bare, full = small_file
     with pytest.raises(FileFormatError, match="must end in '.hdf5'"):
         export_exudyn(full, tmp_path / "x.h5")
-    with pytest.raises(FileFormatError, match="has no /fe/mass_matrix.*exudyn_datasets"):
+    # the Python API without fe_data: the error names the config key and the command
+    # that re-assembles (it named a Python function before issue 20)
+    with pytest.raises(FileFormatError, match="has no /fe.*'connections'.*export FILE --to "
+                       "exudyn.*re-assembles") as err:
         export_exudyn(bare, tmp_path / "x.hdf5")
+    assert err.value.key == "connections"
     with pytest.raises(ConfigError, match="expected one of exudyn"):
         export(full, "nope")
     assert "exudyn" in EXPORTERS
@@ -149,8 +159,9 @@ def test_boundary_faces_and_region_weights(small_file):
 # --------------------------------------------------------------------------- round trip
 @pytest.fixture(scope="module")
 def cantilever_file(tmp_path_factory):
-    """configs/cantilever.yaml at mesh.size 0.01 through run_pipeline, plus the datasets
-    the Exudyn export needs (exudyn_datasets), as the integrated run will write them."""
+    """configs/cantilever.yaml at mesh.size 0.01 through run_pipeline (no 'connections',
+    so no /fe in the file: the export re-assembles M and K), and K, M assembled here for
+    the invariant comparison."""
     from pipeline.fe.assemble import assemble_stiffness_mass
     from pipeline.config import load_config
     from pipeline.fe.space import build_space
@@ -167,7 +178,6 @@ def cantilever_file(tmp_path_factory):
     space = build_space(read_mesh(source), cfg.mesh.order)
     np.testing.assert_array_equal(space.node_points, points)
     K, M = assemble_stiffness_mass(space, cfg.material)
-    _append(result.output, exudyn_datasets(K, M))
     return result.output, K, M
 
 
@@ -182,8 +192,15 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
     from pipeline.reduce.ffrf import ffrf_invariants
     from pipeline.store.h5file import read_strings
 
+    from pipeline.cli.export import run_export
+
     h5_path, K, M = cantilever_file
-    out = export(h5_path, "exudyn", tmp_path / "cantilever.hdf5")
+    with h5py.File(h5_path, "r") as h5:
+        assert "fe" not in h5   # what made the export fail before issue 20
+    out = run_export(h5_path, "exudyn", tmp_path / "cantilever.hdf5")
+    with h5py.File(out, "r") as h5:
+        assert h5["metaData/statics"][()].decode().startswith("exact")
+        assert "re-assembled" in h5["metaData/matrices"][()].decode()
     fem = FEMinterface()
     fem.LoadFromFile(str(out))
     cms = ObjectFFRFreducedOrderInterface(fem)
@@ -225,11 +242,13 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
         A, B, C, D = (h5[f"statespace/{k}"][()] for k in "ABCD")
         f_ours = h5["modes/frequencies_hz"][()]
         points = h5["mesh/points"][()]
+        full_fe = float(np.ravel(h5["statespace/static_compliance"][()])[0])
     # our reduced model: DC gain of tip_force_y (1 N along -y) -> tip_y position
     row, col = outs.index("tip_y/position"), ins.index("tip_force_y")
     dc = (D - C @ np.linalg.solve(A, B))[row, col]
-    assert abs(deflection / dc - 1) < 0.02, (deflection, dc)
-    assert abs(f_exudyn[0] / f_ours[0] - 1) < 0.02, (f_exudyn[:3], f_ours[:3])
+    print(f"exudyn static deflection {deflection:.12e} m, full FE {full_fe:.12e} m")
+    assert abs(deflection / full_fe - 1) < 1e-6, (deflection, full_fe)
+    assert abs(dc / full_fe - 1) < 1e-6   # and so does our own corrected state space
     np.testing.assert_allclose(f_exudyn[:10], f_ours[:10], rtol=1e-6)
 
     # Exudyn's own inertia invariants against ours (pipeline.reduce.ffrf), same basis

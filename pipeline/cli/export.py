@@ -6,7 +6,10 @@ Dispatches through the registry of :mod:`pipeline.apps.exports` (``EXPORTERS``).
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 __all__ = ["formats", "run_export", "add_export_parser"]
 
@@ -24,7 +27,23 @@ def run_export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None
     ``options`` (e.g. ``model='filtered'`` for fmu) go to the format's writer."""
     from pipeline.apps.exports import export
 
+    if fmt == "exudyn" and options.get("fe_data") is None:
+        options["fe_data"] = exudyn_fe_data(h5_path)
     return Path(export(Path(h5_path), fmt, out_path, **options))
+
+
+def exudyn_fe_data(h5_path: str | Path):
+    """The port loads and, for a file without ``/fe``, M and K re-assembled on its stored
+    mesh with its stored config (:func:`pipeline.run.stored_fe_data`)."""
+    from pipeline.run import stored_fe_data
+    from pipeline.store.read import open_verified
+
+    with open_verified(h5_path) as h5:
+        has_fe = "fe/mass_matrix" in h5 and "fe/stiffness_matrix" in h5
+    if not has_fe:
+        log.info("%s has no /fe: re-assembling M and K from its stored config and mesh",
+                 h5_path)
+    return stored_fe_data(h5_path, assemble=not has_fe)
 
 
 def cmd_export(args: argparse.Namespace) -> int:

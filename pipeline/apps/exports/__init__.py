@@ -53,7 +53,8 @@ def _lazy(module: str, func: str = "export") -> Callable[[Path, Path], Path]:
 EXPORTERS: dict[str, Exporter] = {
     "exudyn": Exporter(_exudyn, ".exudyn.hdf5",
                        "Exudyn FEMinterface file (nodes, elements, M, K, mode basis, node "
-                       "sets) for ObjectFFRFreducedOrder; load with fem.LoadFromFile(path)"),
+                       "sets) for ObjectFFRFreducedOrder; load with fem.LoadFromFile(path)",
+                       options=("basis", "fe_data")),
     "mat": Exporter(_lazy("mat"), ".mat",
                     "MATLAB v5 .mat: A, B, C, D of the reduced, filtered and lumped models, "
                     "names, units, frequencies; Simulink State-Space block, GNU Octave"),

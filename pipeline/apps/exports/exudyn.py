@@ -40,7 +40,15 @@ every group and dataset carries ``datatype`` (``dict``, ``list``, ``csr_matrix``
 in ``.hdf5``.
 
 Our HDF5 file holds M and K only when the run added
-:func:`pipeline.store.schema.exudyn_datasets`.
+:func:`pipeline.store.schema.exudyn_datasets` (configs with ``connections``). For any other
+file ``export --to exudyn`` re-assembles them on the file's own mesh with its stored config
+(:func:`pipeline.run.stored_fe_data`; no re-meshing), and says so in ``metaData/matrices``.
+
+Statics: with a normal-mode basis of a supported body, one static mode per input port
+(K_ff^-1 F, M-orthogonalised to the modes) is appended, so Exudyn's static deflection
+under a port load equals the full FE's; ``metaData/statics`` says whether the statics are
+exact or truncated (no ports, a free body, or a Craig-Bampton basis: exact only for loads
+at the interface points).
 """
 
 from __future__ import annotations
@@ -213,9 +221,45 @@ def _basis(h5, basis: str, n_dofs: int) -> tuple[np.ndarray, str, str]:
     return S[:, keep], "NormalModes", what
 
 
-def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto") -> Path:
+def static_modes(K: sp.spmatrix, M: sp.spmatrix, Psi: np.ndarray, F: np.ndarray,
+                 fixed: np.ndarray) -> np.ndarray:
+    """(n_dofs, k <= n_u) static modes of the supported body: K_ff^-1 F_f per input (zero on
+    the ``fixed`` DOFs), M-orthogonalised against the M-orthonormal ``Psi`` and among
+    themselves, M-normalised; a load already in span(Psi) adds none."""
+    from pipeline.solve.factorize import factorize
+
+    n = K.shape[0]
+    free = np.setdiff1d(np.arange(n), fixed)
+    Kff = sp.csr_matrix(K)[free][:, free]
+    fac = factorize(Kff)
+    S = np.zeros((n, F.shape[1]))
+    S[free] = np.asarray(fac.solve(np.asarray(F[free], float))).reshape(free.size, -1)
+    fac.release()
+    basis = [Psi]
+    kept = []
+    for j in range(S.shape[1]):
+        s = S[:, j].copy()
+        size0 = np.sqrt(s @ (M @ s))
+        for _ in range(2):  # twice: classical Gram-Schmidt in the M inner product
+            for B in basis:
+                s -= B @ (B.T @ (M @ s))
+        size = np.sqrt(s @ (M @ s))
+        if size0 > 0 and size > 1e-8 * size0:
+            s /= size
+            basis.append(s[:, None])
+            kept.append(s)
+    return np.stack(kept, axis=1) if kept else np.zeros((n, 0))
+
+
+def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto",
+                  fe_data: Any = None) -> Path:
     """Write the Exudyn FEMinterface file ``out_path`` (must end in ``.hdf5``) from our
-    HDF5 file ``h5_path``. Returns ``out_path``. See the module docstring."""
+    HDF5 file ``h5_path``. Returns ``out_path``. See the module docstring.
+
+    ``fe_data`` (:func:`pipeline.run.stored_fe_data`, what ``export --to exudyn`` passes):
+    K_full and M_full for a file without ``/fe``, and the input-port loads F from which
+    static modes are added to a normal-mode basis (its statics then equal the full FE's).
+    """
     from pipeline import __version__
 
     out = Path(out_path)
@@ -223,25 +267,51 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
         raise FileFormatError(f"exudyn export: output '{out}' must end in '.hdf5' (Exudyn "
                               "loads HDF5 only from that ending; '.h5' is read as NumPy)")
     with open_verified(h5_path) as h5:
-        for need in ("fe/mass_matrix", "fe/stiffness_matrix"):
-            if need not in h5:
-                raise FileFormatError(
-                    f"file '{h5_path}': has no /{need}, which Exudyn needs (it computes its "
-                    "reduced matrices and inertia invariants from the full M and K); re-run "
-                    "with the Exudyn datasets (pipeline.store.schema.exudyn_datasets)")
         points = h5["mesh/points"][()].astype(float)
         cell_key = "tetra10" if "mesh/cells/tetra10" in h5 else "tetra"
         cells = h5[f"mesh/cells/{cell_key}"][()].astype(np.int64)
         n_dofs = 3 * points.shape[0]
-        M = read_csr(h5, "fe/mass_matrix")
-        K = read_csr(h5, "fe/stiffness_matrix")
+        if "fe/mass_matrix" in h5 and "fe/stiffness_matrix" in h5:
+            M = read_csr(h5, "fe/mass_matrix")
+            K = read_csr(h5, "fe/stiffness_matrix")
+            source = "M and K stored by the run (/fe)"
+        elif fe_data is not None and getattr(fe_data, "K_full", None) is not None:
+            K, M, source = fe_data.K_full, fe_data.M_full, fe_data.source
+        else:
+            raise FileFormatError(
+                f"file '{h5_path}': has no /fe (the full M and K Exudyn needs; a run stores "
+                "them only when the config has a 'connections' section); export it with "
+                "'python -m pipeline export FILE --to exudyn', which re-assembles them from "
+                "the stored config and mesh, or add 'connections:' to the config",
+                key="connections", value="absent", expected="/fe in the file")
         if M.shape != (n_dofs, n_dofs) or K.shape != (n_dofs, n_dofs):
             raise FileFormatError(f"file '{h5_path}': /fe matrices are {M.shape}, {K.shape}; "
                                   f"expected ({n_dofs}, {n_dofs}) for {points.shape[0]} points")
         Psi, kind, what = _basis(h5, basis, n_dofs)
+        fixed = h5["mesh/fixed_dofs"][()].astype(np.int64) if "mesh/fixed_dofs" in h5 \
+            else np.zeros(0, np.int64)
         regions = {name: h5[f"mesh/regions/{name}"][()] for name in h5.get("mesh/regions", {})}
         name = h5.attrs.get("name", Path(h5_path).stem)
         name = name.decode() if isinstance(name, bytes) else str(name)
+    F = getattr(fe_data, "F", None)
+    n_modes = Psi.shape[1]
+    if kind == "NormalModes" and F is not None and F.shape[1] and fixed.size:
+        S = static_modes(K, M, Psi, F, fixed)
+        Psi = np.hstack([Psi, S])
+        statics = (f"exact: the basis adds {S.shape[1]} static mode(s) K^-1 F of the input "
+                   f"port(s) {', '.join(fe_data.input_names)} (M-orthogonalised), so a static "
+                   "load of an input port deflects the body as the full FE does")
+    elif kind == "HCBmodes":
+        statics = ("exact for forces and moments at the other interface points (their "
+                   "constraint modes are in the basis); other loads see only the "
+                   f"{n_modes} basis vectors")
+    else:
+        reason = ("the body is unsupported" if not fixed.size else
+                  "the config has no input ports" if F is not None else
+                  "no port loads were given (export with the command line adds them)")
+        statics = (f"truncated: {reason}, so the basis holds the {n_modes} modes only; a static "
+                   "deflection misses the flexibility of the modes left out (softer by that "
+                   "much in the full FE)")
     Kr = Psi.T @ (K @ Psi)
     Mr = Psi.T @ (M @ Psi)
     import scipy.linalg as sla
@@ -258,7 +328,8 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
                           "NodeWeights": weights})
     data = {
         "metaData": {"source": f"fe-reduced-body {__version__}", "file": str(h5_path),
-                     "name": name, "basis": what, "units": "SI (m, kg, s, N)"},
+                     "name": name, "basis": what, "units": "SI (m, kg, s, N)",
+                     "statics": statics, "matrices": source},
         "nodes": {"Position": points},
         "elements": [{"Name": "body", "Tet10" if cell_key == "tetra10" else "Tet4": cells}],
         "massMatrix": M,
