@@ -137,3 +137,25 @@ printf('FIXED %s\\n', sprintf('%.17g ', sort(f_fixed)));
         free = h5["craig_bampton/free_frequencies_hz"][()]
     assert np.all(lines["FREE"][:6] <= np.sqrt(RIGID_RTOL) * free.max())
     np.testing.assert_allclose(lines["FREE"][6:], free[6:], rtol=1e-7)
+
+
+def test_exudyn_export_says_when_its_statics_are_truncated(connection_h5, tmp_path):
+    """A body without input ports gets no static modes: metaData/statics says so, and
+    which basis it is; the --basis option reaches the exporter."""
+    import argparse
+
+    import h5py
+
+    from pipeline.cli.export import add_export_parser
+
+    parser = argparse.ArgumentParser()
+    add_export_parser(parser.add_subparsers(dest="command"))
+    for basis, start in (("modes", "truncated: the config has no input ports"),
+                         ("craig_bampton", "exact for forces and moments at the other")):
+        out = tmp_path / f"{basis}.hdf5"
+        args = parser.parse_args(["export", str(connection_h5), "--to", "exudyn",
+                                  "--basis", basis, "-o", str(out)])
+        assert args.func(args) == 0
+        with h5py.File(out, "r") as h5:
+            assert h5["metaData/statics"][()].decode().startswith(start)
+            assert h5["metaData/matrices"][()].decode() == "M and K stored by the run (/fe)"

@@ -47,7 +47,8 @@ def exudyn_fe_data(h5_path: str | Path):
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    print(run_export(args.file, args.to, args.output, model=getattr(args, "model", None)))
+    print(run_export(args.file, args.to, args.output, model=getattr(args, "model", None),
+                     basis=getattr(args, "basis", None)))
     return 0
 
 
@@ -67,5 +68,8 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="output file (default: beside FILE, named after it)")
     p.add_argument("--model", choices=("plant", "filtered"),
                    help="fmu: which model goes into the FMU (default plant)")
+    p.add_argument("--basis", choices=("auto", "modes", "craig_bampton"),
+                   help="exudyn: mode basis (default auto: Craig-Bampton where the file has "
+                   "it, else the modes plus the input ports' static modes)")
     p.set_defaults(func=cmd_export)
     return p

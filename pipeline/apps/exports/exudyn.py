@@ -309,9 +309,9 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
         reason = ("the body is unsupported" if not fixed.size else
                   "the config has no input ports" if F is not None else
                   "no port loads were given (export with the command line adds them)")
-        statics = (f"truncated: {reason}, so the basis holds the {n_modes} modes only; a static "
-                   "deflection misses the flexibility of the modes left out (softer by that "
-                   "much in the full FE)")
+        statics = (f"truncated: {reason}, so the basis holds the {n_modes} modes only; a "
+                   "static deflection misses the flexibility of the modes left out (the full "
+                   "FE is softer by that much)")
     Kr = Psi.T @ (K @ Psi)
     Mr = Psi.T @ (M @ Psi)
     import scipy.linalg as sla
