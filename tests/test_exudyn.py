@@ -181,26 +181,15 @@ def cantilever_file(tmp_path_factory):
     return result.output, K, M
 
 
-@pytest.mark.skipif(EXUDYN_ERROR is not None, reason=EXUDYN_ERROR or "")
-def test_exudyn_round_trip(cantilever_file, tmp_path):
+def clamped_tip_in_exudyn(out: Path):
+    """Load the exported file in Exudyn, clamp the root node set, push the tip node set
+    with 1 N along -y; (static tip deflection along y, frequencies Hz, fem, cms)."""
     import exudyn as exu
     from exudyn.FEM import FEMinterface, ObjectFFRFreducedOrderInterface
     from exudyn.itemInterface import (GenericJoint, LoadForceVector, MarkerBodyRigid,
                                       MarkerSuperElementPosition, MarkerSuperElementRigid,
                                       ObjectGround, SensorMarker, VGenericJoint)
 
-    from pipeline.reduce.ffrf import ffrf_invariants
-    from pipeline.store.h5file import read_strings
-
-    from pipeline.cli.export import run_export
-
-    h5_path, K, M = cantilever_file
-    with h5py.File(h5_path, "r") as h5:
-        assert "fe" not in h5   # what made the export fail before issue 20
-    out = run_export(h5_path, "exudyn", tmp_path / "cantilever.hdf5")
-    with h5py.File(out, "r") as h5:
-        assert h5["metaData/statics"][()].decode().startswith("exact")
-        assert "re-assembled" in h5["metaData/matrices"][()].decode()
     fem = FEMinterface()
     fem.LoadFromFile(str(out))
     cms = ObjectFFRFreducedOrderInterface(fem)
@@ -236,6 +225,24 @@ def test_exudyn_round_trip(cantilever_file, tmp_path):
     omega2, _ = mbs.ComputeODE2Eigenvalues(settings)
     f_exudyn = np.sqrt(np.sort(np.abs(omega2))) / (2 * np.pi)
 
+    return deflection, f_exudyn, fem, cms
+
+
+@pytest.mark.skipif(EXUDYN_ERROR is not None, reason=EXUDYN_ERROR or "")
+def test_exudyn_round_trip(cantilever_file, tmp_path):
+    from pipeline.reduce.ffrf import ffrf_invariants
+    from pipeline.store.h5file import read_strings
+
+    from pipeline.cli.export import run_export
+
+    h5_path, K, M = cantilever_file
+    with h5py.File(h5_path, "r") as h5:
+        assert "fe" not in h5   # what made the export fail before issue 20
+    out = run_export(h5_path, "exudyn", tmp_path / "cantilever.hdf5")
+    with h5py.File(out, "r") as h5:
+        assert h5["metaData/statics"][()].decode().startswith("exact")
+        assert "re-assembled" in h5["metaData/matrices"][()].decode()
+    deflection, f_exudyn, fem, cms = clamped_tip_in_exudyn(out)
     with h5py.File(h5_path, "r") as h5:
         ins = read_strings(h5["statespace/input_names"])
         outs = read_strings(h5["statespace/output_names"])
@@ -307,3 +314,26 @@ def test_craig_bampton_basis_is_exported_without_the_reference_interface(small_f
     np.testing.assert_allclose(basis, cb.shapes[:, 6:], atol=1e-12 * np.abs(cb.shapes).max())
     np.testing.assert_allclose(np.sqrt(eig) / (2 * np.pi), cb.frequencies_hz(["root"]),
                                rtol=1e-8)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(EXUDYN_ERROR is not None, reason=EXUDYN_ERROR or "")
+def test_exudyn_from_the_default_cantilever_config(tmp_path):
+    """configs/cantilever.yaml as shipped (mesh.size 0.005): the command-line export,
+    loaded in Exudyn, gives the full-FE static tip deflection and our 10 frequencies
+    (tolerances as in the module docstring)."""
+    from pipeline.cli.export import run_export
+    from pipeline.config import load_config
+    from pipeline.run import run_pipeline
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs/cantilever.yaml")
+    h5_path = run_pipeline(cfg, tmp_path / "cantilever.h5", mesh_dir=tmp_path).output
+    out = run_export(h5_path, "exudyn")
+    deflection, f_exudyn, _, _ = clamped_tip_in_exudyn(out)
+    with h5py.File(h5_path, "r") as h5:
+        full_fe = float(np.ravel(h5["statespace/static_compliance"][()])[0])
+        f_ours = h5["modes/frequencies_hz"][()]
+    print(f"default mesh: exudyn {deflection:.12e} m, full FE {full_fe:.12e} m, "
+          f"f1 {f_exudyn[0]:.6f} / {f_ours[0]:.6f} Hz")
+    assert abs(deflection / full_fe - 1) < 1e-6, (deflection, full_fe)
+    np.testing.assert_allclose(f_exudyn[:10], f_ours[:10], rtol=1e-6)
