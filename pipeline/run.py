@@ -217,12 +217,29 @@ def stored_fe_data(path: str | Path, assemble: bool = True):
     import yaml
 
     from pipeline.config.parse import config_from_dict
+    from pipeline.config import BOX_FACES
     from pipeline.fe.stored import matrices_of_stored_mesh
     from pipeline.store.read import open_verified, read_modes
 
     mesh = read_modes(path)
     with open_verified(path, verify_checksum=False) as h5:
         text = str(h5.attrs.get("config_yaml", ""))
-    cfg = config_from_dict(yaml.safe_load(text) or {}, source=f"{path} (stored config)")
+    raw = yaml.safe_load(text) or {}
+    if not isinstance(raw, dict):
+        raw = {}
+    # only the material and the ports matter here: the stored mesh replaces the geometry (a
+    # CAD file need not be here any more; a box of the mesh's extent keeps the size checks
+    # meaningful) and holds the regions the selectors made (named here by plain selectors)
+    extent = np.ptp(mesh.points, axis=0)
+    raw = {"name": raw.get("name", "stored"), "material": raw.get("material", {}),
+           "ports": raw.get("ports") or {},
+           "geometry": {"kind": "box", "length": float(extent[0]), "height": float(extent[1]),
+                        "depth": float(extent[2])},
+           "mesh": {"order": 2 if mesh.cells.shape[1] == 10 else 1,
+                    "size": float(extent.min())},
+           "regions": {name: {"kind": "plane", "point": [0.0, 0.0, 0.0],
+                              "normal": [0.0, 0.0, 1.0]} for name in mesh.regions
+                       if name not in BOX_FACES}}
+    cfg = config_from_dict(raw, source="")
     return matrices_of_stored_mesh(cfg, mesh.points, mesh.cells, mesh.regions, str(path),
                                    assemble=assemble)

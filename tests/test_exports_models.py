@@ -159,3 +159,22 @@ def test_exudyn_export_says_when_its_statics_are_truncated(connection_h5, tmp_pa
         with h5py.File(out, "r") as h5:
             assert h5["metaData/statics"][()].decode().startswith(start)
             assert h5["metaData/matrices"][()].decode() == "M and K stored by the run (/fe)"
+
+
+def test_exudyn_export_of_a_config_with_region_selectors(tmp_path):
+    """The stored config of a body with a 'regions:' selector (here a sphere around the
+    tip, carrying the input port) does not parse back as written (a sphere selector is
+    stored with a 'tolerance'), and a CAD geometry's file may be gone: the export takes
+    only the material and ports from it and the regions from the stored mesh."""
+    import h5py
+
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml", [
+        "mesh.size=0.025", "modes.count=4", "lumped=null",
+        "regions={load_patch: {kind: sphere, point: [0.5, 0.01, 0.025], radius: 0.03}}",
+        "ports.inputs[0].region=load_patch"])
+    h5 = run_pipeline(cfg, tmp_path / "patch.h5", mesh_dir=tmp_path).output
+    out = run_export(h5, "exudyn", tmp_path / "patch.hdf5")
+    with h5py.File(out, "r") as f:
+        assert f["metaData/statics"][()].decode().startswith("exact")
+        assert "re-assembled" in f["metaData/matrices"][()].decode()
+        assert f["modeBasis/matrix"].shape[1] == 5   # 4 modes + the port's static mode
