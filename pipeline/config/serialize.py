@@ -10,6 +10,12 @@ from typing import Any
 from pipeline.config.schema import Config
 
 
+#: the keys each region selector kind takes (the parser refuses the others)
+SELECTOR_KEYS = {"plane": ("kind", "point", "normal", "tolerance"),
+                 "box": ("kind", "lower", "upper"),
+                 "sphere": ("kind", "point", "radius")}
+
+
 def config_to_dict(cfg: Config) -> dict:
     """The resolved config as plain YAML-ready data (tuples become lists)."""
 
@@ -28,7 +34,8 @@ def config_to_dict(cfg: Config) -> dict:
         if value is None:
             continue
         if f.name == "regions":
-            value = {k: {kk: vv for kk, vv in asdict(v).items() if vv is not None}
+            value = {k: {kk: vv for kk, vv in asdict(v).items()
+                         if vv is not None and kk in SELECTOR_KEYS[v.kind]}
                      for k, v in value.items()}
         elif f.name == "craig_bampton_modes":
             if value:
