@@ -40,9 +40,11 @@ from typing import Iterator
 log = logging.getLogger("pipeline.progress")
 
 #: sparse supernodal factorisation rate / dense Cholesky rate (n = 1500) on the same
-#: cores: measured 0.46 (101k DOFs) and 0.62 (312k DOFs) for MKL PARDISO on the 2-core
-#: reference machine (docs/guide.md, "Progress"); the first estimate of a process uses 0.5
-SPARSE_EFFICIENCY = 0.8
+#: cores, for the first estimate of a process: MKL PARDISO on the 2-core shared reference
+#: machine ran at 15 Gflop/s against a dense rate of 15.8 (0.95, 101k DOFs, quiet machine)
+#: and at 5.5 against 2.5 (267k DOFs, other jobs running: the 0.05 s dense measurement
+#: then catches the machine at its busiest); later estimates use the measured rate
+SPARSE_EFFICIENCY = 1.0
 
 #: measured rates (unit -> units per second) of finished stages in this process
 _rates: dict[str, float] = {}

@@ -89,8 +89,10 @@ def run_summary(result, verbose: bool = False) -> list[str]:
     times = ", ".join(f"{k} {fmt_seconds(v)}" for k, v in result.times.items())
     lines.append(f"wrote {result.output} in {fmt_seconds(total)} ({times}; peak memory "
                  f"{result.peak_memory_mb:.0f} MB)")
-    lines.append(f"look at it: python -m pipeline inspect {result.output}")
-    lines.append(f"            python -m pipeline plot {result.output}")
+    prog = "fe-reduced-body" if Path(sys.argv[0]).name == "fe-reduced-body" \
+        else "python -m pipeline"
+    lines.append(f"look at it: {prog} inspect {result.output}")
+    lines.append(f"            {prog} plot {result.output}")
     return lines
 
 

@@ -23,8 +23,12 @@ node weights (n_nodes,), e.g. the nodal volume shares of
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import scipy.sparse as sp
+
+log = logging.getLogger(__name__)
 
 AXES = "xyz"
 #: below this effective mass share in every rigid direction a mode is ``internal``
@@ -84,6 +88,10 @@ def describe_modes(node_points, shapes, n_rigid: int = 0, weights=None) -> list[
                 else "internal")
         counts[name] = counts.get(name, 0) + 1
         labels.append(f"{name}_{counts[name]}")
+        log.info("mode %d %s: effective mass share %.0f %% (%s)", k + 1, labels[-1],
+                 100 * shares[d, k], ", ".join(
+                     f"{DIRECTIONS[e][0].upper()}{names[e % 3]} {100 * shares[e, k]:.0f} %"
+                     for e in range(6)))
     return labels
 
 
