@@ -44,7 +44,7 @@ def test_counted_stage_extrapolates_its_remaining_time():
 
 def test_without_a_reporter_stages_are_silent(caplog):
     caplog.set_level(logging.DEBUG)
-    with progress.stage("quiet", total=3) as st:
+    with progress.using(None), progress.stage("quiet", total=3) as st:
         st.update()
     assert not caplog.records
 
@@ -73,3 +73,14 @@ def test_factorisation_and_lanczos_report_their_stages(caplog):
         assert "factorise (PARDISO): expected" in text and "Lanczos started (" in text
     else:
         assert "factorise (SuperLU) done" in text and "ARPACK done" in text
+
+
+def test_the_cli_leaves_no_reporter_behind(tmp_path):
+    from pipeline.cli import main
+
+    before = progress.use(None)
+    try:
+        assert main(["inspect", str(tmp_path / "missing.h5")]) != 0
+        assert progress.use(None) is None  # main's reporter was its own, not left behind
+    finally:
+        progress.use(before)

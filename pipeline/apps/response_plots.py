@@ -3,7 +3,7 @@ response, written by ``python -m pipeline plot`` (see :mod:`pipeline.apps.plots`
 
 - :func:`plot_bode`: for every input -> position output of the plant, the magnitude
   |G(j 2 pi f)| (log-log, in output unit / input unit, e.g. [m/N]) above the phase
-  arg G [deg] (unwrapped along f), plant solid and filtered model dashed, with the
+  arg G [deg] in (-180, 180], plant solid and filtered model dashed, with the
   retained natural frequencies dotted;
 - :func:`plot_step`: the response of every position output to a unit step of every input.
 
@@ -77,8 +77,18 @@ def frequency_response(sys, f: np.ndarray) -> np.ndarray:
 
 
 def phase_deg(G: np.ndarray) -> np.ndarray:
-    """Unwrapped phase [deg] along the last axis, the lowest frequency in (-180, 180]."""
-    return np.degrees(np.unwrap(np.angle(G), axis=-1))
+    """Phase [deg] in (-180, 180]. Not unwrapped: an off-diagonal transfer function
+    whose numerator changes sign (a zero on the imaginary axis) would drift by 360 deg
+    per crossing, a picture that reads like extra delay; the line is broken at the wraps
+    instead (:func:`broken_at_wraps`)."""
+    return np.degrees(np.angle(G))
+
+
+def broken_at_wraps(f: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(f, ph) with NaN inserted where the phase wraps (jumps by more than 180 deg), so
+    that no vertical line is drawn across the plot."""
+    jumps = np.flatnonzero(np.abs(np.diff(ph)) > 180.0) + 1
+    return np.insert(f, jumps, np.nan), np.insert(ph, jumps, np.nan)
 
 
 def bode_frequencies(model) -> np.ndarray:
@@ -119,16 +129,18 @@ def plot_bode(path: str | Path, out: str | Path) -> Path:
         for c in range(n_in):
             mag, ph = axes[2 * r][c], axes[2 * r + 1][c]
             mag.loglog(f, np.abs(plant[o, c]), color=PLANT, lw=1.6, label="reduced model")
-            ph.semilogx(f, phase_deg(plant[o, c]), color=PLANT, lw=1.4)
+            ph.semilogx(*broken_at_wraps(f, phase_deg(plant[o, c])), color=PLANT, lw=1.4)
             if filt is not None:
                 label = f"filtered ({model.filter_kind}, {model.cutoff_hz:g} Hz)"
                 mag.loglog(f, np.abs(filt[o, c]), color=FILTERED, lw=1.1, ls="--", label=label)
-                ph.semilogx(f, phase_deg(filt[o, c]), color=FILTERED, lw=1.0, ls="--")
+                ph.semilogx(*broken_at_wraps(f, phase_deg(filt[o, c])), color=FILTERED, lw=1.0,
+                            ls="--")
             for ax in (mag, ph):
                 for fr in retained:
                     ax.axvline(fr, color="0.6", lw=0.6, ls=":")
                 ax.grid(which="both", alpha=0.25)
             ph.yaxis.set_major_locator(_degree_locator())
+            ph.set_ylim(-190, 190)
             mag.set_title(f"{model.input_names[c]} -> {model.output_names[o]}", fontsize=9)
             if c == 0:
                 mag.set_ylabel(f"|G| [{ratio_unit(units, r, c)}]")

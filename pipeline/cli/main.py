@@ -38,16 +38,15 @@ def _setup_logging(verbosity: int) -> None:
             logging.INFO if verbosity == 0 and not sys.stderr.isatty() else logging.NOTSET)
 
 
-def _install_progress(verbosity: int) -> None:
+def _progress_reporter(verbosity: int):
     """Bars on a terminal, stage log lines otherwise, nothing with -q."""
     from pipeline._util import progress
 
     if verbosity < 0:
-        progress.use(None)
-    elif sys.stderr.isatty():
-        progress.use(progress.BarReporter(sys.stderr))
-    else:
-        progress.use(progress.LogReporter())
+        return None
+    if sys.stderr.isatty():
+        return progress.BarReporter(sys.stderr)
+    return progress.LogReporter()
 
 
 def tqdm_progress(desc: str, total: int | None, unit: str):
@@ -151,9 +150,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(-1 if args.quiet else args.verbose)
-    _install_progress(-1 if args.quiet else args.verbose)
+    from pipeline._util.progress import using
+
     try:
-        return int(args.func(args) or 0)
+        # the reporter is this command's (main may be called again in one process)
+        with using(_progress_reporter(-1 if args.quiet else args.verbose)):
+            return int(args.func(args) or 0)
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
