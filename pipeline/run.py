@@ -119,11 +119,12 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
 
     fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times))
     with _stage("modes", times):
-        with progress("eigensolve", None, "solve") as update:
-            modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free, fe.space.node_points,
-                                  node_volume_weights(fe.space), supported=bool(cfg.supports),
-                                  backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
-                                  progress=update, keep=cfg.reduction is not None)
+        # the factorisation and the eigensolver report their own progress (with totals
+        # and expected durations) through pipeline._util.progress
+        modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free, fe.space.node_points,
+                              node_volume_weights(fe.space), supported=bool(cfg.supports),
+                              backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
+                              keep=cfg.reduction is not None)
     if modes.factorization is not None:
         # the kept factor of K (for the static correction) lives exactly as long as K:
         # freed when the reduce stage drops K, before the connection models factorise

@@ -85,3 +85,26 @@ def test_stale_mesh_temporaries_of_dead_processes_are_removed(tmp_path):
     alive.write_text("in progress")
     generate_mesh(Geometry("box", 0.1, 0.02, 0.02), MeshSpec(size=0.02), tmp_path / "box.msh")
     assert not dead.exists() and alive.exists() and (tmp_path / "box.msh").exists()
+
+
+def test_run_prints_a_short_summary_and_stage_lines_when_piped(tmp_path):
+    out = tmp_path / "c.h5"
+    args = ("run", "configs/cantilever.yaml", "--set", "mesh.size=0.01", "-o", str(out),
+            "--mesh-dir", str(tmp_path))
+    proc = run_cli(*args)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    first = [i for i, line in enumerate(lines) if line.startswith("cantilever: ")][0]
+    assert lines[first + 1].split() == ["mode", "f", "[Hz]", "label"]
+    assert "bending_z_1" in proc.stdout and "reduced model: 4 modes" in proc.stdout
+    # the lumped chain's comparison table only with -v
+    assert "(table with -v)" in proc.stdout and "refined        1" not in proc.stdout
+    assert lines[-2:] == [f"look at it: python -m pipeline inspect {out}",
+                          f"            python -m pipeline plot {out}"]
+    # stderr is not a terminal: one line per stage start and end, with the time taken
+    assert "pipeline.progress: assemble done in" in proc.stderr
+    assert "pipeline.run: modes done in" in proc.stderr
+    assert "Lanczos started (" in proc.stderr or "ARPACK done" in proc.stderr
+    verbose = run_cli("-v", *args)
+    assert verbose.returncode == 0, verbose.stderr
+    assert "refined        1" in verbose.stdout and "(table with -v)" not in verbose.stdout

@@ -168,7 +168,15 @@ def test_vtu_round_trip_with_meshio(result_h5, tmp_path):
     np.testing.assert_array_equal(mesh.cells[0].data, cells)
     modes = sorted(k for k in mesh.point_data if k.startswith("mode_"))
     assert len(modes) == freqs.size
-    assert modes[0] == f"mode_01_{freqs[0]:.4g}Hz"
+    with h5py.File(result_h5, "r") as h5:
+        labels = [x.decode() if isinstance(x, bytes) else x for x in h5["modes/labels"][()]]
+    assert modes[0] == f"mode_01_{labels[0]}_{freqs[0]:.4g}Hz"  # label and frequency
+    # suggested display scale: the largest displacement becomes 0.1 x the body's size
+    scale = mesh.field_data["display_scale"]
+    assert scale.shape == freqs.shape
+    size = np.ptp(points, axis=0).max()
+    peak = np.linalg.norm(shapes, axis=1).max(axis=0)
+    np.testing.assert_allclose(scale * peak, 0.1 * size, rtol=1e-12)
     for i, name in enumerate(modes):
         np.testing.assert_array_equal(mesh.point_data[name], shapes[:, :, i])
     np.testing.assert_array_equal(mesh.field_data["frequencies_hz"], freqs)
@@ -190,6 +198,7 @@ def test_xdmf_round_trip_and_the_input_is_never_overwritten(result_h5, tmp_path)
     np.testing.assert_array_equal(mesh.point_data[names[-1]], shapes[:, :, -1])
     with h5py.File(out.with_suffix(".h5"), "r") as side:
         np.testing.assert_array_equal(side["frequencies_hz"][()], freqs)
+        assert side["display_scale"].shape == freqs.shape
     with pytest.raises(ConfigError, match=r"would write its data to .*cantilever\.h5"):
         run_export(result_h5, "xdmf", result_h5.with_suffix(".xdmf"))
     with h5py.File(result_h5, "r") as h5:   # still ours, intact

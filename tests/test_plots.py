@@ -135,3 +135,121 @@ def test_boundary_surface_of_a_tetrahedron_and_of_a_meshed_box(tmp_path):
     on_faces = [np.isclose(ends[..., k], 0) | np.isclose(ends[..., k], hi)
                 for k, hi in enumerate((0.3, 0.1, 0.05))]
     assert (np.sum(on_faces, axis=0) >= 2).all()
+
+
+# --------------------------------------------------------------------------- issue 21
+import re  # noqa: E402
+
+from pipeline.apps import plots as plots_module  # noqa: E402
+from pipeline.apps import response_plots  # noqa: E402
+
+#: the package's one way of writing a unit on an axis: "quantity [unit]"
+UNIT_LABEL = re.compile(r"^.+ \[[^\[\]]+\]$")
+
+
+def _captured_figures(monkeypatch):
+    figs = []
+
+    def keep(fig, out):
+        figs.append(fig)
+        return Path(out)
+
+    monkeypatch.setattr(response_plots, "save_figure", keep)
+    monkeypatch.setattr(plots_module, "save_figure", keep)
+    return figs
+
+
+def _axis_labels(fig):
+    labels = []
+    for ax in fig.axes:
+        labels += [t for t in (ax.get_xlabel(), ax.get_ylabel()) if t]
+    return labels
+
+
+def test_every_axis_carries_its_unit_in_brackets(bracket_h5, beam_h5, monkeypatch, tmp_path):
+    figs = _captured_figures(monkeypatch)
+    response_plots.plot_bode(bracket_h5, tmp_path / "bode.png")
+    response_plots.plot_step(bracket_h5, tmp_path / "step.png")
+    data = read_modes(beam_h5)
+    plots_module.plot_mode(data, 0, tmp_path / "m.png")
+    plots_module.plot_frequency_table(data, tmp_path / "f.png")
+    labels = [label for fig in figs for label in _axis_labels(fig)]
+    # mode number (a count) is the one axis without a unit
+    with_units = [label for label in labels if label != "mode"]
+    assert with_units and all(UNIT_LABEL.match(label) for label in with_units), labels
+    assert "f [Hz]" in labels and "phase [deg]" in labels and "|G| [m/N]" in labels
+    # every mode picture has its colour bar
+    assert any(ax.get_ylabel() == "|u| / max |u| [1]" for ax in figs[2].axes)
+
+
+def test_bode_shows_magnitude_and_phase_of_a_known_system(bracket_h5, monkeypatch, tmp_path):
+    import control
+
+    from pipeline.store.read import load_model
+
+    model = load_model(bracket_h5)
+    f = np.array([50.0, 2000.0, 9000.0])
+    G = response_plots.frequency_response(model.ss, f)
+    ref = model.ss.frequency_response(2 * np.pi * f)
+    np.testing.assert_allclose(np.abs(G), ref.magnitude, rtol=1e-9)
+    # one mode, m x'' + c x' + k x = F: phase 0 below resonance, -90 deg at it, -180 above
+    wn, z = 2 * np.pi * 100.0, 0.02
+    one = control.ss([[0, 1], [-wn ** 2, -2 * z * wn]], [[0], [1]], [[1, 0]], [[0]])
+    ph = response_plots.phase_deg(response_plots.frequency_response(
+        one, np.array([1.0, 100.0, 1e4])))[0, 0]
+    np.testing.assert_allclose(ph, [0.0, -90.0, -180.0], atol=0.5)
+    figs = _captured_figures(monkeypatch)
+    response_plots.plot_bode(bracket_h5, tmp_path / "bode.png")
+    n_out = sum(name.endswith("/position") for name in model.output_names) or 1
+    assert len(figs[0].axes) == 2 * n_out * len(model.input_names)  # magnitude and phase
+
+
+def test_viewpoint_looks_across_the_motion():
+    g = np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    twist_z = np.cross([0.0, 0.0, 1.0], g)
+    elev, _ = plots_module.view_for_mode(twist_z)
+    assert elev > 45  # a rotation about z is seen from above (along its axis)
+    heave_z = np.tile([0.0, 0.0, 1.0], (len(g), 1))
+    elev, _ = plots_module.view_for_mode(heave_z)
+    assert abs(elev) < 30  # a motion along z is seen from the side
+
+
+def test_a_twist_of_a_slender_body_is_drawn_end_on():
+    x = np.stack(np.meshgrid(np.linspace(0, 0.5, 21), np.linspace(0, 0.02, 3),
+                             np.linspace(0, 0.05, 4), indexing="ij"), -1).reshape(-1, 3)
+    c = x.mean(axis=0)
+    twist = np.cross([1.0, 0.0, 0.0], x - c) * x[:, :1]
+    bend = np.zeros_like(x)
+    bend[:, 1] = x[:, 0] ** 2
+    assert plots_module.is_twist(x, twist) and not plots_module.is_twist(x, bend)
+    assert plots_module.is_twist(x, bend, "torsion_1")  # the file's label decides
+
+
+def test_animation_is_a_looping_gif_of_the_moving_shape(beam_h5, tmp_path):
+    from PIL import Image
+
+    from pipeline.apps.animate import animate_mode
+
+    data = read_modes(beam_h5)
+    written = animate_mode(data, 0, tmp_path / "mode_01.gif", frames=8, mp4=False)
+    assert written == [tmp_path / "mode_01.gif"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mode_01.gif"]  # no temporaries
+    im = Image.open(written[0])
+    assert im.n_frames == 8
+    frames = []
+    for k in (0, 2):  # amplitude 0 and 1: the shape has moved
+        im.seek(k)
+        frames.append(np.asarray(im.convert("RGB"), dtype=float))
+    assert np.abs(frames[0] - frames[1]).mean() > 1.0
+
+
+def test_batch_report_axes_carry_units(bracket_h5):
+    from pipeline.apps.batch.models import read_statespace
+    from pipeline.apps.batch.plots import key_label
+
+    assert key_label("geometry.height") == "geometry.height [m]"
+    assert key_label("material.E") == "material.E [Pa]"
+    assert key_label("filter.cutoff_hz") == "filter.cutoff_hz [Hz]"
+    ss = read_statespace(bracket_h5)
+    pos = [n for n in ss.output_names if n.endswith("/position")]
+    assert ss.ratio_unit(ss.input_names[0], pos[0]) == "m/N"

@@ -11,9 +11,15 @@ Reads only the HDF5 file (verified: schema, version, checksum) and writes, into
 - ``frequencies.png`` and ``frequencies.csv``: the frequency table (mode, Hz, label,
   and for the modes kept in the reduced model their damping ratio);
 - where the file holds a reduced model (``/statespace``): ``bode.png``, the magnitude
-  of every input -> position output of the plant (and of the filtered model, dashed),
-  and ``step.png``, the response of every position output to a unit step of every
-  input (via :func:`pipeline.store.read.load_model` and python-control).
+  and phase of every input -> position output of the plant (and of the filtered model,
+  dashed), and ``step.png``, the response of every position output to a unit step of
+  every input (:mod:`pipeline.apps.response_plots`);
+- with ``--animate``: ``mode_NN.gif`` (and ``.mp4`` where ffmpeg is installed), the mode
+  shapes moving (:mod:`pipeline.apps.animate`).
+
+Axes are labelled ``quantity [unit]`` (the package's one convention: ``f [Hz]``,
+``x [m]``); the colour of a mode picture is |u| / max |u| (a mode shape has no absolute
+scale) with its colour bar.
 
 Only matplotlib's object API is used (no pyplot, no global backend switch), so this
 module is safe to call from a library or a test.
@@ -30,7 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.store.read import ModeSet, load_model, open_verified, read_modes, read_strings
+from pipeline.apps.response_plots import plot_bode, plot_step, save_figure
+from pipeline.apps.views import is_twist, view_for_mode
+from pipeline.store.read import ModeSet, read_modes
 
 ModeData = ModeSet  # what the pictures need: the mesh and modes of one file
 
@@ -165,6 +173,27 @@ def _side_axes(points: np.ndarray, u: np.ndarray) -> tuple[int, int, int]:
     return long_axis, trans, depth
 
 
+def _axis_triad(ax, lo: np.ndarray, span: np.ndarray) -> None:
+    """x, y, z arrows (red, green, blue) at the low corner of a 3D view."""
+    length = 0.22 * span.max()
+    for k, (name, colour) in enumerate(zip("xyz", ("#c0392b", "#27ae60", "#2e5cb8"))):
+        tip = np.zeros(3)
+        tip[k] = length
+        ax.quiver(*lo, *tip, color=colour, lw=1.4, arrow_length_ratio=0.25)
+        ax.text(*(lo + 1.25 * tip), name, color=colour, fontsize=9, fontweight="bold")
+
+
+def _colour_bar(fig, mappable_norm=None, ax=None, cax=None, shrink=0.7) -> None:
+    """The colour bar of the mode pictures: |u| / max |u| from 0 to 1."""
+    import matplotlib
+    from matplotlib import cm, colors
+
+    mappable = cm.ScalarMappable(norm=mappable_norm or colors.Normalize(0.0, 1.0),
+                                 cmap=matplotlib.colormaps[CMAP])
+    bar = fig.colorbar(mappable, ax=ax, cax=cax, shrink=shrink, pad=0.02)
+    bar.set_label("|u| / max |u| [1]")
+
+
 def _face_colours(mag: np.ndarray, drawn: np.ndarray):
     import matplotlib
 
@@ -173,19 +202,33 @@ def _face_colours(mag: np.ndarray, drawn: np.ndarray):
 
 
 def _draw_mode_2d(ax, data: ModeData, surface: Surface, mode: int, *, colorbar_fig=None,
-                  small=False) -> None:
-    """Side view of a slender body: long axis across, the mode's main transverse axis up."""
-    from matplotlib import cm, colors
-    import matplotlib
+                  small=False, amplitude: float = 1.0) -> bool:
+    """Side view of a slender body: long axis across, the mode's main transverse axis up;
+    a twist (:func:`is_twist`) end-on instead, the cross-section axes across and up,
+    drawn to scale, the deformation scaled to the section. Returns True when end-on.
+    ``amplitude`` multiplies the drawn deformation (an animation frame)."""
     from matplotlib.collections import LineCollection, PolyCollection
 
     u = data.shapes[:, :, mode]
-    scale = _deformation_scale(data.points, u)
-    moved = data.points + scale * u
+    label = data.labels[mode] if mode < len(data.labels) else ""
+    end_on = is_twist(data.points, u, label)
     i, j, k = _side_axes(data.points, u)
+    if end_on:
+        i, j = sorted((j, k))
+        k = int(np.argmax(np.ptp(data.points, axis=0)))
+        scale = _deformation_scale(data.points[:, [i, j]], u[:, [i, j]])
+    else:
+        scale = _deformation_scale(data.points, u)
+    full = data.points + scale * u
+    moved = data.points + amplitude * scale * u
     mag = np.linalg.norm(u, axis=1)
     rgba = _face_colours(mag, surface.drawn)
     order = np.argsort(moved[surface.drawn][:, :, k].mean(axis=1))  # far faces first
+    if end_on:  # only the end faces: the long sides, seen edge-on, would be streaks
+        a, b, c = (data.points[surface.drawn[order, m]] for m in range(3))
+        nrm = np.cross(b - a, c - a)
+        along = np.abs(nrm[:, k]) > 0.7 * np.linalg.norm(nrm, axis=1)
+        order = order[along]
     polys = moved[surface.drawn[order]][:, :, [i, j]]
     ax.add_collection(PolyCollection(polys, facecolors=rgba[order], edgecolors=rgba[order],
                                      linewidths=0.3))
@@ -194,32 +237,36 @@ def _draw_mode_2d(ax, data: ModeData, surface: Surface, mode: int, *, colorbar_f
                                          colors="0.55", linewidths=0.8))
         ax.add_collection(LineCollection(moved[surface.feature_edges][:, :, [i, j]],
                                          colors="black", linewidths=0.4, alpha=0.8))
-    both = np.vstack([data.points, moved])[:, [i, j]]
+    # limits hold the deformation both ways (the same for every animation frame)
+    both = np.vstack([data.points, full, 2 * data.points - full])[:, [i, j]]
     lo, hi = both.min(axis=0), both.max(axis=0)
     pad = 0.05 * (hi - lo) + 1e-12
     ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
-    ax.set_ylim(lo[1] - 3 * pad[1], hi[1] + 3 * pad[1])
+    ax.set_ylim(lo[1] - (1 if end_on else 3) * pad[1], hi[1] + (1 if end_on else 3) * pad[1])
+    if end_on:
+        ax.set_aspect("equal")
     names = "xyz"
-    ax.set_xlabel(f"{names[i]} (m)", fontsize=8 if small else 10)
-    ax.set_ylabel(f"{names[j]} (m)", fontsize=8 if small else 10)
+    ax.set_xlabel(f"{names[i]} [m]", fontsize=8 if small else 10)
+    ax.set_ylabel(f"{names[j]} [m]", fontsize=8 if small else 10)
     ax.tick_params(labelsize=7 if small else 9)
     ax.grid(alpha=0.25)
     if colorbar_fig is not None:
-        mappable = cm.ScalarMappable(norm=colors.Normalize(0, 1),
-                                     cmap=matplotlib.colormaps[CMAP])
-        bar = colorbar_fig.colorbar(mappable, ax=ax, shrink=0.8, pad=0.02)
-        bar.set_label("|u| / max |u|")
+        _colour_bar(colorbar_fig, ax=ax, shrink=0.8)
+    return end_on
 
 
 def _draw_mode(ax, data: ModeData, surface: Surface, mode: int, *, light=True, outline=True,
-               colorbar_fig=None) -> None:
+               colorbar_fig=None, amplitude: float = 1.0, triad: bool = True) -> None:
+    """3D perspective view of mode ``mode`` from :func:`view_for_mode`, with an axis
+    triad; ``amplitude`` multiplies the drawn deformation (an animation frame)."""
     import matplotlib
-    from matplotlib import cm, colors
+    from matplotlib import colors
     from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
     u = data.shapes[:, :, mode]
     scale = _deformation_scale(data.points, u)
-    moved = data.points + scale * u
+    full = data.points + scale * u
+    moved = data.points + amplitude * scale * u
     mag = np.linalg.norm(u, axis=1)
     peak = mag.max() if mag.max() > 0 else 1.0
     norm = colors.Normalize(0.0, 1.0)
@@ -244,26 +291,30 @@ def _draw_mode(ax, data: ModeData, surface: Surface, mode: int, *, light=True, o
         deformed = Line3DCollection(moved[surface.feature_edges], colors="black",
                                     linewidths=0.5, alpha=0.9)
         ax.add_collection3d(deformed)
-    both = np.vstack([data.points, moved])
+    both = np.vstack([data.points, full, 2 * data.points - full])
     lo, hi = both.min(axis=0), both.max(axis=0)
     span = np.maximum(hi - lo, 1e-3 * (hi - lo).max())
     centre = 0.5 * (lo + hi)
     ax.set_xlim(centre[0] - span[0] / 2, centre[0] + span[0] / 2)
     ax.set_ylim(centre[1] - span[1] / 2, centre[1] + span[1] / 2)
     ax.set_zlim(centre[2] - span[2] / 2, centre[2] + span[2] / 2)
-    ax.set_box_aspect(tuple(np.maximum(span / span.max(), 0.02)), zoom=1.15)
-    ax.view_init(elev=24, azim=-58)
+    ax.set_box_aspect(tuple(np.maximum(span / span.max(), 0.02)), zoom=1.1)
+    ax.set_proj_type("persp", focal_length=0.5)
+    ax.view_init(*view_for_mode(u))
     ax.set_axis_off()
+    if triad:
+        _axis_triad(ax, centre - span / 2, span)
     if colorbar_fig is not None:
-        mappable = cm.ScalarMappable(norm=norm, cmap=cmap)
-        bar = colorbar_fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02)
-        bar.set_label("|u| / max |u|")
+        _colour_bar(colorbar_fig, norm, ax=ax, shrink=0.6)
+
+
+#: the drawing functions under public names (the animation draws its frames with them)
+draw_mode, draw_mode_2d = _draw_mode, _draw_mode_2d
 
 
 def _savefig(fig, out: Path) -> None:
     """Save ``fig`` to ``out`` through the atomic writer (the format from the suffix)."""
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=DPI, facecolor="white", format=out.suffix.lstrip(".") or None)
+    save_figure(fig, out)
 
 
 def _fmt_hz(f: float) -> str:
@@ -276,6 +327,9 @@ def _title(data: ModeData, mode: int) -> str:
         f"  ({label})" if label else "")
 
 
+mode_title = _title
+
+
 def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
     """One mode (0-based index) as a PNG."""
     from matplotlib.figure import Figure
@@ -286,17 +340,21 @@ def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | Non
     if slender:
         ax = fig.add_subplot()
         fig.subplots_adjust(left=0.1, right=0.98, top=0.86, bottom=0.2)
-        _draw_mode_2d(ax, data, surface, mode, colorbar_fig=fig)
-        view = "side view, not to scale across"
+        end_on = _draw_mode_2d(ax, data, surface, mode, colorbar_fig=fig)
+        if end_on:
+            fig.set_size_inches(6.4, 5.6)
+            fig.subplots_adjust(left=0.16, right=0.95, top=0.88, bottom=0.16)
+        view = ("end-on view along the long axis (a twist)" if end_on
+                else "side view, not to scale across")
     else:
         ax = fig.add_subplot(projection="3d", computed_zorder=False)
         _draw_mode(ax, data, surface, mode, colorbar_fig=fig)
-        view = "3D view"
+        view = "3D view from where the motion shows"
     fig.suptitle(_title(data, mode), fontsize=14, fontweight="bold", y=0.96)
     extent = np.ptp(data.points, axis=0)
-    fig.text(0.5, 0.025, f"{data.name}: body {' x '.join(f'{e * 1e3:.4g}' for e in extent)} mm, "
-             f"{view}; deformation exaggerated to {DEFORMATION_FRACTION:.0%} of the largest "
-             "dimension; grey: undeformed outline", ha="center", fontsize=8, color="0.3")
+    fig.text(0.5, 0.015, f"{data.name}: body {' x '.join(f'{e * 1e3:.4g}' for e in extent)} mm, "
+             f"{view};\ndeformation exaggerated to {DEFORMATION_FRACTION:.0%} of the largest "
+             "dimension in view; grey: undeformed outline", ha="center", fontsize=8, color="0.3")
     out = Path(out)
     _savefig(fig, out)
     return out
@@ -320,13 +378,16 @@ def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None
             _draw_mode_2d(ax, data, surface, k, small=True)
         else:
             ax = fig.add_subplot(rows, cols, k + 1, projection="3d", computed_zorder=False)
-            _draw_mode(ax, data, surface, k, outline=True, light=True)
+            _draw_mode(ax, data, surface, k, outline=True, light=True, triad=k == 0)
         ax.set_title(_title(data, k), fontsize=9)
     fig.suptitle(f"{data.name}: {n} modes", fontsize=13, fontweight="bold")
+    right = 1 - 0.9 / fig.get_size_inches()[0]  # room for the colour bar
     if slender:
-        fig.tight_layout(rect=(0, 0, 1, 0.95))
+        fig.tight_layout(rect=(0, 0, right, 0.95))
     else:
-        fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0, hspace=0.08)
+        fig.subplots_adjust(left=0, right=right, bottom=0, top=0.92, wspace=0, hspace=0.08)
+    _colour_bar(fig, cax=fig.add_axes((right + 0.15 / fig.get_size_inches()[0], 0.15,
+                                       0.18 / fig.get_size_inches()[0], 0.65)))
     out = Path(out)
     _savefig(fig, out)
     return out
@@ -378,7 +439,7 @@ def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
     if positive.size and positive.max() / positive.min() > 30:
         ax.set_yscale("log")
     ax.set_xlabel("mode")
-    ax.set_ylabel("frequency (Hz)")
+    ax.set_ylabel("f [Hz]")
     ax.set_xticks(modes)
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, frameon=False)
@@ -387,7 +448,7 @@ def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
     tab.set_axis_off()
     cells = [[str(r["mode"]), f"{r['frequency_hz']:.6g}", r["label"],
               "" if r["damping_ratio"] is None else f"{r['damping_ratio']:.3g}"] for r in rows]
-    table = tab.table(cellText=cells, colLabels=["mode", "f (Hz)", "label", "damping ratio*"],
+    table = tab.table(cellText=cells, colLabels=["mode", "f [Hz]", "label", "damping ratio [1]*"],
                       colWidths=[0.12, 0.26, 0.36, 0.26], loc="upper center", cellLoc="center")
     tab.text(0.5, 0.0, "* of the modes kept in the reduced model", ha="center", va="bottom",
              fontsize=8, color="0.35", transform=tab.transAxes)
@@ -406,159 +467,11 @@ def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
     return out
 
 
-# --------------------------------------------------------------------------- reduced model
-def _position_outputs(names: tuple[str, ...]) -> list[int]:
-    pos = [i for i, n in enumerate(names) if n.endswith("/position")]
-    return pos or list(range(len(names)))
-
-
-def _units(path) -> tuple[list[str], list[str]]:
-    with open_verified(path, verify_checksum=False) as h5:
-        attrs = h5["statespace"].attrs
-        ins = read_strings(attrs["input_units"]) if "input_units" in attrs else []
-        outs = read_strings(attrs["output_units"]) if "output_units" in attrs else []
-    return ins, outs
-
-
-def _ratio_unit(units: tuple[list[str], list[str]], r: int, c: int) -> str:
-    """Unit of position output port ``r`` per unit of input ``c``."""
-    ins, outs = units
-    if c < len(ins) and r < len(outs):
-        return f"{outs[r]}/{ins[c]}"
-    return "output/input"
-
-
-def _margins(fig, rows: int, cols: int) -> None:
-    """Fixed margins (tight_layout on log axes costs seconds)."""
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=0.9 / w, right=1 - 0.25 / w, bottom=0.6 / h, top=1 - 0.9 / h,
-                        wspace=0.75 / (w / cols), hspace=0.55 / (h / rows))
-
-
-def _grid(fig, rows: int, cols: int):
-    return fig.subplots(rows, cols, squeeze=False, sharex=True)
-
-
-def _magnitude(sys, f: np.ndarray) -> np.ndarray:
-    """|G(j 2 pi f)| (p, m, n_f) of a python-control StateSpace, all frequencies at once.
-
-    The same as ``sys.frequency_response(2 pi f).magnitude``, which evaluates one
-    frequency at a time (seconds for a few thousand points); here one batched solve.
-    """
-    A, B, C, D = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C, sys.D))
-    s = 2j * np.pi * f
-    eye = np.eye(A.shape[0])
-    X = np.linalg.solve(s[:, None, None] * eye - A, np.broadcast_to(B, (f.size, *B.shape)))
-    G = C @ X + D                                   # (n_f, p, m)
-    return np.abs(np.moveaxis(G, 0, -1))
-
-
-def plot_bode(path: str | Path, out: str | Path) -> Path:
-    """Bode magnitude of every input -> position output (plant solid, filtered dashed)."""
-    from matplotlib.figure import Figure
-
-
-    model = load_model(path, require_plant=True)
-    units = _units(path)
-    outs = _position_outputs(model.output_names)
-    n_in = len(model.input_names)
-    retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])
-    f_lo = max(retained.min() / 20.0, 1e-6) if retained.size else 0.1
-    f_hi = retained.max() * 10.0 if retained.size else 1e4
-    if model.cutoff_hz:
-        f_hi = max(f_hi, 3.0 * model.cutoff_hz)
-    zeta = model.damping_ratios if model.damping_ratios.size else np.full(retained.size, 0.02)
-    near = [fr * (1.0 + np.linspace(-5, 5, 61) * max(z, 1e-3)) for fr, z in zip(retained, zeta)]
-    f = np.unique(np.concatenate([np.logspace(np.log10(f_lo), np.log10(f_hi), 800), *near]))
-    f = f[(f >= f_lo) & (f <= f_hi)]
-    plant = _magnitude(model.ss, f)
-    filt = _magnitude(model.ss_filtered, f) if model.ss_filtered is not None else None
-    fig = Figure(figsize=(max(7.5, 4.6 * n_in + 1.0), 2.9 * len(outs) + 1.2), dpi=DPI,
-                 facecolor="white")
-    axes = _grid(fig, len(outs), n_in)
-    for r, o in enumerate(outs):
-        for c in range(n_in):
-            ax = axes[r][c]
-            ax.loglog(f, plant[o, c], color="#1f4e9c", lw=1.6, label="reduced model")
-            if filt is not None:
-                ax.loglog(f, filt[o, c], color="#d62728", lw=1.1, ls="--",
-                          label=f"filtered ({model.filter_kind}, {model.cutoff_hz:g} Hz)")
-            for fr in retained:
-                ax.axvline(fr, color="0.6", lw=0.6, ls=":")
-            ax.grid(which="both", alpha=0.25)
-            ax.set_title(f"{model.input_names[c]} -> {model.output_names[o]}", fontsize=9)
-            if c == 0:
-                ax.set_ylabel(f"|G| ({_ratio_unit(units, r, c)})")
-            if r == len(outs) - 1:
-                ax.set_xlabel("frequency (Hz)")
-    axes[0][0].legend(fontsize=8, frameon=False, loc="lower left")
-    fig.suptitle(f"{Path(path).stem}: Bode magnitude", fontsize=12, fontweight="bold")
-    fig.text(0.5, 1 - 0.45 / fig.get_size_inches()[1], "dotted: natural frequencies of the "
-             "retained modes", ha="center", fontsize=8, color="0.35")
-    _margins(fig, len(outs), n_in)
-    out = Path(out)
-    _savefig(fig, out)
-    return out
-
-
-def plot_step(path: str | Path, out: str | Path) -> Path:
-    """Response of every position output to a unit step of every input."""
-    import control
-    from matplotlib.figure import Figure
-
-
-    model = load_model(path, require_plant=True)
-    units = _units(path)
-    outs = _position_outputs(model.output_names)
-    n_in = len(model.input_names)
-    retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])
-    f1 = float(retained[retained > 0].min()) if (retained > 0).any() else 1.0
-    zeta = float(np.clip(model.damping_ratios.min(), 0.005, 0.5)) if model.damping_ratios.size \
-        else 0.02
-    t_end = min(5.0 / (zeta * 2 * np.pi * f1), 60.0 / f1)
-    t = np.linspace(0.0, t_end, 3000)
-    fig = Figure(figsize=(max(7.5, 4.6 * n_in + 1.0), 2.7 * len(outs) + 1.2), dpi=DPI,
-                 facecolor="white")
-    axes = _grid(fig, len(outs), n_in)
-    dc = None
-    try:
-        dc = np.atleast_2d(control.dcgain(model.ss))
-    except Exception:  # a free body (rigid modes kept) has no DC gain
-        pass
-    for c in range(n_in):
-        resp = control.step_response(model.ss, t, input=c)
-        y = np.asarray(resp.outputs).reshape(len(model.output_names), -1)
-        yf = None
-        if model.ss_filtered is not None:
-            rf = control.step_response(model.ss_filtered, t, input=c)
-            yf = np.asarray(rf.outputs).reshape(len(model.ss_filtered.output_labels), -1)
-        for r, o in enumerate(outs):
-            ax = axes[r][c]
-            ax.plot(t, y[o], color="#1f4e9c", lw=1.2, label="reduced model")
-            if yf is not None:
-                ax.plot(t, yf[o], color="#d62728", lw=0.9, ls="--", label="filtered")
-            if dc is not None and np.isfinite(dc[o, c]):
-                ax.axhline(dc[o, c], color="0.4", lw=0.8, ls=":", label="static (DC gain)")
-            ax.grid(alpha=0.25)
-            unit = units[0][c] if c < len(units[0]) else ""
-            ax.set_title(f"step 1 {unit} {model.input_names[c]} -> {model.output_names[o]}",
-                         fontsize=9)
-            if r == len(outs) - 1:
-                ax.set_xlabel("time (s)")
-            if c == 0:
-                ax.set_ylabel(f"response ({_ratio_unit(units, r, c).split('/')[0]})")
-    axes[0][0].legend(fontsize=8, frameon=False)
-    fig.suptitle(f"{Path(path).stem}: step response", fontsize=11, fontweight="bold")
-    _margins(fig, len(outs), n_in)
-    out = Path(out)
-    _savefig(fig, out)
-    return out
-
-
 # --------------------------------------------------------------------------- all of it
 def plot_file(path: str | Path, out_dir: str | Path | None = None,
-              modes: int | None = None) -> list[Path]:
-    """Every picture of ``path`` into ``out_dir``; the files written."""
+              modes: int | None = None, animate: bool = False) -> list[Path]:
+    """Every picture of ``path`` into ``out_dir``; the files written. ``animate``: also
+    ``mode_NN.gif`` (and ``.mp4`` with ffmpeg) per mode (:mod:`pipeline.apps.animate`)."""
     path = Path(path)
     out_dir = Path(out_dir) if out_dir else path.with_name(f"{path.stem}_plots")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -578,11 +491,17 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     if data.has_statespace:
         written.append(plot_bode(path, out_dir / "bode.png"))
         written.append(plot_step(path, out_dir / "step.png"))
+    if animate:
+        from pipeline.apps.animate import animate_mode
+
+        coarse = boundary_surface(data.points, data.cells, subdivide_below=0)
+        for k in range(n):
+            written += animate_mode(data, k, out_dir / f"mode_{k + 1:02d}.gif", coarse)
     return written
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    for p in plot_file(args.file, args.output_dir, args.modes):
+    for p in plot_file(args.file, args.output_dir, args.modes, animate=args.animate):
         print(p)
     return 0
 
@@ -593,11 +512,15 @@ def add_plot_parser(subparsers) -> argparse.ArgumentParser:
                               "and step response of an HDF5 file",
                               description="Write a PNG per mode, an overview, a frequency table "
                               "(PNG and CSV) and, where the file holds a reduced model, its Bode "
-                              "magnitude and step response. Reads only the HDF5 file.")
+                              "magnitude and phase and step response; with --animate a GIF "
+                              "per mode. Reads only the HDF5 file.")
     p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
     p.add_argument("-o", "--output-dir", help="folder for the pictures (default: "
                    "<FILE stem>_plots next to the file)")
     p.add_argument("--modes", type=int, default=None, metavar="N",
                    help="draw only the first N modes (default: all)")
+    p.add_argument("--animate", action="store_true",
+                   help="also write mode_NN.gif per mode, the shape moving (and mode_NN.mp4 "
+                   "where ffmpeg is installed)")
     p.set_defaults(func=cmd_plot)
     return p

@@ -42,8 +42,12 @@ def _lines(h5, path) -> list[str]:
                      f"{float(h5['body/mass'][()]):.6g} kg, centre of mass "
                      f"{np.round(h5['body/center_of_mass'][()], 6).tolist()} m")
         inertia = np.asarray(h5["body/inertia"][()], dtype=float).reshape(3, 3)
-        principal = np.round(np.linalg.eigvalsh(inertia), 9).tolist()
+        moments, axes = np.linalg.eigh(inertia)
+        principal = np.round(moments, 9).tolist()
         lines.append(f"          principal inertia {principal} kg m^2 (about the centre of mass)")
+        lines.append("          principal axes " + ", ".join(
+            f"p{k + 1} {(np.round(axes[:, k] * np.sign(axes[np.argmax(np.abs(axes[:, k])), k]), 3) + 0.0).tolist()}"
+            for k in range(3)))
     if "mesh" in h5:
         m = h5["mesh"].attrs
         cells = [f"{len(h5['mesh/cells'][k])} {k}" for k in h5["mesh/cells"]] \
@@ -60,8 +64,9 @@ def _lines(h5, path) -> list[str]:
                     if "modes/residuals" in h5 and h5["modes/residuals"].size else "")
         lines.append(f"modes     {len(freqs)} (solver {_text(h5['modes'].attrs.get('solver', '?'))}"
                      f"{residual})")
+        lines.append(f"  {'mode':>4}  {'f [Hz]':>12}  label")  # as `run` prints them
         for i, (f, lab) in enumerate(zip(freqs, labels), 1):
-            lines.append(f"  {i:3d}  {f:12.4f} Hz  {lab}")
+            lines.append(f"  {i:4d}  {f:12.4f}  {lab}")
     models = [g for g in ("statespace", "statespace_filtered", "lumped") if g in h5]
     lines.append(f"models    {', '.join(models) or 'none (modes only)'}")
     for g in models:

@@ -47,8 +47,12 @@ def cmd_batch(args: argparse.Namespace) -> int:
             est = "?" if c.memory_bytes is None else f"{c.memory_bytes / 1e9:.2f} GB"
             print(f"  case {c.index:3d} [{c.key}] memory ~{est}: {c.label}")
         return 0
-    if logging.getLogger().level > logging.DEBUG:
+    try:
         import distributed  # noqa: F401  (deferred, heavy; it configures its loggers)
+    except ImportError:
+        raise ConfigError("batch: Dask is not installed; expected the 'batch' extra "
+                          "(pip install 'fe-reduced-body[batch]')") from None
+    if logging.getLogger().level > logging.DEBUG:
 
         for name in ("distributed", "tornado", "bokeh"):
             logging.getLogger(name).setLevel(logging.WARNING)

@@ -8,7 +8,6 @@ line on stderr and its exit code; nothing else is caught.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -18,27 +17,82 @@ from pipeline.errors import PipelineError
 log = logging.getLogger("pipeline")
 
 
+#: loggers whose INFO lines a default run shows when stderr is not a terminal (one line
+#: per stage with elapsed and expected time); everything else needs -v
+STAGE_LOGGERS = ("pipeline.progress", "pipeline.run")
+
+
 def _setup_logging(verbosity: int) -> None:
-    level = logging.WARNING if verbosity < 0 else logging.INFO if verbosity == 0 else logging.DEBUG
+    """-q: warnings only; default: warnings, plus the stage lines when stderr is not a
+    terminal (a terminal shows bars instead); -v: INFO of every logger; -vv: DEBUG."""
+    level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 \
+        else logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s",
                                            "%H:%M:%S"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
+    for name in STAGE_LOGGERS:
+        logging.getLogger(name).setLevel(
+            logging.INFO if verbosity == 0 and not sys.stderr.isatty() else logging.NOTSET)
 
 
-@contextlib.contextmanager
+def _progress_reporter(verbosity: int):
+    """Bars on a terminal, stage log lines otherwise, nothing with -q."""
+    from pipeline._util import progress
+
+    if verbosity < 0:
+        return None
+    if sys.stderr.isatty():
+        return progress.BarReporter(sys.stderr)
+    return progress.LogReporter()
+
+
 def tqdm_progress(desc: str, total: int | None, unit: str):
-    """A tqdm bar on stderr (silent when stderr is not a terminal)."""
-    from tqdm import tqdm
+    """The stages' ``progress(desc, total, unit)`` factory (see pipeline._util.progress)."""
+    from pipeline._util import progress
 
-    bar = tqdm(total=total, desc=desc, unit=unit, leave=False, disable=not sys.stderr.isatty(),
-               dynamic_ncols=True)
-    try:
-        yield bar.update
-    finally:
-        bar.close()
+    return progress.counter(desc, total, unit)
+
+
+#: summary blocks (a header line and its indented lines) shown only with -v
+VERBOSE_BLOCKS = ("lumped chain:",)
+
+
+def summary_blocks(lines, verbose: bool) -> list[str]:
+    """The stages' summary lines; a block of :data:`VERBOSE_BLOCKS` shrinks to its header
+    unless ``verbose``."""
+    shown, hiding = [], False
+    for line in lines:
+        if not line.startswith(" "):
+            hiding = not verbose and line.startswith(VERBOSE_BLOCKS)
+            shown.append(line.rstrip(":") + " (table with -v)" if hiding else line)
+        elif not hiding:
+            shown.append(line)
+    return shown
+
+
+def run_summary(result, verbose: bool = False) -> list[str]:
+    """What ``run`` prints: the mesh, the modes, the reduced models, the file written and
+    the commands to look at it."""
+    from pipeline._util.progress import fmt_seconds
+
+    lines = [f"{result.config.name}: {result.n_dofs} DOFs ({result.n_free} free), "
+             f"{result.n_elements} elements, solver {result.backend}",
+             f"  {'mode':>4}  {'f [Hz]':>12}  label"]
+    for i, (f, lab) in enumerate(zip(result.frequencies_hz, result.labels), 1):
+        lines.append(f"  {i:4d}  {f:12.4f}  {lab}")
+    lines += summary_blocks(result.extras.get("summary", []), verbose)
+    total = sum(result.times.values())
+    times = ", ".join(f"{k} {fmt_seconds(v)}" for k, v in result.times.items())
+    lines.append(f"wrote {result.output} in {fmt_seconds(total)} ({times}; peak memory "
+                 f"{result.peak_memory_mb:.0f} MB)")
+    prog = "fe-reduced-body" if Path(sys.argv[0]).name == "fe-reduced-body" \
+        else "python -m pipeline"
+    lines.append(f"look at it: {prog} inspect {result.output}")
+    lines.append(f"            {prog} plot {result.output}")
+    return lines
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -48,15 +102,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set or [])
     output = Path(args.output) if args.output else Path("outputs") / f"{cfg.name}.h5"
     result = run_pipeline(cfg, output, mesh_dir=args.mesh_dir, progress=tqdm_progress)
-    total = sum(result.times.values())
-    print(f"{cfg.name}: {result.n_dofs} DOFs ({result.n_free} free), {result.n_elements} "
-          f"elements, solver {result.backend}")
-    for i, (f, lab) in enumerate(zip(result.frequencies_hz, result.labels), 1):
-        print(f"  mode {i:3d}  {f:12.4f} Hz  {lab}")
-    for line in result.extras.get("summary", []):
-        print(line)
-    times = ", ".join(f"{k} {v:.2f} s" for k, v in result.times.items())
-    print(f"wrote {result.output} in {total:.1f} s ({times}; peak {result.peak_memory_mb:.0f} MB)")
+    print("\n".join(run_summary(result, verbose=args.verbose > 0)))
     return 0
 
 
@@ -75,7 +121,8 @@ COMMAND_MODULES = [("cli.batch", "add_batch_parser"), ("cli.simulate", "add_simu
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m pipeline",
                                      description="Reduced models of flexible bodies from 3D FE.")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="-v: every log line and the detail tables; -vv: debug")
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -103,8 +150,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(-1 if args.quiet else args.verbose)
+    from pipeline._util.progress import using
+
     try:
-        return int(args.func(args) or 0)
+        # the reporter is this command's (main may be called again in one process)
+        with using(_progress_reporter(-1 if args.quiet else args.verbose)):
+            return int(args.func(args) or 0)
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -28,6 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
+from pipeline._util import progress as watch_progress
 from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
                                       sparse_times_dense)
 from pipeline.solve.modes import Modes
@@ -222,6 +223,7 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
 
     def apply(b):
         calls[0] += 1
+        watch.update(1)  # the stage below: ARPACK calls this only inside it
         if progress is not None:
             progress(1)
         return fact.solve(b)
@@ -230,8 +232,9 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
     ncv = min(n, max(2 * count + 1, count + 20))
     v0 = np.random.default_rng(12345).standard_normal(n)
     try:
-        _, v = eigsh(K, k=count, M=M, sigma=sigma, which="LM", OPinv=op, tol=tolerance,
-                     ncv=ncv, v0=v0, maxiter=max(1000, 10 * n // ncv))
+        with watch_progress.stage("ARPACK", unit="solve") as watch:
+            _, v = eigsh(K, k=count, M=M, sigma=sigma, which="LM", OPinv=op, tol=tolerance,
+                         ncv=ncv, v0=v0, maxiter=max(1000, 10 * n // ncv))
     except ArpackNoConvergence as exc:
         raise SolverError(f"eigsh did not converge for {count} modes (converged: "
                           f"{len(exc.eigenvalues)}); try a smaller modes.count or a finer "
@@ -269,8 +272,12 @@ def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
         max_basis = max(3 * count + 4 * b, count + 8 * b)
     max_basis = min(max_basis, n // 2)
     t0 = time.perf_counter()
-    _, theta, steps, restarts, X = block_lanczos(op, n, count, b, tol, max_basis,
-                                                 with_images=True)
+    # total: the steps that fill the basis (convergence usually comes before; a restart
+    # raises it)
+    with watch_progress.stage("Lanczos", total=-(-max_basis // b), unit="step") as watch:
+        _, theta, steps, restarts, X = block_lanczos(
+            lambda Y: (watch.update(1), op(Y))[1], n, count, b, tol, max_basis,
+            with_images=True)
     # the Ritz vectors of the pencil, x = F^-T y, are the same combination of the
     # images F^-T v the steps computed anyway: no further pass over the factor
     return X.T, {"method": "block-lanczos", "block": b, "steps": steps, "restarts": restarts,

@@ -48,6 +48,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
+from pipeline._util import progress
 from pipeline._util.resources import check_factor_memory
 
 log = logging.getLogger(__name__)
@@ -275,11 +276,14 @@ class _Pardiso:
         self._alive = True  # from the first call on, PARDISO may hold memory to release
         t0 = time.perf_counter()
         try:
-            self._call(11)  # analysis: ordering and symbolic factorisation
+            with progress.stage("ordering (METIS)"):
+                self._call(11)  # analysis: ordering and symbolic factorisation
             t1 = time.perf_counter()
             # the exact factor size is known now, before the factorisation allocates it
             check_factor_memory(float(self.iparm[16]) * 1024, self.n)
-            self._call(22)  # numerical factorisation
+            with progress.stage("factorise (PARDISO)") as watch:
+                watch.expect_work(progress.cholesky_flops(float(self.iparm[17]), self.n))
+                self._call(22)  # numerical factorisation
         except BaseException:
             self.release()
             raise
@@ -493,9 +497,11 @@ def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = T
     if backend == "pardiso":
         fact = _pardiso(A, positive_definite)
     elif backend == "cholmod":
-        fact = _cholmod(A)
+        with progress.stage("factorise (CHOLMOD)"):
+            fact = _cholmod(A)
     else:
-        fact = _superlu(A, positive_definite)
+        with progress.stage("factorise (SuperLU)"):
+            fact = _superlu(A, positive_definite)
     if check:
         try:
             check_factorization(A, fact)

@@ -1,4 +1,19 @@
-"""Mode labels: the dominant motion of every mode of a beam-like body.
+"""Mode labels: the dominant motion of every mode.
+
+A beam-like body (longest side >= ``slender_ratio`` x the next) gets beam names
+(``bending_z_1``, ``torsion_1``, ``axial_1``). Any other body (a bracket) gets the rigid
+motion each mode resembles most: ``translation_<a>_<k>`` or ``rotation_<a>_<k>`` about
+the body's principal axis ``a`` through its centre of mass (``x``, ``y``, ``z`` when that
+principal axis is within 15 degrees of a global axis, else ``p1``..``p3`` in the order of
+increasing principal moment), ``internal_<k>`` when no rigid motion holds even
+:data:`INTERNAL_SHARE` of the mode. "Resembles" is measured by the effective mass share
+(:func:`effective_mass_shares`): with the node masses m_i (proportional to the node
+weights), a rigid motion r (n_nodes, 3) and the mode phi (n_nodes, 3),
+
+    share = (sum_i m_i phi_i . r_i)^2 / ((sum_i m_i r_i . r_i) (sum_i m_i phi_i . phi_i)),
+
+the fraction of the body's mass (translation) or inertia (rotation) the mode carries in
+that direction, in [0, 1]; summed over all modes of the body it is 1.
 
 Pure array code (no finite-element objects): the caller passes the node coordinates
 (n_nodes, 3) m, the mode shapes on every node (n_nodes, 3, n_m) and optional positive
@@ -8,10 +23,76 @@ node weights (n_nodes,), e.g. the nodal volume shares of
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import scipy.sparse as sp
 
+log = logging.getLogger(__name__)
+
 AXES = "xyz"
+#: below this effective mass share in every rigid direction a mode is ``internal``
+INTERNAL_SHARE = 0.01
+#: a principal axis within this angle of a global axis takes its name (degrees)
+AXIS_NAME_DEG = 15.0
+#: the six rigid directions of :func:`effective_mass_shares`, in its column order
+DIRECTIONS = ("translation", "translation", "translation", "rotation", "rotation", "rotation")
+
+
+def principal_frame(node_points: np.ndarray, weights: np.ndarray):
+    """(centre of mass (3,), principal axes (3, 3) as columns by increasing moment, axis
+    names (3,)) of the point masses ``weights`` at ``node_points`` (n, 3)."""
+    x = np.asarray(node_points, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    c = w @ x / w.sum()
+    r = x - c
+    inertia = np.eye(3) * (w @ (r * r).sum(axis=1)) - (r * w[:, None]).T @ r
+    _, axes = np.linalg.eigh(inertia)
+    names = []
+    for k in range(3):
+        g = int(np.argmax(np.abs(axes[:, k])))
+        aligned = abs(axes[g, k]) >= np.cos(np.radians(AXIS_NAME_DEG))
+        names.append(AXES[g] if aligned and AXES[g] not in names else f"p{k + 1}")
+    return c, axes, names
+
+
+def effective_mass_shares(node_points: np.ndarray, shapes: np.ndarray,
+                          weights: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+    """Effective mass share (6, n_m) of every mode in the three translations and the
+    three rotations along / about the principal axes (see the module docstring), and the
+    axis names (3,). shapes: (n_nodes, 3, n_m); weights: node masses or volumes (n,)."""
+    x = np.asarray(node_points, dtype=float)
+    w = np.ones(x.shape[0]) if weights is None else np.asarray(weights, dtype=float)
+    c, axes, names = principal_frame(x, w)
+    rigid = [np.broadcast_to(axes[:, k], x.shape) for k in range(3)]
+    rigid += [np.cross(axes[:, k], x - c) for k in range(3)]
+    phi2 = np.einsum("i,ijm,ijm->m", w, shapes, shapes)
+    shares = np.empty((6, shapes.shape[2]))
+    for d, r in enumerate(rigid):
+        gamma = np.einsum("i,ij,ijm->m", w, r, shapes)
+        r2 = float(np.einsum("i,ij,ij->", w, r, r))
+        shares[d] = gamma ** 2 / np.where(r2 * phi2 > 0, r2 * phi2, 1.0)
+    return shares, names
+
+
+def describe_modes(node_points, shapes, n_rigid: int = 0, weights=None) -> list[str]:
+    """Labels of a body that is not a beam (see the module docstring)."""
+    shares, names = effective_mass_shares(node_points, shapes, weights)
+    labels, counts = [], {}
+    for k in range(shapes.shape[2]):
+        if k < n_rigid:
+            labels.append(f"rigid_{k + 1}")
+            continue
+        d = int(np.argmax(shares[:, k]))
+        name = (f"{DIRECTIONS[d]}_{names[d % 3]}" if shares[d, k] >= INTERNAL_SHARE
+                else "internal")
+        counts[name] = counts.get(name, 0) + 1
+        labels.append(f"{name}_{counts[name]}")
+        log.info("mode %d %s: effective mass share %.0f %% (%s)", k + 1, labels[-1],
+                 100 * shares[d, k], ", ".join(
+                     f"{DIRECTIONS[e][0].upper()}{names[e % 3]} {100 * shares[e, k]:.0f} %"
+                     for e in range(6)))
+    return labels
 
 
 def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
@@ -20,7 +101,7 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     """A label per mode from its dominant motion: ``bending_<axis>_<k>`` (bending about
     that axis), ``torsion_<k>``, ``axial_<k>``, or ``rigid_<k>`` for the first n_rigid.
     A body whose longest dimension is less than ``slender_ratio`` times the next one is
-    not beam-like: its elastic modes are labelled ``elastic_<k>``.
+    not beam-like: its modes are named by :func:`describe_modes`.
 
     The body is cut into slices along its longest dimension (the beam axis a); in each
     slice the weighted mean displacement and the mean rotation about a are taken; the
@@ -31,9 +112,8 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     extent = x.max(axis=0) - x.min(axis=0)
     a = int(np.argmax(extent))
     if extent[a] < slender_ratio * np.sort(extent)[1]:
-        # not beam-like: bending/torsion/axial would be guesses; number the modes instead
-        return [f"rigid_{k + 1}" if k < n_rigid else f"elastic_{k + 1 - n_rigid}"
-                for k in range(shapes.shape[2])]
+        # not beam-like: bending/torsion/axial would be guesses; the rigid motion instead
+        return describe_modes(x, shapes, n_rigid, w)
     others = [c for c in range(3) if c != a]
     edges = np.linspace(x[:, a].min(), x[:, a].max(), n_slices + 1)
     slice_of = np.clip(np.searchsorted(edges, x[:, a], side="right") - 1, 0, n_slices - 1)

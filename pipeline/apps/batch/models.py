@@ -39,6 +39,16 @@ class ReducedModel:
     frequencies_hz: np.ndarray                  # (n_modes,), may be empty
     static_compliance: np.ndarray | None = None  # (n_ports, m)
     compliance_rows: tuple[str, ...] = ()
+    input_units: tuple[str, ...] = ()   # SI unit per input (N, N m)
+    output_units: tuple[str, ...] = ()  # SI unit of the position of every output port
+
+    def ratio_unit(self, inp: str, out: str) -> str:
+        """Unit of |H| from input ``inp`` to position output ``out`` ('1' if unknown)."""
+        rows = [n for _, n in position_rows(self)]
+        i, k = self.input_names.index(inp), rows.index(out) if out in rows else -1
+        if 0 <= k < len(self.output_units) and i < len(self.input_units):
+            return f"{self.output_units[k]}/{self.input_units[i]}"
+        return "1"
 
 
 def read_statespace(path: str | Path, group: str = "statespace") -> ReducedModel | None:
@@ -60,7 +70,10 @@ def read_statespace(path: str | Path, group: str = "statespace") -> ReducedModel
             return ReducedModel(**mats, input_names=tuple(read_strings(g["input_names"])),
                                 output_names=tuple(read_strings(g["output_names"])),
                                 frequencies_hz=freqs, static_compliance=compliance,
-                                compliance_rows=rows)
+                                compliance_rows=rows,
+                                input_units=tuple(read_strings(g.attrs.get("input_units", []))),
+                                output_units=tuple(read_strings(g.attrs.get("output_units",
+                                                                            []))))
     except Exception as exc:  # FileFormatError, or a foreign layout (KeyError, ...)
         log.warning("report: cannot read %s from %s: %s", group, path,
                     " ".join(str(exc).split())[:200])

@@ -173,8 +173,8 @@ def plot_frequency_vs_parameter(ok: list[CaseOutcome], sweep_keys: Sequence[str]
                 pts = [(x, f) for x, f in pts if f is not None]
                 if pts:
                     ax.plot(*zip(*pts), "o-", color=colors[lab], label=lab, ms=4, lw=1.2)
-            ax.set_xlabel(key)
-            ax.set_ylabel("frequency [Hz]")
+            ax.set_xlabel(key_label(key))
+            ax.set_ylabel("f [Hz]")
             ax.set_yscale("log")
             ax.grid(True, which="both", alpha=0.3)
             ax.set_title(titles[gid], fontsize=9)
@@ -185,6 +185,19 @@ def plot_frequency_vs_parameter(ok: list[CaseOutcome], sweep_keys: Sequence[str]
         if len(groups) > MAX_PANELS:
             log.info("report: %s: showing %d of %d panels", name, MAX_PANELS, len(groups))
     return figures
+
+
+#: SI unit of a swept config key, by its last part (geometry.height -> m)
+KEY_UNITS = {"length": "m", "height": "m", "depth": "m", "width": "m", "radius": "m",
+             "thickness": "m", "size": "m", "scale": "1", "E": "Pa", "nu": "1",
+             "rho": "kg/m^3", "ratio": "1", "alpha": "1/s", "beta": "s", "cutoff_hz": "Hz",
+             "count": "1", "order": "1", "modes": "1", "elements": "1", "tolerance": "1"}
+
+
+def key_label(key: str) -> str:
+    """Axis label of a swept config key: ``geometry.height [m]``."""
+    unit = KEY_UNITS.get(key.rsplit(".", 1)[-1].split("[")[0])
+    return f"{key} [{unit}]" if unit else key
 
 
 def plot_frequency_by_case(ok: list[CaseOutcome]) -> Figure | None:
@@ -202,7 +215,7 @@ def plot_frequency_by_case(ok: list[CaseOutcome]) -> Figure | None:
     ax.set_xticks(range(len(ok)), [f"{o.case.index}: {o.case.label}" for o in ok], rotation=30,
                   ha="right", fontsize=8)
     ax.set_yscale("log")
-    ax.set_ylabel("frequency [Hz]")
+    ax.set_ylabel("f [Hz]")
     ax.grid(True, which="both", alpha=0.3)
     _legend(fig, axes)
     fig.suptitle("Natural frequencies of every case", fontsize=11)
@@ -284,8 +297,8 @@ def plot_convergence(groups: list[tuple[str, list[CaseOutcome]]]) -> Figure | No
         top.set_title(title, fontsize=9)
         top.set_ylabel("f / f(finest mesh) - 1 [%]")
         bottom.set_yscale("log")
-        bottom.set_xlabel("DOFs")
-        bottom.set_ylabel("|f - f(previous mesh)| / f")
+        bottom.set_xlabel("DOFs [1]")
+        bottom.set_ylabel("|f - f(previous mesh)| / f [1]")
         for ax in (top, bottom):
             ax.grid(True, which="both", alpha=0.3)
         _ticks_at(bottom, dofs)
@@ -320,8 +333,9 @@ def plot_bode(ok: list[CaseOutcome], models: dict[str, ReducedModel]) -> Figure 
                 ax.loglog(f, mags[pair], color=color, lw=1.2, ls=("-", "--", ":", "-.")[i % 4],
                           label=f"{o.case.index}: {o.case.label}")
         ax.set_title(f"{pair[0]} -> {pair[1]}", fontsize=9)
-        ax.set_xlabel("frequency [Hz]")
-        ax.set_ylabel("|H| [output/input, SI]")
+        ax.set_xlabel("f [Hz]")
+        units = {models[o.case.key].ratio_unit(*pair) for o, mags in curves if pair in mags}
+        ax.set_ylabel(f"|H| [{units.pop() if len(units) == 1 else 'SI output/input'}]")
         ax.grid(True, which="both", alpha=0.3)
     _legend(fig, axes, fontsize=7 if len(cases) > 8 else 8, ncols=2 if len(pairs) == 1 else 3)
     fig.suptitle("Reduced models: Bode magnitude (position outputs)", fontsize=11)

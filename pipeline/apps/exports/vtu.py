@@ -4,14 +4,20 @@
 
 - the mesh: /mesh/points and the /mesh/cells (``tetra10``: ParaView draws the quadratic
   cells; or ``tetra``);
-- point data ``mode_NN_<f>Hz`` (n_points x 3): the M-orthonormal shape of mode NN,
-  one array per mode (in ParaView: *Warp By Vector* with that array, and colour by it);
+- point data ``mode_NN_<label>_<f>Hz`` (n_points x 3, e.g. ``mode_01_bending_z_1_65.63Hz``):
+  the M-orthonormal shape of mode NN, one array per mode (in ParaView: *Warp By Vector*
+  with that array, and colour by it);
+- the suggested display scale of every mode, ``display_scale`` [m sqrt(kg)] (the
+  scale factor for *Warp By Vector*): 0.1 x the body's largest dimension / the mode's largest
+  displacement, so the warped body moves a tenth of its size (a mass-normalised shape
+  of a 0.5 m aluminium beam at scale 1 throws its tip 1.7 m);
 - point data ``fixed_components`` (0..3: how many displacement components the supports
   fix at each point) and ``region_<name>`` (1 on the points of each named region);
-- the frequencies: in the VTU as field data ``frequencies_hz`` (all modes, Hz) and
-  ``mode_numbers`` (meshio does not write field data, so it is added to the XML here);
-  XDMF has no field data that meshio and ParaView both read, so there the frequencies
-  are in the array names and in the dataset ``/frequencies_hz`` of the sidecar file.
+- the frequencies: in the VTU as field data ``frequencies_hz`` (all modes, Hz),
+  ``mode_numbers`` and ``display_scale`` (meshio does not write field data, so it is
+  added to the XML here); XDMF has no field data that meshio and ParaView both read, so
+  there the frequencies are in the array names, and frequencies and scales in the
+  datasets ``/frequencies_hz`` and ``/display_scale`` of the sidecar file.
 
 XDMF keeps its arrays in a sidecar HDF5 file named like the ``.xdmf`` with ``.h5``:
 that is why the default name is ``<stem>.modes.xdmf`` (sidecar ``<stem>.modes.h5``),
@@ -34,13 +40,28 @@ from pipeline.store.read import read_modes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["export", "export_vtu", "export_xdmf", "mode_mesh", "mode_array_name"]
+__all__ = ["export", "export_vtu", "export_xdmf", "mode_mesh", "mode_array_name",
+           "display_scales"]
 
 
-def mode_array_name(index: int, frequency_hz: float) -> str:
-    """Point-data name of mode ``index`` (0-based), e.g. ``mode_01_65.75Hz``."""
+#: the warped body moves this fraction of its largest dimension at the suggested scale
+DISPLAY_FRACTION = 0.1
+
+
+def mode_array_name(index: int, frequency_hz: float, label: str = "") -> str:
+    """Point-data name of mode ``index`` (0-based), e.g. ``mode_01_bending_z_1_65.75Hz``
+    (``mode_01_65.75Hz`` without a label)."""
     f = f"{frequency_hz:.1f}" if abs(frequency_hz) >= 100 else f"{frequency_hz:.4g}"
-    return f"mode_{index + 1:02d}_{f}Hz"
+    label = "".join(c if c.isalnum() or c == "_" else "_" for c in label)
+    return f"mode_{index + 1:02d}_{label + '_' if label else ''}{f}Hz"
+
+
+def display_scales(points: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """(n_modes,) factor that makes each mode's largest displacement
+    :data:`DISPLAY_FRACTION` of the body's largest dimension (0 for a zero shape)."""
+    size = float(np.ptp(points, axis=0).max())
+    peak = np.linalg.norm(shapes, axis=1).max(axis=0)  # (n_modes,)
+    return np.where(peak > 0, DISPLAY_FRACTION * size / np.where(peak > 0, peak, 1.0), 0.0)
 
 
 def mode_mesh(h5_path: str | Path):
@@ -53,7 +74,8 @@ def mode_mesh(h5_path: str | Path):
                                      modes.regions)
     point_data: dict[str, np.ndarray] = {}
     for i, f in enumerate(freqs):
-        point_data[mode_array_name(i, f)] = np.ascontiguousarray(shapes[:, :, i])
+        label = labels[i] if i < len(labels) else ""
+        point_data[mode_array_name(i, f, label)] = np.ascontiguousarray(shapes[:, :, i])
     point_data["fixed_components"] = np.bincount(fixed // 3, minlength=points.shape[0]
                                                  ).astype(np.int32)[:points.shape[0]]
     for name, tris in regions.items():
@@ -63,7 +85,8 @@ def mode_mesh(h5_path: str | Path):
     log.debug("mode labels: %s", ", ".join(labels))
     return meshio.Mesh(points, [(kind, cells)], point_data=point_data,
                        field_data={"frequencies_hz": freqs,
-                                   "mode_numbers": np.arange(1, freqs.size + 1, dtype=np.int32)})
+                                   "mode_numbers": np.arange(1, freqs.size + 1, dtype=np.int32),
+                                   "display_scale": display_scales(points, shapes)})
 
 
 def export_vtu(h5_path: str | Path, out_path: str | Path) -> Path:
@@ -75,8 +98,10 @@ def export_vtu(h5_path: str | Path, out_path: str | Path) -> Path:
     with atomic_path(out_path) as tmp:
         meshio.write(tmp, mesh, file_format="vtu", binary=True, compression="zlib")
         _add_field_data(tmp, mesh.field_data)
-    log.info("wrote %s (%d points, %d modes)", out_path, len(mesh.points),
-             len(mesh.field_data["frequencies_hz"]))
+    log.info("wrote %s (%d points, %d modes; ParaView: Warp By Vector, scale factor "
+             "display_scale = %s)", out_path, len(mesh.points),
+             len(mesh.field_data["frequencies_hz"]),
+             ", ".join(f"{v:.3g}" for v in mesh.field_data["display_scale"]))
     return out_path
 
 
@@ -126,6 +151,7 @@ def export_xdmf(h5_path: str | Path, out_path: str | Path) -> Path:
         meshio.write(work / out_path.name, mesh, file_format="xdmf")
         with h5py.File(work / sidecar.name, "a") as side:
             side.create_dataset("frequencies_hz", data=mesh.field_data["frequencies_hz"])
+            side.create_dataset("display_scale", data=mesh.field_data["display_scale"])
         for final in (sidecar, out_path):
             with atomic_path(final) as tmp:
                 os.replace(work / final.name, tmp)

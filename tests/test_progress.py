@@ -1,0 +1,86 @@
+"""Progress with an end in sight (pipeline._util.progress): stages with totals and expected
+durations, log lines when the output is not a terminal, the solver hooks."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline._util import progress
+
+
+def test_log_reporter_says_when_a_stage_starts_ends_and_how_long_it_should_take(caplog):
+    caplog.set_level(logging.INFO, logger="pipeline.progress")
+    with progress.using(progress.LogReporter(every_s=0.05)):
+        with progress.stage("first") as st:
+            st.expect_work(1e9, "widget")  # no rate measured yet: no expectation
+            time.sleep(0.2)
+        measured = progress.rate("widget")
+        assert 1e9 / measured >= 0.2  # the rate the first stage took
+        with progress.stage("second") as st:
+            st.expect_work(2e9, "widget")
+            time.sleep(0.3)
+    lines = [r.getMessage() for r in caplog.records]
+    second = lines[[i for i, line in enumerate(lines) if line == "second started"][0]:]
+    expected = 2e9 / measured
+    assert second[1] == f"second: expected {progress.fmt_seconds(expected)} (2 Gwidget at " \
+        f"~{progress.fmt_amount(measured, 'widget/s')} (rate of the last one))", second[1]
+    assert any("elapsed" in line and "left" in line for line in second[2:-1]), second
+    assert second[-1].startswith("second done in") and "expected" in second[-1]
+    assert "widget/s measured" in second[-1]
+
+
+def test_counted_stage_extrapolates_its_remaining_time():
+    st = progress.Stage("Lanczos", total=10, unit="step")
+    st.t0 -= 4.0  # 4 s ago
+    st.update(4)
+    assert abs(st.remaining() - 6.0) < 0.1  # 4 of 10 steps in 4 s: 6 s left
+    st.update(8)  # a restart: more steps than estimated -> the total follows
+    assert st.total == 12 and st.remaining() == 0.0
+
+
+def test_without_a_reporter_stages_are_silent(caplog):
+    caplog.set_level(logging.DEBUG)
+    with progress.using(None), progress.stage("quiet", total=3) as st:
+        st.update()
+    assert not caplog.records
+
+
+def test_cholesky_flop_estimate_is_above_its_lower_bound():
+    # sum_j c_j^2 >= nnz^2 / n: a dense factor (c_j = n - j) is the equality-free check
+    n = 300
+    c = np.arange(n, 0, -1, dtype=float)
+    exact_bound = c.sum() ** 2 / n
+    assert progress.cholesky_flops(c.sum(), n) >= exact_bound
+    assert (c ** 2).sum() >= exact_bound
+
+
+def test_factorisation_and_lanczos_report_their_stages(caplog):
+    from pipeline.solve.eigen import solve_modes
+    from pipeline.solve.factorize import available_backends
+
+    n = 2000
+    K = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    M = sp.identity(n, format="csr")
+    caplog.set_level(logging.INFO, logger="pipeline.progress")
+    with progress.using(progress.LogReporter()):
+        solve_modes(K, M, 4)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    if "pardiso" in available_backends():
+        assert "factorise (PARDISO): expected" in text and "Lanczos started (" in text
+    else:
+        assert "factorise (SuperLU) done" in text and "ARPACK done" in text
+
+
+def test_the_cli_leaves_no_reporter_behind(tmp_path):
+    from pipeline.cli import main
+
+    before = progress.use(None)
+    try:
+        assert main(["inspect", str(tmp_path / "missing.h5")]) != 0
+        assert progress.use(None) is None  # main's reporter was its own, not left behind
+    finally:
+        progress.use(before)
