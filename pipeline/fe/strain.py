@@ -253,7 +253,8 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
         where = "has no element face on it"
     else:
         elements = elements_in_sphere(space, point, radius)
-        where = f"contains no element centroid (radius {radius:g} m)"
+        where = (f"contains no element centroid (radius {radius:g} m; a radius of about "
+                     "the element size or more catches some)")
     if elements.size == 0:
         raise RegionError(f"config key '{key}': the gauge region {where}; expected at least "
                           "one element (enlarge the radius or pick a boundary region)")

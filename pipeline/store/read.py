@@ -508,9 +508,11 @@ class StressModes:
 
     stress (n_p, 6, n_b + n_c) Pa per unit coordinate; strain (n_p, 6, n_b + n_c) 1 per unit
     coordinate, engineering shear; Voigt order ``voigt_order``; shape_names, shape_units;
-    n_basis n_b, n_correction n_c; input_names: the plant's inputs (the residual shapes).
+    n_basis n_b, n_correction n_c; input_names: the plant's inputs (the residual shapes);
+    points (n_p, 3) m, the mesh points the fields are given at.
     """
 
+    points: np.ndarray
     stress: np.ndarray
     strain: np.ndarray
     shape_names: tuple[str, ...]
@@ -528,8 +530,8 @@ def read_stress_modes(path: str | Path) -> StressModes | None:
         if "stress_modes" not in h5:
             return None
         try:
-            n_p = h5["mesh/points"].shape[0]
-            stress = _array(h5, "stress_modes/stress", "f", (n_p, 6, None))
+            points = _array(h5, "mesh/points", "f", (None, 3))
+            stress = _array(h5, "stress_modes/stress", "f", (points.shape[0], 6, None))
             strain = _array(h5, "stress_modes/strain", "f", stress.shape)
             attrs = h5["stress_modes/stress"].attrs
             names = tuple(read_strings(h5["stress_modes/shape_names"]))
@@ -545,4 +547,4 @@ def read_stress_modes(path: str | Path) -> StressModes | None:
                                   f"{len(names)} names, n_basis {n_b} + n_correction {n_c}",
                                   key="stress_modes/stress", value=stress.shape,
                                   expected="n_basis + n_correction shapes, one name each")
-        return StressModes(stress, strain, names, units, voigt, n_b, n_c, inputs)
+        return StressModes(points, stress, strain, names, units, voigt, n_b, n_c, inputs)
