@@ -13,7 +13,9 @@ Reads only the HDF5 file (verified: schema, version, checksum) and writes, into
 - where the file holds a reduced model (``/statespace``): ``bode.png``, the magnitude
   of every input -> position output of the plant (and of the filtered model, dashed),
   and ``step.png``, the response of every position output to a unit step of every
-  input (via :func:`pipeline.store.read.load_model` and python-control).
+  input (via :func:`pipeline.store.read.load_model` and python-control);
+- where the file holds stress modes: ``static_von_mises_<input>.png``, the static von
+  Mises stress per unit input on the body (:mod:`pipeline.apps.stress_plots`).
 
 Only matplotlib's object API is used (no pyplot, no global backend switch), so this
 module is safe to call from a library or a test.
@@ -578,6 +580,9 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     if data.has_statespace:
         written.append(plot_bode(path, out_dir / "bode.png"))
         written.append(plot_step(path, out_dir / "step.png"))
+        from pipeline.apps.stress_plots import plot_static_von_mises  # needs stress modes
+
+        written.extend(plot_static_von_mises(path, out_dir))
     return written
 
 

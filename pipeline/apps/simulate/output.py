@@ -231,7 +231,6 @@ def write_outputs(results: SimulationResults, mf: ModelFile, output_ports: Mappi
         results.files.append(write_csv(Path(f"{stem}.{slug(s.scenario.name)}.csv"), s))
         if plots:
             results.files.append(plot(Path(f"{stem}.{slug(s.scenario.name)}.png"), s, port))
-            stress_png = plot_stress(Path(f"{stem}.{slug(s.scenario.name)}.stress.png"), s)
-            if stress_png is not None:
-                results.files.append(stress_png)
+            results.files.extend(plot_stress(Path(f"{stem}.{slug(s.scenario.name)}.stress.png"),
+                                             s, mf.path))
 

@@ -192,13 +192,15 @@ def stress_peak_datasets(group: str, peak: StressPeak) -> dict:
     return tree
 
 
-def plot_stress(path: Path, scenario_result) -> Path | None:
+def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> list[Path]:
     """``<stem>.<scenario>.stress.png``: gauge histories and the von Mises stress at the hot
-    spot, its peak marked (value, place, instant); None when the runs have neither."""
+    spot, its peak marked (value, place, instant); and, with the ``model_path`` and a stress
+    peak, ``<stem>.<scenario>.peak_von_mises.png``: each point's peak drawn on the body.
+    Nothing when the runs have neither gauges nor a stress peak."""
     runs = [r for r in scenario_result.runs
             if "stress_peak" in r.info or any(u in ("1", "Pa") for u in r.units.values())]
     if not runs:
-        return None
+        return []
     import matplotlib  # deferred: heavy, only needed when plots are asked for
 
     matplotlib.use("Agg")
@@ -241,4 +243,13 @@ def plot_stress(path: Path, scenario_result) -> Path | None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
-    return path
+    written = [path]
+    if peak is not None and model_path is not None:
+        from pipeline.apps.stress_plots import plot_von_mises  # deferred: matplotlib
+        from pipeline.store.read import read_modes
+
+        written.append(plot_von_mises(
+            read_modes(model_path), peak.peak, f"{scenario_result.scenario.name}: peak von Mises "
+            f"over the run (hot spot at t = {peak.time:.4g} s)",
+            path.with_name(path.name.replace(".stress.png", ".peak_von_mises.png"))))
+    return written
