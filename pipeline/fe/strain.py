@@ -18,7 +18,7 @@ its quadrature points) and averaged over each element with the quadrature weight
 For P1 the strain is constant per element, for P2 linear, so a rule exact for linear
 functions (intorder 1 or more) gives the exact element average.
 
-Nodal recovery (``recover_to_nodes``): each element evaluates its own strain at its own
+Nodal recovery (:func:`nodal_strains`): each element evaluates its own strain at its own
 nodes (scikit-fem basis with the quadrature points at the reference element's DOF
 locations; for P2 the strain is linear in the element, so these are its exact nodal
 values), and the values from the elements around a node (vertices and, for P2, edge
@@ -131,22 +131,19 @@ def stresses_from_strains(strains: np.ndarray, material: Material) -> np.ndarray
     return np.einsum("ij,ej...->ei...", elasticity_matrix(material), strains)
 
 
-def element_nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
-    """(n_e, n_local_nodes, 6, n_s): engineering strain of U (n_dofs, n_s) evaluated by each
-    element at its own nodes (local order of ``space.element_nodes``)."""
-    U = np.asarray(U, dtype=float)
-    U = U[:, None] if U.ndim == 1 else U
+def _element_nodal_chunks(space: FESpace, U: np.ndarray):
+    """Yield (elements (n_sel,), values (n_sel, n_local_nodes, 6, n_s)): the engineering
+    strain of U (n_dofs, n_s) evaluated by each element at its own nodes (local order of
+    ``space.element_nodes``), a chunk of elements at a time."""
     n_e, n_loc = space.element_nodes.shape
     X = space.skfem_element().elem.doflocs.T  # (3, n_loc) reference node locations
-    out = np.empty((n_e, n_loc, 6, U.shape[1]))
     chunk = max(1, CHUNK // n_loc)  # n_loc quadrature points per element
     for start in range(0, n_e, chunk):
         sel = np.arange(start, min(start + chunk, n_e))
         basis = _basis(space, sel, quadrature=(X, np.full(n_loc, 1.0 / n_loc)))
         G = _voigt_gradients(basis)  # (3 n_loc dofs, 6, n_sel, n_loc points)
         Ue = U[basis.element_dofs]  # (3 n_loc dofs, n_sel, n_s)
-        out[sel] = np.einsum("dkeq,des->eqks", G, Ue)
-    return out
+        yield sel, np.einsum("dkeq,des->eqks", G, Ue)
 
 
 def element_volumes(space: FESpace) -> np.ndarray:
@@ -155,18 +152,23 @@ def element_volumes(space: FESpace) -> np.ndarray:
     return np.abs(np.linalg.det(v[:, 1:] - v[:, :1])) / 6.0
 
 
-def recover_to_nodes(space: FESpace, nodal_values: np.ndarray, volumes: np.ndarray
-                     ) -> np.ndarray:
-    """Volume-weighted average (module docstring) of element-nodal values (n_e, n_local,
-    ...) at every node: (n_nodes, ...)."""
+def nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
+    """(n_nodes, 6, n_s): the volume-weighted average (module docstring) at every node of
+    the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk."""
+    U = np.asarray(U, dtype=float)
+    U = U[:, None] if U.ndim == 1 else U
     en = space.element_nodes
-    n_e, n_loc = en.shape
-    weight = np.bincount(en.ravel(), weights=np.repeat(volumes, n_loc), minlength=space.n_nodes)
-    flat = (nodal_values * volumes[:, None, None, None]).reshape(n_e * n_loc, -1)
-    out = np.zeros((space.n_nodes, flat.shape[1]))
-    np.add.at(out, en.ravel(), flat)
+    vol = element_volumes(space)
+    weight = np.bincount(en.ravel(), weights=np.repeat(vol, en.shape[1]),
+                         minlength=space.n_nodes)
+    out = np.zeros((space.n_nodes, 6 * U.shape[1]))
+    for sel, values in _element_nodal_chunks(space, U):
+        flat = (values * vol[sel, None, None, None]).reshape(sel.size * en.shape[1], -1)
+        for k in range(flat.shape[1]):  # bincount per column: far faster than np.add.at
+            out[:, k] += np.bincount(en[sel].ravel(), weights=flat[:, k],
+                                     minlength=space.n_nodes)
     out /= np.where(weight > 0, weight, 1.0)[:, None]
-    return out.reshape((space.n_nodes,) + nodal_values.shape[2:])
+    return out.reshape(space.n_nodes, 6, U.shape[1])
 
 
 @dataclass(frozen=True)
@@ -174,7 +176,7 @@ class StressFields:
     """Strain and stress of a set of displacement fields, recovered to the mesh nodes.
 
     strain: (n_nodes, 6, n_s) engineering strain, Voigt order VOIGT; stress: (n_nodes, 6,
-    n_s) Pa (recover_to_nodes).
+    n_s) Pa (:func:`nodal_strains`).
     """
 
     strain: np.ndarray
@@ -183,7 +185,7 @@ class StressFields:
 
 def stress_fields(space: FESpace, material: Material, U: np.ndarray) -> StressFields:
     """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m."""
-    eps = recover_to_nodes(space, element_nodal_strains(space, U), element_volumes(space))
+    eps = nodal_strains(space, U)
     return StressFields(eps, stresses_from_strains(eps, material))
 
 
