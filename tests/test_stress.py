@@ -423,3 +423,16 @@ def test_exports_and_pictures_carry_the_stress_fields(gauge_file, tmp_path):
     pics = plot_static_von_mises(out, tmp_path)
     assert [p.name for p in pics] == ["static_von_mises_tip_force_y.png"]
     assert pics[0].stat().st_size > 10_000
+
+
+def test_scenario_output_defaults_to_the_only_motion_port_and_refuses_a_gauge(gauge_file,
+                                                                               tmp_path):
+    from pipeline.apps.simulate import simulate
+
+    _, out, _, _, _ = gauge_file
+    base = {"name": "s", "kind": "step_load", "force": 1.0, "duration": 0.05,
+            "output_rate": 2000.0, "lumped": False}
+    res = simulate(out, base, None, plots=False)  # output: the file's only displacement port
+    assert "tip_y/position" in res["s"].run("fe").signals
+    with pytest.raises(ConfigError, match="motion output port 'sxx_top_mid' is not in"):
+        simulate(out, {**base, "output": "sxx_top_mid"}, None, plots=False)

@@ -29,7 +29,7 @@ from pipeline.apps.simulate.measure import (decay_damping_ratio, fft_peak_freque
 from pipeline.apps.simulate.output import write_outputs
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult, SimulationResults
 from pipeline.apps.simulate.scenarios import Scenario, as_scenarios
-from pipeline.apps.simulate.stress import add_stress_outputs
+from pipeline.apps.simulate.stress import add_stress_outputs, gauge_ports
 from pipeline.apps.simulate.systems import (SteppedSystem, coupled_system, directions,
                                             filtered_for, lumped_for, mount_for, step_system,
                                             undamped)
@@ -56,8 +56,10 @@ def scenario_ports(mf: ModelFile, sc: Scenario) -> tuple[str, str]:
                               expected="one of: " + ", ".join(names))
         return name
 
+    gauges = gauge_ports(mf)  # strain/stress outputs are recorded, never driven or coupled
     return (pick(sc.input, list(mf.plant.input_names), "input", "input"),
-            pick(sc.output, list(mf.plant.ports), "output", "output"))
+            pick(sc.output, [p for p in mf.plant.ports if p not in gauges], "motion output",
+                 "output"))
 
 
 
