@@ -25,7 +25,8 @@ from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
-from pipeline.store.schema import models_tree
+from pipeline.fe.strain import modal_stress_fields
+from pipeline.store.schema import models_tree, stress_modes_datasets
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -146,6 +147,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
             models = build_models(cfg, space, regions, K, M, free, modes, props, labels,
                                   solve=modes.solve)
         del K, M
+        if models is not None and models.reduced is not None:
+            tree.update(_stress_modes_tree(cfg, space, free, models))
         if full is not None:
             models = build_connection_models(cfg, space, regions, *full, modes, shapes, models)
         if models is not None:
@@ -179,6 +182,16 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
                      modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
                      modes.backend, extras)
+
+
+def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:
+    """The ``stress_modes`` group: stress and strain of the reduced basis and of the
+    residual-flexibility shapes, recovered to the mesh points (pipeline.fe.strain)."""
+    reduced = models.reduced
+    fields = modal_stress_fields(space, cfg.material, free, reduced.basis,
+                                 reduced.correction_shapes)
+    log.info("stress modes: %d shapes at %d mesh points", fields.stress.shape[2], space.n_nodes)
+    return stress_modes_datasets(fields.stress, fields.strain, reduced, models.input_units)
 
 
 def _core_tree(space, regions, fixed, props, modes, shapes, labels) -> dict[str, Dataset]:

@@ -15,7 +15,9 @@ Reads only the HDF5 file (verified: schema, version, checksum) and writes, into
   dashed), and ``step.png``, the response of every position output to a unit step of
   every input (:mod:`pipeline.apps.response_plots`);
 - with ``--animate``: ``mode_NN.gif`` (and ``.mp4`` where ffmpeg is installed), the mode
-  shapes moving (:mod:`pipeline.apps.animate`).
+  shapes moving (:mod:`pipeline.apps.animate`);
+- where the file holds stress modes: ``static_von_mises_<input>.png``, the static von
+  Mises stress per unit input on the body (:mod:`pipeline.apps.stress_plots`).
 
 Axes are labelled ``quantity [unit]`` (the package's one convention: ``f [Hz]``,
 ``x [m]``); the colour of a mode picture is |u| / max |u| (a mode shape has no absolute
@@ -491,6 +493,9 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     if data.has_statespace:
         written.append(plot_bode(path, out_dir / "bode.png"))
         written.append(plot_step(path, out_dir / "step.png"))
+        from pipeline.apps.stress_plots import plot_static_von_mises  # needs stress modes
+
+        written.extend(plot_static_von_mises(path, out_dir))
     if animate:
         from pipeline.apps.animate import animate_mode
 

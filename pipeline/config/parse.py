@@ -9,13 +9,14 @@ model with ports, ...) are checked after the sections.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml
 from pipeline.config.overrides import apply_overrides
-from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, SOLVERS, Config, Connection,
+from pipeline.config.schema import (BOX_FACES, GAUGE_KINDS, GEOMETRY_KINDS, SOLVERS, Config, Connection,
                                     Constraints, Coupling, Damping, Filter, FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
                                     MeshAlgorithm, MeshSpec, Modes, OutputKind, Port, Ports,
@@ -156,17 +157,51 @@ def _ports(raw: Any) -> Ports:
         items = []
         for i, item in enumerate(v.items(raw, side, "ports")):
             path = f"ports.{side}[{i}]"
-            item = v.mapping(item, path, ("name", "region", "kind", "direction"),
-                            ("name", "region", "kind", "direction"))
-            name = v.name(item, "name", path)
+            gauge = isinstance(item, Mapping) and item.get("kind") in GAUGE_KINDS
+            if gauge:
+                port = _gauge_port(item, path)
+            else:
+                item = v.mapping(item, path, ("name", "region", "kind", "direction"),
+                                ("name", "region", "kind", "direction"))
+                port = Port(name=v.name(item, "name", path), region=v.name(item, "region", path),
+                            kind=v.choice(item, "kind", path, kinds),
+                            direction=v.vector(item, "direction", path, nonzero=True))
+            name = port.name
             if name in seen:
                 raise v.fail(f"{path}.name", name, f"a name not used already (it names {seen[name]})")
+            if gauge and side == "inputs":
+                raise v.fail(f"{path}.kind", port.kind, "force or moment (strain and stress "
+                            "ports are outputs)")
             seen[name] = path
-            items.append(Port(name=name, region=v.name(item, "region", path),
-                              kind=v.choice(item, "kind", path, kinds),
-                              direction=v.vector(item, "direction", path, nonzero=True)))
+            items.append(port)
         groups[side] = tuple(items)
     return Ports(**groups)
+
+
+def _gauge_port(raw: Mapping, path: str) -> Port:
+    """A strain or stress output: name, kind, direction [, direction2] and either a
+    boundary ``region`` or a ``point`` [, ``radius`` >= 0 m] (docs/stress.md)."""
+    item = v.mapping(raw, path, ("name", "region", "kind", "direction", "direction2", "point",
+                                 "radius"), ("name", "kind", "direction"))
+    if ("region" in item) == ("point" in item):
+        raise v.fail(path, dict(item), "exactly one of 'region' (a boundary region the gauge "
+                    "covers) or 'point' (with an optional 'radius' in m)")
+    if "region" in item and "radius" in item:
+        raise v.fail(f"{path}.radius", item["radius"], "no radius with 'region' (a radius "
+                    "goes with 'point')")
+    d1 = v.vector(item, "direction", path, nonzero=True)
+    d2 = v.vector(item, "direction2", path, None, nonzero=True)
+    if d2 is not None:
+        cos = sum(x * y for x, y in zip(d1, d2)) / math.hypot(*d1) / math.hypot(*d2)
+        if abs(cos) > 1e-9:
+            raise v.fail(f"{path}.direction2", list(d2), "a direction orthogonal to "
+                        "'direction' (the shear component between them), or no direction2 "
+                        "for the normal component along 'direction'")
+    return Port(name=v.name(item, "name", path),
+                region=v.name(item, "region", path) if "region" in item else "",
+                kind=item["kind"], direction=d1, direction2=d2,
+                point=v.vector(item, "point", path, None),
+                radius=v.number(item, "radius", path, 0.0, lo=0.0) if "point" in item else 0.0)
 
 
 def _damping(raw: Any) -> Damping:
@@ -289,7 +324,8 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
     used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
     used += [(f"ports.inputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.inputs)]
-    used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)]
+    used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)
+             if p.region]
     used += [(f"connections[{i}].region", c.region) for i, c in enumerate(cfg.connections)]
     for path, region in used:
         if known and region not in known:

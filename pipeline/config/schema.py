@@ -17,8 +17,10 @@ Component = Literal["x", "y", "z"]
 Solver = Literal["auto", "pardiso", "cholmod", "mumps", "superlu"]
 SelectorKind = Literal["plane", "box", "sphere"]
 InputKind = Literal["force", "moment"]
-OutputKind = Literal["displacement", "rotation"]
-PortKind = Literal["force", "moment", "displacement", "rotation"]
+OutputKind = Literal["displacement", "rotation", "strain", "stress"]
+PortKind = Literal["force", "moment", "displacement", "rotation", "strain", "stress"]
+#: output kinds read inside the body (gauges) rather than as the motion of a surface region
+GAUGE_KINDS: tuple[str, ...] = ("strain", "stress")
 DampingKind = Literal["uniform", "per_mode", "rayleigh"]
 StaticCorrection = Literal["none", "residual", "augment"]
 FilterKind = Literal["none", "first_order", "third_order"]
@@ -117,12 +119,23 @@ class RegionSelector:
 
 @dataclass(frozen=True)
 class Port:
-    """A named input (force, moment) or output (displacement, rotation) on a region."""
+    """A named input (force, moment) or output (displacement, rotation) on a region, or a
+    gauge output (strain, stress; docs/stress.md).
+
+    A gauge reads sym(d1 d2^T) : eps (strain, tensor shear) or : sigma (stress, Pa) with
+    d1 = ``direction``, d2 = ``direction2`` (default d1: the normal strain / stress along
+    d1), averaged over the elements with a face on ``region``, or over the elements whose
+    centroid lies within ``radius`` (m) of ``point`` (``region`` is then ""), or taken at
+    ``point`` itself (radius 0).
+    """
 
     name: str
     region: str
     kind: PortKind
     direction: tuple[float, float, float]
+    direction2: tuple[float, float, float] | None = None
+    point: tuple[float, float, float] | None = None
+    radius: float = 0.0
 
 
 @dataclass(frozen=True)

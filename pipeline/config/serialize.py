@@ -46,6 +46,9 @@ def config_to_dict(cfg: Config) -> dict:
         elif f.name == "supports":
             value = [{"region": s.region, "fix": "all" if s.fix == ("x", "y", "z") else list(s.fix)}
                      for s in value]
+        elif f.name == "ports":
+            value = {side: [_port_dict(p) for p in getattr(value, side)]
+                     for side in ("inputs", "outputs")}
         elif f.name == "geometry":
             keep = ("kind", "length", "height", "depth") if value.kind == "box" else \
                 ("kind", "path", "scale")
@@ -55,6 +58,15 @@ def config_to_dict(cfg: Config) -> dict:
         out[f.name] = plain(value)
     if cfg.damping.kind != "per_mode":
         out["damping"].pop("ratios", None)
+    return out
+
+
+def _port_dict(port) -> dict:
+    """A port as its YAML keys: the gauge keys only where set (docs/stress.md)."""
+    out = {k: v for k, v in asdict(port).items()
+           if v is not None and k != "radius" and (k != "region" or v)}
+    if port.point is not None and port.radius:
+        out["radius"] = port.radius
     return out
 
 

@@ -22,12 +22,14 @@ from typing import Mapping, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.config import Port, Ports
+from pipeline.config import Material, Port, Ports
 from pipeline.errors import RegionError
 from pipeline.fe.space import FESpace, SurfaceRegion, surface_region
 from pipeline.fe.regions import get_region
+from pipeline.fe.strain import gauge_row
 
-UNITS = {"force": "N", "moment": "N m", "displacement": "m", "rotation": "rad"}
+UNITS = {"force": "N", "moment": "N m", "displacement": "m", "rotation": "rad",
+         "strain": "1", "stress": "Pa"}
 
 
 @dataclass(frozen=True)
@@ -74,15 +76,22 @@ def port_vector(space: FESpace, region: SurfaceRegion, port: Port, key: str) -> 
     return vec.ravel()
 
 
-def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports
-                  ) -> PortMatrices:
-    """Assemble F and T for the configured ports."""
+def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
+                  material: Material | None = None) -> PortMatrices:
+    """Assemble F and T for the configured ports (``material``: for stress outputs)."""
     cache: dict[str, SurfaceRegion] = {}
 
     def columns(items: Sequence[Port], side: str) -> sp.csc_matrix:
         cols = []
         for i, port in enumerate(items):
             key = f"ports.{side}[{i}]"
+            if port.kind in ("strain", "stress"):
+                tris = (get_region(regions, port.region, f"{key}.region") if port.region
+                        else None)
+                row = gauge_row(space, material, port.kind, port.direction,
+                                port.direction2, tris, port.point, port.radius, key)
+                cols.append(sp.csc_matrix(row[:, None]))
+                continue
             if port.region not in cache:
                 cache[port.region] = surface_region(
                     space, port.region, get_region(regions, port.region, f"{key}.region"))

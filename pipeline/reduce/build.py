@@ -56,7 +56,7 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
 
     ``solve``: b -> K^-1 b for this K; default: the factorisation the modes stage kept
     (``modes.solve``), else K is factorised here."""
-    ports = port_matrices(space, regions, cfg.ports)
+    ports = port_matrices(space, regions, cfg.ports, material=cfg.material)
     F = ports.F[free].toarray()
     T = ports.T[:, free]
     reduced = reduce_model(K, M, modes.shapes, modes.omega2, F, T, cfg.reduction.modes,

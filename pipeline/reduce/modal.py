@@ -408,6 +408,9 @@ class ReducedModel:
     static_correction: none | residual | augment.
     residual: (n_y x n_u) residual flexibility added to D (``residual``), else None.
     basis: (n_s x n_b) the M-orthonormal basis actually used (Phi, or the Ritz vectors).
+    correction_shapes: (n_s x n_u) residual-flexibility shapes K^-1 F - basis Omega2^-1
+        Sigma (m per unit input) with ``residual`` (the static part the D rows carry;
+        stress recovery needs them), else None.
     """
 
     statespace: StateSpaceModel
@@ -418,6 +421,7 @@ class ReducedModel:
     static_correction: str
     residual: np.ndarray | None
     basis: np.ndarray
+    correction_shapes: np.ndarray | None = None
 
     @property
     def dc_gain_position(self) -> np.ndarray:
@@ -543,14 +547,16 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     xi_all = spec.ratios_for(_omega(w2), n_listed=n_modes)
     Sigma = basis.T @ Fd
     Theta = np.asarray(T @ basis, dtype=float)
+    correction = None
     if static_correction == "residual":
         residual = G - Theta @ (Sigma / w2[:, None])
+        correction = X - basis @ (Sigma / w2[:, None])
     ss = modal_statespace(w2, xi_all, Sigma, Theta, residual=residual,
                           input_names=input_names, output_names=output_names,
                           n_retained=n_modes)
     model = ReducedModel(ss, None if G is None else _ro(G), _ro(w2), int(w2.size), n_modes,
                          static_correction, None if residual is None else _ro(residual),
-                         _ro(basis))
+                         _ro(basis), None if correction is None else _ro(correction))
     if G is not None:
         rel = np.linalg.norm(model.dc_gain_position - G) / max(np.linalg.norm(G), 1e-300)
         log.info("reduced model: %d states, static correction %s, DC gain error %.3g "

@@ -32,7 +32,8 @@ from pipeline.store import h5file
 from pipeline.store.h5file import read_strings
 
 __all__ = ["load_model", "LoadedModel", "SecondOrderModel", "ModelFile", "read_model_file",
-           "ModeSet", "read_modes", "open_verified", "read_strings"]
+           "ModeSet", "read_modes", "open_verified", "read_strings", "StressModes",
+           "read_stress_modes"]
 
 
 #: what h5py and numpy raise on content that does not have the documented layout
@@ -496,3 +497,54 @@ def read_modes(path: str | Path) -> ModeSet:
                    if "statespace/damping_ratios" in h5 else np.zeros(0))
         return ModeSet(str(h5.attrs.get("name", Path(path).stem)), points, kind, cells, shapes,
                        freqs, labels, fixed, regions, damping, "statespace" in h5)
+
+
+# --------------------------------------------------------------------------- stress modes
+@dataclass(frozen=True)
+class StressModes:
+    """The ``stress_modes`` group (docs/hdf5-format.md): stress and strain at the mesh points
+    of each basis vector of the plant (coordinate eta_k, m kg^1/2) and of each residual
+    flexibility shape (coordinate: input j, in its unit).
+
+    stress (n_p, 6, n_b + n_c) Pa per unit coordinate; strain (n_p, 6, n_b + n_c) 1 per unit
+    coordinate, engineering shear; Voigt order ``voigt_order``; shape_names, shape_units;
+    n_basis n_b, n_correction n_c; input_names: the plant's inputs (the residual shapes);
+    points (n_p, 3) m, the mesh points the fields are given at.
+    """
+
+    points: np.ndarray
+    stress: np.ndarray
+    strain: np.ndarray
+    shape_names: tuple[str, ...]
+    shape_units: tuple[str, ...]
+    voigt_order: tuple[str, ...]
+    n_basis: int
+    n_correction: int
+    input_names: tuple[str, ...]
+
+
+def read_stress_modes(path: str | Path) -> StressModes | None:
+    """The stress modes of a result file, or None for a file without them (written before
+    they existed, or without a reduced model)."""
+    with open_verified(path) as h5:
+        if "stress_modes" not in h5:
+            return None
+        try:
+            points = _array(h5, "mesh/points", "f", (None, 3))
+            stress = _array(h5, "stress_modes/stress", "f", (points.shape[0], 6, None))
+            strain = _array(h5, "stress_modes/strain", "f", stress.shape)
+            attrs = h5["stress_modes/stress"].attrs
+            names = tuple(read_strings(h5["stress_modes/shape_names"]))
+            units = tuple(read_strings(h5["stress_modes/shape_units"]))
+            n_b, n_c = int(attrs["n_basis"]), int(attrs["n_correction"])
+            inputs = _strings(h5, "statespace", "input_names")
+            voigt = tuple(read_strings(attrs["voigt_order"]))
+        except LAYOUT_ERRORS as exc:
+            raise layout_error(path, exc) from None
+        if len(names) != stress.shape[2] or n_b + n_c != stress.shape[2] \
+                or n_c not in (0, len(inputs)):
+            raise FileFormatError(f"file '{path}': stress_modes holds {stress.shape[2]} shapes, "
+                                  f"{len(names)} names, n_basis {n_b} + n_correction {n_c}",
+                                  key="stress_modes/stress", value=stress.shape,
+                                  expected="n_basis + n_correction shapes, one name each")
+        return StressModes(points, stress, strain, names, units, voigt, n_b, n_c, inputs)

@@ -15,6 +15,8 @@ that write a partial file:
 ``connections/<parent>``   :func:`connection_datasets`
 ``craig_bampton``          :func:`craig_bampton_datasets`
 ``ffrf``                   :func:`ffrf_datasets`
+``stress_modes``           :func:`stress_modes_datasets` (stress and strain of every basis
+                           vector and static correction shape at the mesh points)
 ``fe/{mass,stiffness}_matrix``  :func:`exudyn_datasets` (CSR, :func:`csr_datasets`;
                            read back by :func:`pipeline.apps.exports.read_csr`)
 =========================  ==============================================================
@@ -55,7 +57,12 @@ __all__ = [
     "ffrf_datasets",
     "csr_datasets",
     "exudyn_datasets",
+    "stress_modes_datasets",
+    "VOIGT_ORDER",
 ]
+
+#: Voigt order of the 6-component stress and strain fields (pipeline.fe.strain.VOIGT)
+VOIGT_ORDER = ("xx", "yy", "zz", "yz", "xz", "xy")
 
 
 # --------------------------------------------------------------------------- run file
@@ -148,6 +155,42 @@ def statespace_datasets(model: ReducedModel, group: str = "statespace",
             model.residual, compliance_units,
             "T K^-1 F - Theta Omega2^-1 Sigma, added to the position rows of D")
     return tree
+
+
+# --------------------------------------------------------------------------- stress modes
+def stress_modes_datasets(stress: np.ndarray, strain: np.ndarray, model: ReducedModel,
+                          input_units: Sequence[str], group: str = "stress_modes"
+                          ) -> dict[str, Dataset]:
+    """The ``stress_modes`` group (docs/hdf5-format.md): ``stress`` (Pa per unit coordinate)
+    and ``strain`` (1 per unit coordinate), each (n_points, 6, n_b + n_c), of the n_b basis
+    vectors of ``model`` (the states eta of the plant) followed by its n_c static
+    correction shapes (residual flexibility: one per input, per unit input); Voigt order
+    VOIGT_ORDER, engineering shear strain; ``shape_names`` and ``shape_units``.
+    """
+    n_b = int(model.n_basis)
+    n_c = stress.shape[2] - n_b
+    if stress.shape != strain.shape or n_c not in (0, len(model.statespace.input_names)):
+        raise ValueError(f"stress {stress.shape} / strain {strain.shape} do not match a basis "
+                         f"of {n_b} and {len(model.statespace.input_names)} inputs")
+    inputs = model.statespace.input_names
+    names = [f"eta_{k + 1}" for k in range(n_b)] + [f"residual/{u}" for u in inputs][:n_c]
+    per = ["m kg^1/2"] * n_b + [input_units[j] for j in range(n_c)]
+    attrs = {"voigt_order": list(VOIGT_ORDER), "shear_strain": "engineering (gamma = 2 eps)",
+             "recovery": "volume-weighted average of element-average values over the elements "
+                         "around each mesh point", "n_basis": n_b, "n_correction": n_c,
+             "static_correction": model.static_correction}
+    return {
+        f"{group}/stress": Dataset(stress, "Pa", "stress of each basis vector, then each static "
+                                   "correction shape (n_points, 6, n_shapes), per unit modal "
+                                   "coordinate / unit input (shape_units)", attrs),
+        f"{group}/strain": Dataset(strain, "1", "strain of the same shapes (engineering shear)",
+                                   attrs),
+        f"{group}/shape_names": Dataset(names, "", "eta_k: basis vector k (state eta_k); "
+                                        "residual/<input>: residual flexibility shape"),
+        f"{group}/shape_units": Dataset(per, "", "unit of the coordinate that multiplies each "
+                                        "shape (eta_k: m kg^1/2; an input: its own unit); "
+                                        "stress = sum_k stress[:, :, k] coordinate_k"),
+    }
 
 
 # --------------------------------------------------------------------------- filtered model

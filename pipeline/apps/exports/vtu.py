@@ -11,6 +11,9 @@
   scale factor for *Warp By Vector*): 0.1 x the body's largest dimension / the mode's largest
   displacement, so the warped body moves a tenth of its size (a mass-normalised shape
   of a 0.5 m aluminium beam at scale 1 throws its tip 1.7 m);
+- point data ``stress_eta_NN``, ``stress_residual_<input>`` (n_points x 6, ParaView's
+  tensor order) and ``von_mises_static_<input>`` where the file has stress modes
+  (:mod:`pipeline.apps.exports.stress_arrays`);
 - point data ``fixed_components`` (0..3: how many displacement components the supports
   fix at each point) and ``region_<name>`` (1 on the points of each named region);
 - the frequencies: in the VTU as field data ``frequencies_hz`` (all modes, Hz),
@@ -36,6 +39,7 @@ import numpy as np
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import ConfigError
+from pipeline.apps.exports.stress_arrays import stress_point_data
 from pipeline.store.read import read_modes
 
 log = logging.getLogger(__name__)
@@ -82,6 +86,7 @@ def mode_mesh(h5_path: str | Path):
         mask = np.zeros(points.shape[0], dtype=np.int32)
         mask[np.unique(tris)] = 1
         point_data[f"region_{name}"] = mask
+    point_data.update(stress_point_data(h5_path))  # stress modes, where the file has them
     log.debug("mode labels: %s", ", ".join(labels))
     return meshio.Mesh(points, [(kind, cells)], point_data=point_data,
                        field_data={"frequencies_hz": freqs,

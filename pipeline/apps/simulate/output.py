@@ -2,7 +2,9 @@
 
 ``RESULT.h5`` is written atomically by :func:`pipeline.store.h5file.write_file`:
 ``<scenario>/<model key>[/run_<i>]/time`` (s) and ``.../signals/<name>`` (SI units,
-per-run measured_* / predicted_* / integrator_* attributes), ``<scenario>/<key>/fit`` for
+per-run measured_* / predicted_* / integrator_* attributes), ``.../stress/*`` (peak von
+Mises per mesh point, its instant, fields; pipeline.apps.simulate.stress) for a file with
+stress modes, ``<scenario>/<key>/fit`` for
 a mass sweep, and ``summary/*`` (one entry per summary row). Beside it,
 ``<stem>.<scenario>.csv`` (every run's signals as columns) and ``<stem>.<scenario>.png``,
 both through :func:`pipeline._util.atomic.atomic_path`.
@@ -25,6 +27,7 @@ from pipeline.store.read import ModelFile
 from pipeline.store.tree import Dataset
 
 from pipeline.apps.simulate.results import ScenarioResult, SimulationResults
+from pipeline.apps.simulate.stress import plot_stress, stress_peak_datasets
 
 __all__ = ["slug", "results_tree", "write_csv", "plot", "write_outputs"]
 
@@ -61,6 +64,8 @@ def results_tree(res: SimulationResults, scenarios_yaml: str):
                     for sig, dev in v.items():
                         a[f"deviation_from_exact/{sig}"] = float(dev)
             attrs[grp] = a
+            if run.info.get("stress_peak") is not None:
+                tree.update(stress_peak_datasets(grp, run.info["stress_peak"]))
         for key, fit in s.fits.items():
             g = f"{sname}/{key}/fit"
             tree[f"{g}/masses"] = Dataset(fit["masses"], "kg", "tip masses of the sweep")
@@ -226,4 +231,6 @@ def write_outputs(results: SimulationResults, mf: ModelFile, output_ports: Mappi
         results.files.append(write_csv(Path(f"{stem}.{slug(s.scenario.name)}.csv"), s))
         if plots:
             results.files.append(plot(Path(f"{stem}.{slug(s.scenario.name)}.png"), s, port))
+            results.files.extend(plot_stress(Path(f"{stem}.{slug(s.scenario.name)}.stress.png"),
+                                             s, mf.path))
 

@@ -29,6 +29,7 @@ from pipeline.apps.simulate.measure import (decay_damping_ratio, fft_peak_freque
 from pipeline.apps.simulate.output import write_outputs
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult, SimulationResults
 from pipeline.apps.simulate.scenarios import Scenario, as_scenarios
+from pipeline.apps.simulate.stress import add_stress_outputs, gauge_ports
 from pipeline.apps.simulate.systems import (SteppedSystem, coupled_system, directions,
                                             filtered_for, lumped_for, mount_for, step_system,
                                             undamped)
@@ -55,8 +56,10 @@ def scenario_ports(mf: ModelFile, sc: Scenario) -> tuple[str, str]:
                               expected="one of: " + ", ".join(names))
         return name
 
+    gauges = gauge_ports(mf)  # strain/stress outputs are recorded, never driven or coupled
     return (pick(sc.input, list(mf.plant.input_names), "input", "input"),
-            pick(sc.output, list(mf.plant.ports), "output", "output"))
+            pick(sc.output, [p for p in mf.plant.ports if p not in gauges], "motion output",
+                 "output"))
 
 
 
@@ -87,6 +90,8 @@ def run_step(mf: ModelFile, sc: Scenario, em: StateSpace, key: str, inp: str, po
         segs.append(Segment(segs[-1].t1, sc.duration, np.zeros(1)))
     Z, stats = integrate(sys, np.zeros(sys.A.shape[0]), segs, t, sc.integrator)
     run = make_run(em.label, key, sys, Z, t, w_series(segs, t), stats)
+    if key == "fe":
+        add_stress_outputs(run, mf, em, inp, Z, w_series(segs, t), sc.stress_instants)
     y = run.signals[f"{port}/position"]
     j = em.col(inp)
     ip = em.rows(port)[0]

@@ -37,7 +37,7 @@ _COMMON = ("name", "kind", "duration", "output_rate", "input", "output", "dampin
 _LOOP_KEYS = ("gravity", "preload", "loop", "cutoff_hz")
 #: The keys each kind of scenario accepts.
 SCENARIO_KEYS = {
-    "step_load": _COMMON + ("force", "t_on", "t_off"),
+    "step_load": _COMMON + ("force", "t_on", "t_off", "stress_instants"),
     "body_load": _COMMON + ("mass",) + _LOOP_KEYS,
     "mass_sweep": _COMMON + ("masses", "cycles") + _LOOP_KEYS,
     "spring_mount": _COMMON + ("mass", "stiffness", "joint_damping", "joint",
@@ -71,7 +71,8 @@ class Scenario:
     the model's only input / output port). damping: False removes the modal damping of the
     model (the coupled system is then undamped, apart from the filter's own small effect).
     lumped: also run the lumped chain when the file has one.
-    step_load: force (N along the input port's direction), t_on, t_off (s; None: stays on).
+    step_load: force (N along the input port's direction), t_on, t_off (s; None: stays on),
+    stress_instants (s: instants at which the whole stress field is recovered, docs/stress.md).
     body_load / mass_sweep / spring_mount: mass (kg) or masses, gravity ((3,) m/s^2 or
     None), preload (N on the input port, held for t < 0 and released at t = 0), loop
     (filtered | exact), cutoff_hz (re-filter the plant at this cutoff instead of using the
@@ -103,6 +104,7 @@ class Scenario:
     joint: tuple[float, float, float] | None = None
     initial_angle: float = 0.0
     cycles: float | None = None
+    stress_instants: tuple[float, ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """The keys a scenario file would hold for this scenario (round-trips)."""
@@ -189,7 +191,12 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         force = v.number(raw, "force", path)
         if force == 0.0:
             raise v.fail(f"{path}.force", force, "a non-zero force (N)")
-        return Scenario(**common, force=force, t_on=t_on, t_off=t_off)
+        raw_instants = raw.get("stress_instants") or []
+        if not isinstance(raw_instants, list):
+            raise v.fail(f"{path}.stress_instants", raw_instants, "a list of times (s)")
+        items = {f"stress_instants[{i}]": x for i, x in enumerate(raw_instants)}
+        instants = tuple(v.number(items, k, path, lo=0.0, hi=duration) for k in items)
+        return Scenario(**common, force=force, t_on=t_on, t_off=t_off, stress_instants=instants)
 
     loop = v.choice(raw, "loop", path, LOOPS, "filtered")
     gravity_raw = raw.get("gravity", False)
