@@ -43,7 +43,8 @@ import scipy.sparse.linalg as spla
 from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.solve.factorize import sparse_times_dense
+from pipeline.solve.factorize import (rigid_omega2_threshold, sparse_times_dense,
+                                      stiffness_scale)
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +67,9 @@ __all__ = [
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
 STATIC_CORRECTIONS = ("none", "residual", "augment")
 
-#: Squared circular frequency (rad^2/s^2) below which a mode counts as a rigid-body mode
-#: (omega < 2 pi * 0.01 Hz). No supported structure of interest is that soft, and the
-#: zero eigenvalues of a free body come out of a shift-invert solve far below it.
+#: Former absolute rigid-mode threshold (omega < 2 pi * 0.01 Hz), kept for callers; the
+#: reduction now uses the relative :func:`pipeline.solve.factorize.rigid_omega2_threshold`
+#: (a soft clamped body, E = 500 Pa, has f1 = 0.007 Hz and no rigid-body mode).
 RIGID_OMEGA2 = (2.0 * math.pi * 0.01) ** 2
 
 #: A static shape whose M-norm falls below this fraction of its initial M-norm after
@@ -259,27 +260,59 @@ def _dense(X) -> np.ndarray:
     return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
 
 
-def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarray:
+def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
+                  lowest_omega2: float | None = None, stiffness_scale: float | None = None
+                  ) -> np.ndarray:
     """Static deflection shapes X = K^-1 F (n_s x n_u), in m per unit input.
 
     ``solve``: a ready solver b -> K^-1 b; else ``factorize(K)`` gives one (default
-    :func:`default_factorize`). Raises :class:`SolverError` if the result is not finite.
+    :func:`default_factorize`). The solve is refined iteratively and judged by its
+    normwise backward error eta = |F - K X| / (|K| |X| + |F|) (scale-invariant; the
+    relative residual |F - K X| / |F| is not: it can be cond(K) eps for a perfect solve
+    of a thin or slender body), accepted up to
+    :data:`pipeline.solve.factorize.BACKWARD_ERROR_TOL`.
+
+    ``lowest_omega2`` (the lowest eigenvalue of K phi = omega^2 M phi, rad^2/s^2) and
+    ``stiffness_scale`` (an estimate of the largest, see
+    :func:`pipeline.solve.factorize.stiffness_scale`) give the condition number
+    kappa = stiffness_scale / lowest_omega2; kappa eps above
+    :data:`~pipeline.solve.factorize.SINGULAR_COND_EPS` means K is singular to working
+    precision (a rigid-body motion or mechanism the supports leave free), refused as
+    such. Raises :class:`SolverError` naming the cause.
     """
+    from pipeline.solve.factorize import (BACKWARD_ERROR_TOL, SINGULAR_COND_EPS,
+                                          refined_solve)
+
     Fd = _dense(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
-    X = np.asarray(_solver(K, solve, factorize)(np.asfortranarray(Fd)),
-                   dtype=float).reshape(Fd.shape)
-    if not np.all(np.isfinite(X)):
-        raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
-                          "(unsupported body?)")
-    # a factorisation of a numerically singular K can return finite garbage: check
-    residual = (np.linalg.norm(sparse_times_dense(K, X) - Fd, axis=0)
-                / np.maximum(np.linalg.norm(Fd, axis=0), 1e-300))
-    if residual.max() > 1e-6:
-        raise SolverError(f"static solve K^-1 F failed (relative residual {residual.max():.2e}): "
-                          "K is singular, the body is not fully supported; add supports that "
-                          "remove every rigid-body motion, or use static_correction: none")
+    X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
+    X = np.asarray(X, dtype=float).reshape(Fd.shape)
+    eta = float(report.backward_error.max(initial=0.0))
+    kappa = None
+    if lowest_omega2 is not None and stiffness_scale is not None:
+        kappa = stiffness_scale / max(float(lowest_omega2), np.finfo(float).tiny)
+    eps = np.finfo(float).eps
+    if kappa is not None and kappa * eps > SINGULAR_COND_EPS:
+        f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
+        raise SolverError(
+            f"static solve K^-1 F: K is singular to working precision: the lowest mode "
+            f"({f1:.3g} Hz, omega^2 = {float(lowest_omega2):.3g} rad^2/s^2) is "
+            f"{1 / kappa:.1e} of the mesh's stiffness scale ({stiffness_scale:.3g} "
+            "rad^2/s^2), i.e. a rigid-body motion or mechanism that the supports leave "
+            "free; look at mode 1's shape, and support the body so that it cannot move "
+            "without deforming (or give it no supports to model it as a free body)")
+    if not np.all(np.isfinite(X)) or eta > BACKWARD_ERROR_TOL:
+        cond = f", estimated cond(K) {kappa:.1e}" if kappa is not None else ""
+        raise SolverError(
+            f"static solve K^-1 F is inaccurate: backward error {eta:.1e} (> "
+            f"{BACKWARD_ERROR_TOL:g}) after {report.steps} refinement steps{cond}; the "
+            "factorisation of K is unreliable with this backend: try another "
+            "'modes.solver' (superlu, pardiso, cholmod)")
+    if report.steps:
+        log.info("static solve K^-1 F: backward error %.1e -> %.1e after %d refinement "
+                 "step(s)%s", float(report.initial_backward_error.max()), eta, report.steps,
+                 f" (estimated cond(K) {kappa:.1e})" if kappa is not None else "")
     return X
 
 
@@ -485,7 +518,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
 
     The static compliance T K^-1 F is always computed, except for a body with rigid-body
-    modes (omega^2 < RIGID_OMEGA2) and no correction, where it is None (with a warning);
+    modes (omega^2 below the relative rigid_omega2_threshold) and no correction, where it is None (with a warning);
     residual and augment need a supported body.
     """
     omega2 = np.asarray(omega2, dtype=float).reshape(-1)
@@ -515,7 +548,8 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     spec = xi if isinstance(xi, DampingSpec) else DampingSpec(
         "per_mode", ratios=tuple(np.asarray(xi, dtype=float).reshape(-1)))
 
-    n_rigid = int(np.count_nonzero(w2_r < RIGID_OMEGA2))
+    scale = stiffness_scale(K, M)
+    n_rigid = int(np.count_nonzero(w2_r < rigid_omega2_threshold(scale)))
     X = None
     G = None
     if n_rigid:
@@ -525,7 +559,8 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
                        "ones, so it has no static compliance to correct towards")
         log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
     else:
-        X = static_shapes(K, Fd, solve, factorize)
+        X = static_shapes(K, Fd, solve, factorize, lowest_omega2=float(omega2[0]),
+                          stiffness_scale=scale)
         G = np.asarray(T @ X, dtype=float)
 
     residual = None
