@@ -15,6 +15,7 @@ from typing import Any, Mapping, Sequence, get_args
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml
 from pipeline.config.overrides import apply_overrides
+from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, SOLVERS, Config, Connection,
                                     Constraints, Coupling, Damping, Filter, FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
@@ -256,6 +257,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
     raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
+    check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
     modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance"))
     modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
@@ -312,6 +314,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
             and len(cfg.damping.ratios) < cfg.reduction.modes:
         raise v.fail("damping.ratios", list(cfg.damping.ratios),
                     f"at least reduction.modes = {cfg.reduction.modes} ratios")
+    check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg
 
 

@@ -62,6 +62,7 @@ __all__ = [
     "static_compliance",
     "modal_statespace",
     "reduce_model",
+    "cluster_end",
 ]
 
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
@@ -71,6 +72,13 @@ STATIC_CORRECTIONS = ("none", "residual", "augment")
 #: reduction now uses the relative :func:`pipeline.solve.factorize.rigid_omega2_threshold`
 #: (a soft clamped body, E = 500 Pa, has f1 = 0.007 Hz and no rigid-body mode).
 RIGID_OMEGA2 = (2.0 * math.pi * 0.01) ** 2
+
+#: Two modes whose frequencies differ by less than this fraction are one cluster of
+#: (nearly) repeated frequencies (a square section bends alike about both axes): their
+#: shapes are fixed only up to a rotation within the cluster, by mesh noise (an
+#: unstructured mesh splits such a pair by ~1e-5 with P2, ~1e-4 with P1 elements; a
+#: physically distinct pair is normally percent apart). A reduction keeps them together.
+CLUSTER_REL_GAP = 1e-3
 
 #: A static shape whose M-norm falls below this fraction of its initial M-norm after
 #: M-orthogonalisation against the basis is numerically dependent and dropped.
@@ -497,6 +505,63 @@ def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, i
     return w2, V @ Z, len(kept)
 
 
+def cluster_end(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) -> int:
+    """The smallest n' >= n such that modes n' and n'+1 (1-based) are not in one cluster:
+    |omega_{n'+1} - omega_{n'}| > rel_gap omega_{n'} (omega in rad/s). Returns len(omega2)
+    when the cluster reaches the last mode given (then where it ends is unknown)."""
+    w = _omega(omega2)
+    while n < w.size and abs(w[n] - w[n - 1]) <= rel_gap * max(w[n - 1], 0.0) \
+            and w[n - 1] > 0:
+        n += 1
+    return n
+
+
+def _keep_clusters_whole(omega2: np.ndarray, n_modes: int, xi) -> int:
+    """n_modes, raised to the end of a frequency cluster that reduction.modes would cut
+    (warning), or a refusal when the cluster runs past the computed modes or a per-mode
+    damping list is too short for the whole cluster."""
+    n_end = cluster_end(omega2, n_modes)
+    if n_end == n_modes:
+        return n_modes
+    f = _omega(omega2) / (2 * math.pi)
+    if n_end >= omega2.size:
+        raise validate.fail(
+            "reduction.modes", n_modes,
+            f"a count that does not cut the cluster of nearly repeated frequencies "
+            f"{f[n_modes - 1]:.6g}, {f[n_modes]:.6g} Hz (within {CLUSTER_REL_GAP:g}, e.g. "
+            "the two bending directions of a square section): its shapes are fixed only by "
+            "mesh noise; the cluster continues to the last computed mode, so raise "
+            "modes.count to see where it ends")
+    if isinstance(xi, DampingSpec) and xi.kind == "per_mode" and len(xi.ratios) < n_end:
+        raise validate.fail(
+            "damping.ratios", list(xi.ratios),
+            f"{n_end} ratios: reduction.modes = {n_modes} cuts a cluster of nearly repeated "
+            f"frequencies (modes {cluster_start(omega2, n_modes)}-{n_end}, {f[n_modes - 1]:.6g} "
+            f"Hz) that is "
+            f"kept whole")
+    if not isinstance(xi, DampingSpec) and np.size(xi) < n_end:
+        raise validate.fail(
+            "reduction.modes", n_modes,
+            f"{n_end} (the end of the cluster of nearly repeated frequencies at "
+            f"{f[n_modes - 1]:.6g} Hz), with one damping ratio per mode")
+    start = cluster_start(omega2, n_modes)
+    log.warning("reduction.modes = %d cuts a cluster of nearly repeated frequencies (modes "
+                "%d-%d at %.6g Hz, within %g, e.g. the two bending directions of a square "
+                "section): which of them comes first is mesh noise, so the cluster is kept "
+                "whole and the model has %d modes; set reduction.modes: %d%s to silence this",
+                n_modes, start, n_end, f[n_modes - 1], CLUSTER_REL_GAP, n_end, n_end,
+                f" (or {start - 1})" if start > 1 else "")
+    return n_end
+
+
+def cluster_start(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) -> int:
+    """The 1-based index of the first mode of the cluster that holds mode n."""
+    w = _omega(omega2)
+    while n > 1 and abs(w[n - 1] - w[n - 2]) <= rel_gap * w[n - 2] and w[n - 2] > 0:
+        n -= 1
+    return n
+
+
 def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
                  input_names: Sequence[str], output_names: Sequence[str],
                  solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6
@@ -543,6 +608,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     if Phi.shape != (K.shape[0], n_avail):
         raise ValueError(f"Phi has shape {Phi.shape}, expected ({K.shape[0]}, {n_avail})")
 
+    n_modes = _keep_clusters_whole(omega2, n_modes, xi)
     Phi_r, w2_r = Phi[:, :n_modes], omega2[:n_modes]
     check_modal_basis(K, M, Phi_r, w2_r, tol=basis_tol)
     spec = xi if isinstance(xi, DampingSpec) else DampingSpec(
