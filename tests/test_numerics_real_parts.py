@@ -100,3 +100,86 @@ def test_under_supported_body_is_refused_naming_the_rigid_motion(tmp_path):
     with pytest.raises(PipelineError, match=r"(?i)singular|rigid"):
         run(tmp_path, "cantilever.yaml", "supports[0].fix=[y]", "mesh.size=0.02",
             "lumped=null")
+
+
+def test_soft_clamped_body_has_no_rigid_body_mode(tmp_path, caplog):
+    """E = 500 Pa (a gel): f1 = 0.007 Hz. The old absolute threshold (0.01 Hz) called its
+    first bending mode rigid and refused the static correction; the threshold is now
+    relative to the mesh's own stiffness scale (E cancels)."""
+    with caplog.at_level(logging.WARNING):
+        result = run(tmp_path, "cantilever.yaml", "material.E=500", "mesh.size=0.02",
+                     "lumped=null")
+    E, rho, L, h = 500.0, 2700.0, 0.5, 0.02
+    f1 = eb_frequency(1, E, rho, h**2 / 12, 1.0, L)
+    assert result.frequencies_hz[0] == pytest.approx(f1, rel=0.05)  # coarse P2, as above
+    assert not result.labels[0].startswith("rigid")
+    assert "material.E" in caplog.text  # 500 Pa is no engineering solid: warned
+
+
+# --------------------------------------------------------------------------- silent wrong
+def test_reduction_keeps_a_repeated_frequency_pair_whole(tmp_path, caplog):
+    """A square section (20 x 20 mm) bends alike about y and z: reduction.modes = 1 would
+    keep whichever of the pair mesh noise puts first. The pair is kept whole, with a
+    warning naming the reason."""
+    import h5py
+
+    with caplog.at_level(logging.WARNING):
+        run(tmp_path, "cantilever.yaml", "geometry.depth=0.02", "mesh.size=0.01",
+            "reduction.modes=1", "lumped=null")
+    assert "cluster of nearly repeated frequencies" in caplog.text
+    with h5py.File(tmp_path / "out.h5", "r") as h5:
+        assert h5["statespace/A"].shape == (4, 4)  # both modes of the pair: 4 states
+
+
+@pytest.mark.parametrize("overrides, key, port", [
+    (["ports.inputs[0].region=root"], "ports.inputs", "tip_force_y"),
+    (["constraints.in_plane=true", "ports.outputs[0].direction=[0,0,1]"], "ports.outputs",
+     "tip_y"),
+])
+def test_port_that_acts_on_nothing_is_refused_before_meshing(overrides, key, port):
+    with pytest.raises(PipelineError, match=rf"'{key}'.*'{port}'.*nothing"):
+        load_config(ROOT / "configs/cantilever.yaml", overrides)
+
+
+def test_port_on_a_partly_supported_face_is_refused_by_the_reduce_stage(tmp_path):
+    """tip held along y by a second support, output along y there: only the assembled
+    port matrices show that it measures nothing."""
+    with pytest.raises(PipelineError, match=r"'tip_(force_)?y'.*nothing.*'tip'"):
+        run(tmp_path, "cantilever.yaml", "mesh.size=0.02", "lumped=null",
+            "supports=[{region: root, fix: all}, {region: tip, fix: [y]}]")
+
+
+def test_free_body_with_lumped_chain_is_refused():
+    with pytest.raises(PipelineError, match=r"'lumped'.*without supports"):
+        load_config(ROOT / "configs/cantilever.yaml",
+                    ["supports=[]", "reduction.static_correction=none"])
+
+
+@pytest.mark.parametrize("overrides, key, unit", [
+    (["material.E=69000"], "material.E", "MPa"),
+    (["material.E=69"], "material.E", "GPa"),
+    (["material.rho=2.7"], "material.rho", "g/cm^3"),
+    (["material.rho=2.7e-9"], "material.rho", "t/mm^3"),
+    (["material.nu=0.4999", "mesh.order=1"], "material.nu", "mesh.order: 2"),
+    (["material.nu=-0.9999"], "material.nu", "far too stiff"),
+])
+def test_unit_slips_and_locking_are_warned_naming_key_and_unit(caplog, overrides, key, unit):
+    with caplog.at_level(logging.WARNING):
+        load_config(ROOT / "configs/cantilever.yaml", overrides)
+    assert key in caplog.text and unit in caplog.text, caplog.text
+
+
+def test_shipped_configs_raise_no_plausibility_warning(caplog):
+    with caplog.at_level(logging.WARNING):
+        for name in ("cantilever", "cantilever_inplane", "cantilever_connection", "bracket",
+                     "slender_beam"):
+            load_config(ROOT / "configs" / f"{name}.yaml")
+    assert "outside" not in caplog.text and "lock" not in caplog.text, caplog.text
+
+
+def test_beam_typed_in_millimetres_is_named_on_its_length_not_mesh_size():
+    with pytest.raises(PipelineError, match=r"'geometry.length'.*mm.*length: 0.5") as err:
+        load_config(ROOT / "configs/cantilever.yaml",
+                    ["geometry.length=500", "geometry.height=20", "geometry.depth=50",
+                     "mesh.size=0.005"])
+    assert "mesh.size" not in str(err.value)
