@@ -112,6 +112,9 @@ def check_dimensions(extent, geometry: Geometry, what: str) -> None:
 
 
 def check_size(volume_m3: float, spec: MeshSpec, what: str) -> None:
+    from pipeline.fe.mesh.estimate import check_mesh_fits  # memory, before gmsh meshes
+
+    check_mesh_fits(volume_m3, spec.size, spec, f"the body in '{what}'")
     estimate = TETS_PER_CUBE * volume_m3 / spec.size ** 3
     if estimate > MAX_TETRAHEDRA:
         smallest = (TETS_PER_CUBE * volume_m3 / MAX_TETRAHEDRA) ** (1.0 / 3.0)
