@@ -183,3 +183,78 @@ def test_beam_typed_in_millimetres_is_named_on_its_length_not_mesh_size():
                     ["geometry.length=500", "geometry.height=20", "geometry.depth=50",
                      "mesh.size=0.005"])
     assert "mesh.size" not in str(err.value)
+
+
+# --------------------------------------------------------------------------- exhausting requests
+def run_cli(*args, cwd=ROOT, timeout=120):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("config", ["cantilever.yaml", "slender_beam.yaml"])
+def test_mesh_that_cannot_fit_is_refused_before_meshing_with_a_size_that_fits(tmp_path,
+                                                                             config):
+    """mesh.size = 0.2 mm asks gmsh for ~1e8-4e8 tetrahedra (1e5 GB): refused in seconds,
+    on any machine, naming a mesh.size that would fit; that size is then accepted by the
+    estimate (re-checked here against the same available memory)."""
+    import re
+
+    from pipeline.fe.mesh.estimate import check_mesh_fits
+    from pipeline.config import MeshSpec
+
+    proc = run_cli("run", f"configs/{config}", "--set", "mesh.size=0.0002", "-o",
+                   str(tmp_path / "x.h5"), "--mesh-dir", str(tmp_path), timeout=60)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "mesh.size" in line and "tetrahedra" in line, line
+    fits = float(re.search(r"mesh\.size >= ([0-9.e+-]+) m", line).group(1))
+    assert 0.0002 < fits < 0.5
+    # the named size fits where the request did not (same estimate, 1 GB available)
+    box = (0.5 * 0.02 * 0.05, 0.02)
+    with pytest.raises(PipelineError) as err:
+        check_mesh_fits(*box, MeshSpec(size=0.0002), "box", available=2**30)
+    small = float(re.search(r"mesh\.size >= ([0-9.e+-]+) m", str(err.value)).group(1))
+    check_mesh_fits(*box, MeshSpec(size=small * 1.01), "box", available=2**30)
+
+
+def test_lumped_chain_too_long_to_build_is_refused():
+    """lumped.elements costs O(n^3) (465 s at 1000): refused above 200 with the limit."""
+    with pytest.raises(PipelineError, match=r"'lumped.elements': got 10000"):
+        load_config(ROOT / "configs/cantilever.yaml", ["lumped.elements=10000"])
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("model")
+    result = run(tmp, "cantilever.yaml", "mesh.size=0.02", "lumped=null")
+    return result.output
+
+
+@pytest.mark.parametrize("scenario, key, value, message", [
+    ("body_load", "mass", "1.0e30", "scenario.mass"),             # over the mass bound
+    ("body_load", "mass", "1.0e11", "time scales"),               # stiff beyond double
+    ("spring_mount", "stiffness", "1.0e15", "steps"),             # 3.4 MHz for 2 s
+    ("step_load", "force", "1.0e300", "scenario.force"),          # energies overflow
+    ("mass_sweep", "masses", "[1.0e-30, 1.0, 1.0e11]", "time scales"),
+])
+def test_extreme_scenario_numbers_give_one_line_refusals(tmp_path, model_file, scenario,
+                                                         key, value, message):
+    """Each of these hung for minutes (LSODA stepping forever), wrote inf/NaN energies with
+    exit 0, or failed inside LSODA; now a one-line error, quickly."""
+    import re
+    import time
+
+    text = (ROOT / "configs" / "scenarios" / f"{scenario}.yaml").read_text()
+    text = re.sub(rf"(?m)^{key}:.*$", f"{key}: {value}", text)
+    path = tmp_path / "s.yaml"
+    path.write_text(text)
+    t0 = time.perf_counter()
+    proc = run_cli("simulate", str(model_file), str(path), "-o", str(tmp_path / "r.h5"),
+                   "--no-plots", timeout=100)
+    assert proc.returncode != 0, proc.stdout[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert message in proc.stderr.strip().splitlines()[-1], proc.stderr[-1000:]
+    assert time.perf_counter() - t0 < 60
