@@ -297,10 +297,24 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
     X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
     X = np.asarray(X, dtype=float).reshape(Fd.shape)
     eta = float(report.backward_error.max(initial=0.0))
+    eps = np.finfo(float).eps
     kappa = None
     if lowest_omega2 is not None and stiffness_scale is not None:
         kappa = stiffness_scale / max(float(lowest_omega2), np.finfo(float).tiny)
-    eps = np.finfo(float).eps
+    # a lower bound of cond(K) from the solve itself: |X| <= |K^-1| |F|, so
+    # cond_inf(K) >= |K| |X| / |F|; a singular K (null space excited by round-off) shows
+    # here even when no modes are given, since a backward-stable solve of a singular K
+    # has a small backward error
+    norm_K = float(abs(K).sum(axis=1).max()) if K.shape[0] else 0.0
+    norm_F = float(np.abs(Fd).max(initial=0.0))
+    if norm_F > 0 and np.all(np.isfinite(X)):
+        lower = norm_K * float(np.abs(X).max(initial=0.0)) / norm_F
+        if lower * eps > SINGULAR_COND_EPS and (kappa is None or lower > kappa):
+            raise SolverError(
+                f"static solve K^-1 F: K is singular to working precision (its condition "
+                f"number is at least |K| |X| / |F| = {lower:.1e}): a rigid-body motion or "
+                "mechanism that the supports leave free; support the body so that it cannot "
+                "move without deforming (or give it no supports to model it as a free body)")
     if kappa is not None and kappa * eps > SINGULAR_COND_EPS:
         f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
         raise SolverError(

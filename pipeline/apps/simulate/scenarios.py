@@ -169,11 +169,19 @@ def _masses(raw: Mapping, path: str) -> tuple[float, ...]:
     if not isinstance(masses, list) or len(masses) < 3:
         raise v.fail(f"{path}.masses", masses, "a list of at least three masses (kg)")
     items = {f"masses[{i}]": m for i, m in enumerate(masses)}
-    values = tuple(v.number(items, key, path, lo=0.0, hi=MAX_MASS_KG) for key in items)
+    values = tuple(_mass(items, key, path) for key in items)
     if len(set(values)) < 3:
         raise v.fail(f"{path}.masses", masses, "at least three different masses (a line "
                      "through two points has no residual)")
     return values
+
+
+def _mass(raw: Mapping, key: str, path: str) -> float:
+    """A mass >= 0 (kg), at most MAX_MASS_KG."""
+    mass = v.number(raw, key, path, lo=0.0)
+    if mass > MAX_MASS_KG:
+        raise v.fail(f"{path}.{key}", mass, f"a mass of at most {MAX_MASS_KG:g} kg")
+    return mass
 
 
 def parse_scenario(raw: Any, path: str) -> Scenario:
@@ -236,7 +244,7 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         extra["cycles"] = _optional_number(raw, "cycles", path, lo=2.0)
         lightest = min(extra["masses"])
     else:
-        extra["mass"] = v.number(raw, "mass", path, lo=0.0, hi=MAX_MASS_KG)
+        extra["mass"] = _mass(raw, "mass", path)
         lightest = extra["mass"]
     if kind == "spring_mount":
         extra["stiffness"] = v.number(raw, "stiffness", path, lo=0.0, lo_open=True)

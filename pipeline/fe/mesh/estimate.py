@@ -26,6 +26,10 @@ from pipeline.errors import ResourceError
 
 TETS_PER_VOLUME = 6.5
 NODES_PER_TET = {1: 0.36, 2: 1.6}
+#: the estimate is refused only when it exceeds the usable memory by this factor: it is
+#: rough (gmsh's element count varies by ~1.5x with the shape), and the exact check after
+#: meshing (:func:`pipeline._util.resources.check_memory`) judges borderline meshes
+MARGIN = 2.0
 #: modes assumed when the mode count is not known where meshing starts (the memory of
 #: the eigensolve grows with it; the factor dominates up to hundreds of modes)
 DEFAULT_MODES = 20
@@ -61,7 +65,10 @@ def check_mesh_fits(volume_m3: float, smallest_m: float, spec: MeshSpec, what: s
     est = estimate_mesh(volume_m3, smallest_m, spec.size, spec.order, n_modes)
     have = resources.available_memory_bytes() if available is None else available
     usable = resources.HEADROOM * have
-    if est.peak_bytes <= usable:
+    floor = estimate_mesh(volume_m3, smallest_m, float("inf"), spec.order, n_modes).peak_bytes
+    if est.peak_bytes <= MARGIN * usable or floor >= usable:
+        # fits (or borderline: the exact check after meshing decides), or not even an
+        # empty mesh fits (no mesh.size helps: that check reports the memory)
         return est
     lo, hi = spec.size, spec.size
     while estimate_mesh(volume_m3, smallest_m, hi, spec.order, n_modes).peak_bytes > usable:
