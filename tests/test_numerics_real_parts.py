@@ -35,16 +35,19 @@ def eb_frequency(n: int, E: float, rho: float, I: float, A: float, L: float) -> 
 
 
 # --------------------------------------------------------------------------- false refusals
-def test_thin_strip_runs_with_beam_theory_frequency(tmp_path):
-    """A 500 x 50 x 2 mm aluminium strip (one quadratic element through the thickness):
-    cond(K) ~ 1e10, so the old relative-residual bound (1e-6) refused a perfect solve."""
-    result = run(tmp_path, "cantilever.yaml", "geometry.height=0.002", "lumped=null",
+@pytest.mark.parametrize("h", [0.002, pytest.param(0.0002, marks=pytest.mark.slow)])
+def test_thin_strip_runs_with_beam_theory_frequency(tmp_path, h):
+    """A 500 x 50 x h aluminium strip (one quadratic element through the thickness): K is
+    ill-conditioned, so the old relative-residual bound (1e-6) refused a perfect solve;
+    at h = 0.2 mm a diagonal-ratio rigid-mode threshold would call mode 1 rigid."""
+    result = run(tmp_path, "cantilever.yaml", f"geometry.height={h}", "lumped=null",
                  "modes.count=4")
-    E, rho, L, h, b = 69e9, 2700.0, 0.5, 0.002, 0.05
-    f1 = eb_frequency(1, E, rho, b * h**3 / 12, b * h, L)  # 6.54 Hz
+    E, rho, L, b = 69e9, 2700.0, 0.5, 0.05
+    f1 = eb_frequency(1, E, rho, b * h**3 / 12, b * h, L)  # 6.54 Hz at 2 mm
     # a strip 25x wider than thick bends as a plate: the anticlastic stiffening is at most
     # 1 / (1 - nu^2) in EI, i.e. f1 within [1, 1/sqrt(1 - nu^2)] = [1, 1.059] of f1_EB;
-    # one P2 element through the thickness adds < 1 % (measured 6.593 Hz, +0.8 %)
+    # one P2 element through the thickness adds < 1 % (measured 6.593 Hz, +0.8 %; at
+    # 0.2 mm 0.668 Hz, +2.1 %)
     assert 0.99 * f1 < result.frequencies_hz[0] < 1.06 * f1
 
 

@@ -301,29 +301,31 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
     kappa = None
     if lowest_omega2 is not None and stiffness_scale is not None:
         kappa = stiffness_scale / max(float(lowest_omega2), np.finfo(float).tiny)
-    # a lower bound of cond(K) from the solve itself: |X| <= |K^-1| |F|, so
-    # cond_inf(K) >= |K| |X| / |F|; a singular K (null space excited by round-off) shows
-    # here even when no modes are given, since a backward-stable solve of a singular K
-    # has a small backward error
-    norm_K = float(abs(K).sum(axis=1).max()) if K.shape[0] else 0.0
-    norm_F = float(np.abs(Fd).max(initial=0.0))
-    if norm_F > 0 and np.all(np.isfinite(X)):
-        lower = norm_K * float(np.abs(X).max(initial=0.0)) / norm_F
-        if lower * eps > SINGULAR_COND_EPS and (kappa is None or lower > kappa):
+    # Singular or not: a lower bound of the condition number of the diagonally scaled
+    # K~ = D^-1/2 K D^-1/2 (D = diag K; Cholesky and LDL^T are insensitive to that
+    # scaling, van der Sluis), from the solve itself: |X~| <= |K~^-1| |F~| gives
+    # cond_inf(K~) >= |K~| |X~| / |F~| with X~ = D^1/2 X, F~ = D^-1/2 F. A backward-stable
+    # solve of a singular K has a small backward error; its null-space component makes
+    # this bound ~1/eps. (kappa from the modes is only reported: the diagonal ratios of
+    # thin P2 elements overstate it by orders of magnitude.)
+    d = np.sqrt(np.abs(K.diagonal()))
+    d = np.where(d > 0, d, 1.0)
+    Ks = sp.diags(1.0 / d) @ abs(K) @ sp.diags(1.0 / d)
+    norm_Ks = float(Ks.sum(axis=1).max()) if K.shape[0] else 0.0
+    Fs = np.abs(Fd / d[:, None]).max(initial=0.0)
+    if Fs > 0 and np.all(np.isfinite(X)):
+        lower = norm_Ks * float(np.abs(X * d[:, None]).max(initial=0.0)) / Fs
+        if lower * eps > SINGULAR_COND_EPS:
+            mode = ""
+            if kappa is not None:
+                f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
+                mode = f"; the lowest mode is at {f1:.3g} Hz"
             raise SolverError(
-                f"static solve K^-1 F: K is singular to working precision (its condition "
-                f"number is at least |K| |X| / |F| = {lower:.1e}): a rigid-body motion or "
-                "mechanism that the supports leave free; support the body so that it cannot "
-                "move without deforming (or give it no supports to model it as a free body)")
-    if kappa is not None and kappa * eps > SINGULAR_COND_EPS:
-        f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
-        raise SolverError(
-            f"static solve K^-1 F: K is singular to working precision: the lowest mode "
-            f"({f1:.3g} Hz, omega^2 = {float(lowest_omega2):.3g} rad^2/s^2) is "
-            f"{1 / kappa:.1e} of the mesh's stiffness scale ({stiffness_scale:.3g} "
-            "rad^2/s^2), i.e. a rigid-body motion or mechanism that the supports leave "
-            "free; look at mode 1's shape, and support the body so that it cannot move "
-            "without deforming (or give it no supports to model it as a free body)")
+                f"static solve K^-1 F: K is singular to working precision (the condition "
+                f"number of the scaled K is at least {lower:.1e}{mode}): a rigid-body "
+                "motion or mechanism that the supports leave free; look at mode 1's shape "
+                "and support the body so that it cannot move without deforming (or give it "
+                "no supports to model it as a free body)")
     if not np.all(np.isfinite(X)) or eta > BACKWARD_ERROR_TOL:
         cond = f", estimated cond(K) {kappa:.1e}" if kappa is not None else ""
         raise SolverError(
@@ -578,8 +580,8 @@ def cluster_start(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) 
 
 def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
                  input_names: Sequence[str], output_names: Sequence[str],
-                 solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6
-                 ) -> ReducedModel:
+                 solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6,
+                 n_rigid: int | None = None) -> ReducedModel:
     """Build the reduced state-space model from the FE matrices and modes.
 
     Parameters
@@ -595,6 +597,8 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         Omega2^-1 Sigma) or ``"augment"`` (Ritz basis of [Phi, K^-1 F]).
     input_names, output_names : n_u input and n_y output port names.
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
+    n_rigid : rigid-body modes among the first (the modes stage's count); default: the
+        modes below :func:`pipeline.solve.factorize.rigid_omega2_threshold`.
 
     The static compliance T K^-1 F is always computed, except for a body with rigid-body
     modes (omega^2 below the relative rigid_omega2_threshold) and no correction, where it is None (with a warning);
@@ -629,7 +633,10 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         "per_mode", ratios=tuple(np.asarray(xi, dtype=float).reshape(-1)))
 
     scale = stiffness_scale(K, M)
-    n_rigid = int(np.count_nonzero(w2_r < rigid_omega2_threshold(scale)))
+    if n_rigid is None:  # library callers: zero to round-off, relative to the mesh
+        n_rigid = int(np.count_nonzero(w2_r < rigid_omega2_threshold(scale)))
+    else:  # the modes stage knows (0 for a supported body: its K was factorised)
+        n_rigid = min(int(n_rigid), n_modes)
     X = None
     G = None
     if n_rigid:
