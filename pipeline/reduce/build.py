@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from pipeline.config import Config
+from pipeline.errors import ConfigError
 from pipeline.fe.ports import port_matrices
 from pipeline.reduce.connection import build_connection_model, effective_mass_table
 from pipeline.reduce.craig_bampton import build_craig_bampton
@@ -50,6 +51,41 @@ def _factorize(backend: str, solve=None):
     return lambda K: factorize(K, backend, positive_definite=True).solve
 
 
+def check_ports_act(cfg: Config, ports, F_free: np.ndarray, T_free) -> None:
+    """Refuse a port that loads or measures nothing once the supports and constraints
+    have removed the fixed DOFs (a port on the clamped face, or along z under
+    constraints.in_plane): its model row or column would be all zero (a "+nan" DC gain
+    error), so the port is named with the reason.
+
+    F_free: (n_free, n_u) loads on the free DOFs; T_free: (n_y, n_free) sensors."""
+    F_all = ports.F
+    T_all = ports.T
+    checks = [("input", name, np.abs(F_free[:, j]).max(initial=0.0),
+               abs(F_all[:, j]).max(), cfg.ports.inputs[j])
+              for j, name in enumerate(ports.input_names)]
+    T_free = T_free.tocsr() if hasattr(T_free, "tocsr") else T_free
+    checks += [("output", name, abs(T_free[i]).max(), abs(T_all[i]).max(),
+                cfg.ports.outputs[i])
+               for i, name in enumerate(ports.output_names)]
+    for side, name, on_free, on_all, port in checks:
+        if on_all > 0 and on_free > 1e-12 * on_all:
+            continue
+        supported = {sup.region for sup in cfg.supports}
+        if on_all == 0:
+            why = f"it acts on no DOF of region '{port.region}'"
+        elif port.region in supported:
+            why = f"region '{port.region}' is held by the supports"
+        elif cfg.constraints.in_plane:
+            why = "its direction is removed by constraints.in_plane (u_z = 0)"
+        else:
+            why = "every DOF it acts on is fixed by the supports"
+        raise ConfigError(
+            f"config key 'ports.{side}s' ({side} port '{name}'): this port "
+            + ("loads" if side == "input" else "measures") + f" nothing ({why}); put it on "
+            "a region that can move, along a direction the supports and constraints leave "
+            "free", key=f"ports.{side}s", value=name)
+
+
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
     """The ports, the reduced model (pipeline.reduce.modal.ReducedModel) and its filtered
     twin (None without a filter).
@@ -59,12 +95,14 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
     ports = port_matrices(space, regions, cfg.ports, material=cfg.material)
     F = ports.F[free].toarray()
     T = ports.T[:, free]
+    check_ports_act(cfg, ports, F, T)
     reduced = reduce_model(K, M, modes.shapes, modes.omega2, F, T, cfg.reduction.modes,
                            _damping_spec(cfg), cfg.reduction.static_correction,
                            ports.input_names, ports.output_names,
                            factorize=_factorize(cfg.modes.solver,
                                                 solve if solve is not None
-                                                else getattr(modes, "solve", None)))
+                                                else getattr(modes, "solve", None)),
+                           n_rigid=getattr(modes, "n_rigid", None))
     filtered = None
     if cfg.filter.kind != "none":
         filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)

@@ -43,7 +43,8 @@ import scipy.sparse.linalg as spla
 from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.solve.factorize import sparse_times_dense
+from pipeline.solve.factorize import (rigid_omega2_threshold, sparse_times_dense,
+                                      stiffness_scale)
 
 log = logging.getLogger(__name__)
 
@@ -61,15 +62,23 @@ __all__ = [
     "static_compliance",
     "modal_statespace",
     "reduce_model",
+    "cluster_end",
 ]
 
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
 STATIC_CORRECTIONS = ("none", "residual", "augment")
 
-#: Squared circular frequency (rad^2/s^2) below which a mode counts as a rigid-body mode
-#: (omega < 2 pi * 0.01 Hz). No supported structure of interest is that soft, and the
-#: zero eigenvalues of a free body come out of a shift-invert solve far below it.
+#: Former absolute rigid-mode threshold (omega < 2 pi * 0.01 Hz), kept for callers; the
+#: reduction now uses the relative :func:`pipeline.solve.factorize.rigid_omega2_threshold`
+#: (a soft clamped body, E = 500 Pa, has f1 = 0.007 Hz and no rigid-body mode).
 RIGID_OMEGA2 = (2.0 * math.pi * 0.01) ** 2
+
+#: Two modes whose frequencies differ by less than this fraction are one cluster of
+#: (nearly) repeated frequencies (a square section bends alike about both axes): their
+#: shapes are fixed only up to a rotation within the cluster, by mesh noise (an
+#: unstructured mesh splits such a pair by ~1e-5 with P2, ~1e-4 with P1 elements; a
+#: physically distinct pair is normally percent apart). A reduction keeps them together.
+CLUSTER_REL_GAP = 1e-3
 
 #: A static shape whose M-norm falls below this fraction of its initial M-norm after
 #: M-orthogonalisation against the basis is numerically dependent and dropped.
@@ -259,27 +268,75 @@ def _dense(X) -> np.ndarray:
     return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
 
 
-def static_shapes(K, F, solve: Solve | None = None, factorize=None) -> np.ndarray:
+def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
+                  lowest_omega2: float | None = None, stiffness_scale: float | None = None
+                  ) -> np.ndarray:
     """Static deflection shapes X = K^-1 F (n_s x n_u), in m per unit input.
 
     ``solve``: a ready solver b -> K^-1 b; else ``factorize(K)`` gives one (default
-    :func:`default_factorize`). Raises :class:`SolverError` if the result is not finite.
+    :func:`default_factorize`). The solve is refined iteratively and judged by its
+    normwise backward error eta = |F - K X| / (|K| |X| + |F|) (scale-invariant; the
+    relative residual |F - K X| / |F| is not: it can be cond(K) eps for a perfect solve
+    of a thin or slender body), accepted up to
+    :data:`pipeline.solve.factorize.BACKWARD_ERROR_TOL`.
+
+    ``lowest_omega2`` (the lowest eigenvalue of K phi = omega^2 M phi, rad^2/s^2) and
+    ``stiffness_scale`` (an estimate of the largest, see
+    :func:`pipeline.solve.factorize.stiffness_scale`) give the condition number
+    kappa = stiffness_scale / lowest_omega2; kappa eps above
+    :data:`~pipeline.solve.factorize.SINGULAR_COND_EPS` means K is singular to working
+    precision (a rigid-body motion or mechanism the supports leave free), refused as
+    such. Raises :class:`SolverError` naming the cause.
     """
+    from pipeline.solve.factorize import (BACKWARD_ERROR_TOL, SINGULAR_COND_EPS,
+                                          refined_solve)
+
     Fd = _dense(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
-    X = np.asarray(_solver(K, solve, factorize)(np.asfortranarray(Fd)),
-                   dtype=float).reshape(Fd.shape)
-    if not np.all(np.isfinite(X)):
-        raise SolverError("static solve K^-1 F gave non-finite values; K is singular "
-                          "(unsupported body?)")
-    # a factorisation of a numerically singular K can return finite garbage: check
-    residual = (np.linalg.norm(sparse_times_dense(K, X) - Fd, axis=0)
-                / np.maximum(np.linalg.norm(Fd, axis=0), 1e-300))
-    if residual.max() > 1e-6:
-        raise SolverError(f"static solve K^-1 F failed (relative residual {residual.max():.2e}): "
-                          "K is singular, the body is not fully supported; add supports that "
-                          "remove every rigid-body motion, or use static_correction: none")
+    X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
+    X = np.asarray(X, dtype=float).reshape(Fd.shape)
+    eta = float(report.backward_error.max(initial=0.0))
+    eps = np.finfo(float).eps
+    kappa = None
+    if lowest_omega2 is not None and stiffness_scale is not None:
+        kappa = stiffness_scale / max(float(lowest_omega2), np.finfo(float).tiny)
+    # Singular or not: a lower bound of the condition number of the diagonally scaled
+    # K~ = D^-1/2 K D^-1/2 (D = diag K; Cholesky and LDL^T are insensitive to that
+    # scaling, van der Sluis), from the solve itself: |X~| <= |K~^-1| |F~| gives
+    # cond_inf(K~) >= |K~| |X~| / |F~| with X~ = D^1/2 X, F~ = D^-1/2 F. A backward-stable
+    # solve of a singular K has a small backward error; its null-space component makes
+    # this bound ~1/eps. (kappa from the modes is only reported: the diagonal ratios of
+    # thin P2 elements overstate it by orders of magnitude.)
+    d = np.sqrt(np.abs(K.diagonal()))
+    d = np.where(d > 0, d, 1.0)
+    Ks = sp.diags(1.0 / d) @ abs(K) @ sp.diags(1.0 / d)
+    norm_Ks = float(Ks.sum(axis=1).max()) if K.shape[0] else 0.0
+    Fs = np.abs(Fd / d[:, None]).max(initial=0.0)
+    if Fs > 0 and np.all(np.isfinite(X)):
+        lower = norm_Ks * float(np.abs(X * d[:, None]).max(initial=0.0)) / Fs
+        if lower * eps > SINGULAR_COND_EPS:
+            mode = ""
+            if kappa is not None:
+                f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
+                mode = f"; the lowest mode is at {f1:.3g} Hz"
+            raise SolverError(
+                f"static solve K^-1 F: K is singular to working precision (the condition "
+                f"number of the scaled K is at least {lower:.1e}{mode}): a rigid-body "
+                "motion or mechanism that the supports leave free; look at mode 1's shape "
+                "and support the body so that it cannot move without deforming (or give it "
+                "no supports to model it as a free body)")
+    if not np.all(np.isfinite(X)) or eta > BACKWARD_ERROR_TOL:
+        cond = f", estimated cond(K) {kappa:.1e}" if kappa is not None else ""
+        raise SolverError(
+            f"static solve K^-1 F is inaccurate: backward error {eta:.1e} (> "
+            f"{BACKWARD_ERROR_TOL:g}) after {report.steps} refinement steps{cond}; the "
+            "factorisation of K is unreliable with this backend: try another "
+            "'modes.solver' (superlu, pardiso, cholmod)")
+    if report.steps:
+        log.info("static solve K^-1 F: backward error %.1e -> %.1e after %d refinement "
+                 "step(s)%s", float(report.initial_backward_error.max()), eta, report.steps,
+                 f" (estimated cond(K) {kappa:.1e})" if kappa is not None else "")
     return X
 
 
@@ -468,10 +525,67 @@ def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, i
     return w2, V @ Z, len(kept)
 
 
+def cluster_end(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) -> int:
+    """The smallest n' >= n such that modes n' and n'+1 (1-based) are not in one cluster:
+    |omega_{n'+1} - omega_{n'}| > rel_gap omega_{n'} (omega in rad/s). Returns len(omega2)
+    when the cluster reaches the last mode given (then where it ends is unknown)."""
+    w = _omega(omega2)
+    while n < w.size and abs(w[n] - w[n - 1]) <= rel_gap * max(w[n - 1], 0.0) \
+            and w[n - 1] > 0:
+        n += 1
+    return n
+
+
+def _keep_clusters_whole(omega2: np.ndarray, n_modes: int, xi) -> int:
+    """n_modes, raised to the end of a frequency cluster that reduction.modes would cut
+    (warning), or a refusal when the cluster runs past the computed modes or a per-mode
+    damping list is too short for the whole cluster."""
+    n_end = cluster_end(omega2, n_modes)
+    if n_end == n_modes:
+        return n_modes
+    f = _omega(omega2) / (2 * math.pi)
+    if n_end >= omega2.size:
+        raise validate.fail(
+            "reduction.modes", n_modes,
+            f"a count that does not cut the cluster of nearly repeated frequencies "
+            f"{f[n_modes - 1]:.6g}, {f[n_modes]:.6g} Hz (within {CLUSTER_REL_GAP:g}, e.g. "
+            "the two bending directions of a square section): its shapes are fixed only by "
+            "mesh noise; the cluster continues to the last computed mode, so raise "
+            "modes.count to see where it ends")
+    if isinstance(xi, DampingSpec) and xi.kind == "per_mode" and len(xi.ratios) < n_end:
+        raise validate.fail(
+            "damping.ratios", list(xi.ratios),
+            f"{n_end} ratios: reduction.modes = {n_modes} cuts a cluster of nearly repeated "
+            f"frequencies (modes {cluster_start(omega2, n_modes)}-{n_end}, {f[n_modes - 1]:.6g} "
+            f"Hz) that is "
+            f"kept whole")
+    if not isinstance(xi, DampingSpec) and np.size(xi) < n_end:
+        raise validate.fail(
+            "reduction.modes", n_modes,
+            f"{n_end} (the end of the cluster of nearly repeated frequencies at "
+            f"{f[n_modes - 1]:.6g} Hz), with one damping ratio per mode")
+    start = cluster_start(omega2, n_modes)
+    log.warning("reduction.modes = %d cuts a cluster of nearly repeated frequencies (modes "
+                "%d-%d at %.6g Hz, within %g, e.g. the two bending directions of a square "
+                "section): which of them comes first is mesh noise, so the cluster is kept "
+                "whole and the model has %d modes; set reduction.modes: %d%s to silence this",
+                n_modes, start, n_end, f[n_modes - 1], CLUSTER_REL_GAP, n_end, n_end,
+                f" (or {start - 1})" if start > 1 else "")
+    return n_end
+
+
+def cluster_start(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) -> int:
+    """The 1-based index of the first mode of the cluster that holds mode n."""
+    w = _omega(omega2)
+    while n > 1 and abs(w[n - 1] - w[n - 2]) <= rel_gap * w[n - 2] and w[n - 2] > 0:
+        n -= 1
+    return n
+
+
 def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
                  input_names: Sequence[str], output_names: Sequence[str],
-                 solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6
-                 ) -> ReducedModel:
+                 solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6,
+                 n_rigid: int | None = None) -> ReducedModel:
     """Build the reduced state-space model from the FE matrices and modes.
 
     Parameters
@@ -487,9 +601,11 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         Omega2^-1 Sigma) or ``"augment"`` (Ritz basis of [Phi, K^-1 F]).
     input_names, output_names : n_u input and n_y output port names.
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
+    n_rigid : rigid-body modes among the first (the modes stage's count); default: the
+        modes below :func:`pipeline.solve.factorize.rigid_omega2_threshold`.
 
     The static compliance T K^-1 F is always computed, except for a body with rigid-body
-    modes (omega^2 < RIGID_OMEGA2) and no correction, where it is None (with a warning);
+    modes (omega^2 below the relative rigid_omega2_threshold) and no correction, where it is None (with a warning);
     residual and augment need a supported body.
     """
     omega2 = np.asarray(omega2, dtype=float).reshape(-1)
@@ -514,12 +630,17 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     if Phi.shape != (K.shape[0], n_avail):
         raise ValueError(f"Phi has shape {Phi.shape}, expected ({K.shape[0]}, {n_avail})")
 
+    n_modes = _keep_clusters_whole(omega2, n_modes, xi)
     Phi_r, w2_r = Phi[:, :n_modes], omega2[:n_modes]
     check_modal_basis(K, M, Phi_r, w2_r, tol=basis_tol)
     spec = xi if isinstance(xi, DampingSpec) else DampingSpec(
         "per_mode", ratios=tuple(np.asarray(xi, dtype=float).reshape(-1)))
 
-    n_rigid = int(np.count_nonzero(w2_r < RIGID_OMEGA2))
+    scale = stiffness_scale(K, M)
+    if n_rigid is None:  # library callers: zero to round-off, relative to the mesh
+        n_rigid = int(np.count_nonzero(w2_r < rigid_omega2_threshold(scale)))
+    else:  # the modes stage knows (0 for a supported body: its K was factorised)
+        n_rigid = min(int(n_rigid), n_modes)
     X = None
     G = None
     if n_rigid:
@@ -529,7 +650,8 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
                        "ones, so it has no static compliance to correct towards")
         log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
     else:
-        X = static_shapes(K, Fd, solve, factorize)
+        X = static_shapes(K, Fd, solve, factorize, lowest_omega2=float(omega2[0]),
+                          stiffness_scale=scale)
         G = np.asarray(T @ X, dtype=float)
 
     residual = None

@@ -23,7 +23,7 @@ from scipy.integrate import solve_ivp
 
 from pipeline.errors import SolverError
 
-from pipeline.apps.simulate.scenarios import Integrator, Scenario
+from pipeline.apps.simulate.scenarios import Integrator, Scenario, check_step_budget
 from pipeline.apps.simulate.systems import SteppedSystem
 
 __all__ = ["Segment", "time_grid", "propagate_exact", "integrate", "w_series"]
@@ -99,7 +99,11 @@ def integrate(sys: SteppedSystem, z0: np.ndarray, segments: Sequence[Segment],
     largest); the constant Jacobian A is passed to the implicit methods. Returns the
     states at ``t`` and statistics, including the largest deviation of every signal from
     the exact matrix-exponential solution (relative to the signal's peak)."""
+    check_step_budget(sys.A, float(t[-1] - t[0]) if t.size else 0.0, integ.method)
     Zx = propagate_exact(sys, z0, segments, t)
+    if not np.all(np.isfinite(Zx)):
+        raise SolverError("scenario: the response overflows double precision (a load, mass "
+                          "or stiffness beyond engineering ranges); use smaller values")
     peak = np.abs(Zx).max(axis=1)
     peak = np.maximum(peak, 1e-12 * max(float(peak.max()), 1e-300))
     atol = integ.atol * peak

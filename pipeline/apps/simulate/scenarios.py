@@ -10,13 +10,16 @@ be accepted. Units are SI (N, kg, s, Hz, rad, N m/rad); docs/simulate.md lists e
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+import numpy as np
+
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, SolverError
 
 __all__ = ["KINDS", "METHODS", "LOOPS", "DEFAULT_GRAVITY", "MAX_SAMPLES", "SCENARIO_KEYS",
            "Integrator", "Scenario", "parse_scenario", "parse_scenarios", "load_scenarios",
@@ -31,6 +34,23 @@ DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
 MAX_SAMPLES = 2_000_000
 #: Fewest samples a run needs to measure anything.
 MIN_SAMPLES = 16
+#: Most integrator steps one segment may need (estimated before integrating, see
+#: :func:`check_step_budget`); LSODA takes ~20 us per step on these small systems, so
+#: this is about a minute. The shipped scenarios need at most ~1e4.
+MAX_STEPS = 3_000_000
+#: Steps per period of the fastest oscillation that an integrator needs to resolve it.
+STEPS_PER_PERIOD = 20
+#: Largest |load| (N: force, preload), |gravity| (m/s^2) and mass (kg) a scenario takes:
+#: far beyond any engineering case (a rocket engine ~1e7 N, a gun shock ~1e6 m/s^2, a ship
+#: 1e8 kg) and far below where the responses' squares (energies) overflow double precision.
+MAX_LOAD_N = 1e12
+MAX_GRAVITY = 1e7
+MAX_MASS_KG = 1e12
+#: Largest duration x max|lambda| (time scales spanned by one run): beyond ~1/(4500 eps)
+#: the fast states swamp the slow ones in A y at double precision and even an implicit
+#: integrator stalls (a 1e30 kg body load gives 1e36 1/s next to 2e-6 1/s). The shipped
+#: scenarios span ~1e7.
+MAX_TIME_SCALE_SPAN = 1e12
 
 _COMMON = ("name", "kind", "duration", "output_rate", "input", "output", "damping",
            "integrator", "lumped")
@@ -151,11 +171,19 @@ def _masses(raw: Mapping, path: str) -> tuple[float, ...]:
     if not isinstance(masses, list) or len(masses) < 3:
         raise v.fail(f"{path}.masses", masses, "a list of at least three masses (kg)")
     items = {f"masses[{i}]": m for i, m in enumerate(masses)}
-    values = tuple(v.number(items, key, path, lo=0.0) for key in items)
+    values = tuple(_mass(items, key, path) for key in items)
     if len(set(values)) < 3:
         raise v.fail(f"{path}.masses", masses, "at least three different masses (a line "
                      "through two points has no residual)")
     return values
+
+
+def _mass(raw: Mapping, key: str, path: str) -> float:
+    """A mass >= 0 (kg), at most MAX_MASS_KG."""
+    mass = v.number(raw, key, path, lo=0.0)
+    if mass > MAX_MASS_KG:
+        raise v.fail(f"{path}.{key}", mass, f"a mass of at most {MAX_MASS_KG:g} kg")
+    return mass
 
 
 def parse_scenario(raw: Any, path: str) -> Scenario:
@@ -188,7 +216,7 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
                          f"a time after t_on = {t_on:g} s (or null: stays on)")
         if t_off is not None and t_off >= duration:
             t_off = None  # switched off at or after the end: never within the run
-        force = v.number(raw, "force", path)
+        force = v.number(raw, "force", path, lo=-MAX_LOAD_N, hi=MAX_LOAD_N)
         if force == 0.0:
             raise v.fail(f"{path}.force", force, "a non-zero force (N)")
         raw_instants = raw.get("stress_instants") or []
@@ -206,10 +234,14 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         gravity = None
     else:
         gravity = v.vector(raw, "gravity", path)
+        if math.hypot(*gravity) > MAX_GRAVITY:
+            raise v.fail(f"{path}.gravity", list(gravity), f"an acceleration of at most "
+                         f"{MAX_GRAVITY:g} m/s^2 (|g| = {math.hypot(*gravity):.3g})")
         if not any(gravity):
             gravity = None
     extra: dict[str, Any] = dict(
-        gravity=gravity, preload=v.number(raw, "preload", path, 0.0), loop=loop,
+        gravity=gravity, preload=v.number(raw, "preload", path, 0.0, lo=-MAX_LOAD_N,
+                                          hi=MAX_LOAD_N), loop=loop,
         cutoff_hz=_optional_number(raw, "cutoff_hz", path, lo=0.0, lo_open=True))
     if extra["cutoff_hz"] is not None and loop != "filtered":
         raise v.fail(f"{path}.cutoff_hz", extra["cutoff_hz"], "no cutoff with loop: exact "
@@ -219,7 +251,7 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         extra["cycles"] = _optional_number(raw, "cycles", path, lo=2.0)
         lightest = min(extra["masses"])
     else:
-        extra["mass"] = v.number(raw, "mass", path, lo=0.0)
+        extra["mass"] = _mass(raw, "mass", path)
         lightest = extra["mass"]
     if kind == "spring_mount":
         extra["stiffness"] = v.number(raw, "stiffness", path, lo=0.0, lo_open=True)
@@ -311,3 +343,43 @@ def as_scenarios(scenario: Any) -> list[Scenario]:
                               expected="a different name for each scenario")
         return out
     return parse_scenarios(list(scenario) if isinstance(scenario, tuple) else scenario)
+
+
+def check_step_budget(A: np.ndarray, duration: float, method: str, name: str = "") -> float:
+    """Refuse (SolverError, one line) a coupled system the integrator cannot step through
+    in :data:`MAX_STEPS`: extreme but valid scenario numbers (a 1e30 kg mass, a 1e30 N m/rad
+    spring) make its eigenvalues lambda huge. An explicit method needs ~ duration max|lambda|
+    steps (stability); an implicit one (LSODA, BDF, Radau) ~ duration max|Im lambda| / (2 pi)
+    x STEPS_PER_PERIOD (to resolve the fastest oscillation). Non-finite A is refused too.
+    Returns the estimate."""
+    if not np.all(np.isfinite(A)):
+        raise SolverError(f"{_which(name)}: the coupled system has non-finite entries "
+                          "(a mass, stiffness or load beyond double precision); use values "
+                          "within engineering ranges")
+    lam = np.linalg.eigvals(A) if A.size else np.zeros(0)
+    if method in ("LSODA", "BDF", "Radau"):
+        rate = float(np.abs(lam.imag).max(initial=0.0)) / (2 * math.pi) * STEPS_PER_PERIOD
+    else:
+        rate = float(np.abs(lam).max(initial=0.0))
+    steps = duration * rate
+    span = duration * float(np.abs(lam).max(initial=0.0))
+    if not math.isfinite(span) or span > MAX_TIME_SCALE_SPAN:
+        raise SolverError(
+            f"{_which(name)}: the coupled system's fastest rate |lambda| = "
+            f"{float(np.abs(lam).max(initial=0.0)):.3g} 1/s over {duration:g} s spans "
+            f"{span:.2g} time scales (more than {MAX_TIME_SCALE_SPAN:.0e}, beyond double "
+            "precision); a mass, stiffness or cutoff far outside the model's range does "
+            "this: use values of the order of the body's own")
+    if not math.isfinite(steps) or steps > MAX_STEPS:
+        f_max = float(np.abs(lam.imag).max(initial=0.0)) / (2 * math.pi)
+        raise SolverError(
+            f"{_which(name)}: the coupled system oscillates up to {f_max:.3g} Hz "
+            f"(fastest |lambda| {float(np.abs(lam).max(initial=0.0)):.3g} 1/s), so "
+            f"integrating {duration:g} s would take ~{steps:.2g} steps (more than "
+            f"{MAX_STEPS:.0e}); a mass, stiffness or cutoff far outside the model's range "
+            "does this: use values of the order of the body's own, or a shorter duration")
+    return steps
+
+
+def _which(name: str) -> str:
+    return f"scenario '{name}'" if name else "scenario"

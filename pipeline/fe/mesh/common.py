@@ -112,6 +112,8 @@ def check_dimensions(extent, geometry: Geometry, what: str) -> None:
 
 
 def check_size(volume_m3: float, spec: MeshSpec, what: str) -> None:
+    from pipeline.fe.mesh.estimate import check_mesh_fits  # memory, before gmsh meshes
+
     estimate = TETS_PER_CUBE * volume_m3 / spec.size ** 3
     if estimate > MAX_TETRAHEDRA:
         smallest = (TETS_PER_CUBE * volume_m3 / MAX_TETRAHEDRA) ** (1.0 / 3.0)
@@ -119,6 +121,7 @@ def check_size(volume_m3: float, spec: MeshSpec, what: str) -> None:
             f"config key 'mesh.size': got {spec.size:g} m, which would make about "
             f"{estimate:.2g} tetrahedra for the body in '{what}' (volume {volume_m3:.4g} m^3); "
             f"expected at least {smallest:.3g} m (at most {MAX_TETRAHEDRA:.0e} tetrahedra)")
+    check_mesh_fits(volume_m3, spec.size, spec, f"the body in '{what}'")
 
 
 # --------------------------------------------------------------------------- gmsh session
