@@ -12,6 +12,10 @@ Temporaries of writers that were killed (SIGKILL, power loss) are recognised by 
 and pid and removed by the next writer of the same file on the same host; those of a
 live process, or of another host, are left alone.
 
+Writers that ignore failed writes (gmsh writes a truncated mesh and returns normally on a
+full disk) are caught by checking, after the writer returns, that the device still has a
+free block: if it has none the file is presumed truncated and not kept.
+
 OS errors (no space left, read-only folder, permission) become one
 :class:`~pipeline.errors.OutputError` line naming the file and the reason.
 
@@ -98,6 +102,15 @@ def fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def device_full(folder: Path) -> bool:
+    """True when the file system of ``folder`` has no free block left (for this user)."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail == 0 or st.f_bfree == 0
+
+
 def output_error(path: Path, exc: OSError) -> OutputError:
     """One line for an OS error on writing ``path``, naming the reason."""
     reason = {errno.ENOSPC: "no space left on the device",
@@ -138,6 +151,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             raise OutputError(f"output '{path}': the writer produced no file", key=str(path))
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        if device_full(tmp.parent):
+            # some writers (gmsh) ignore a failed write() and return normally: a full
+            # device after writing means the file may be truncated, so it is not kept
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
         os.replace(tmp, path)
         fsync_dir(path.parent)
     except OSError as exc:

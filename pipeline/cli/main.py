@@ -84,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", help="HDF5 output (default outputs/<name>.h5)")
     run.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="override a config key by its dotted path, e.g. mesh.size=0.004")
-    run.add_argument("--mesh-dir", default="meshes", help="where the .msh file goes")
+    run.add_argument("--mesh-dir", default=None,
+                     help="keep the gmsh mesh there as <name>.<sha256[:12]>.msh (default: "
+                     "not kept; the mesh is in the HDF5 file)")
     run.set_defaults(func=cmd_run)
 
     insp = sub.add_parser("inspect", help="human summary of an HDF5 file")
@@ -96,6 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     for module, register in COMMAND_MODULES:
         getattr(importlib.import_module(f"pipeline.{module}"), register)(sub)
+    from pipeline.cli.guard import add_force_flags
+
+    add_force_flags(sub)
     return parser
 
 
@@ -103,12 +108,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(-1 if args.quiet else args.verbose)
+    from pipeline.cli import guard
+
+    guard.handle_signals()
     try:
+        guard.check_destinations(args)  # before any work: one line if a destination is bad
         return int(args.func(args) or 0)
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt:
-        print("error: interrupted; no partial output was left under the final name",
-              file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"error: interrupted ({getattr(exc, 'args', None) and exc.args[0] or 'SIGINT'}); "
+              "no partial output was left under the final name", file=sys.stderr)
+        return guard.exit_code(exc)
