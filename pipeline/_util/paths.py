@@ -213,9 +213,10 @@ def check_output(path: str | Path, *, inputs: Iterable[str | Path] = (), force: 
             raise OutputError(f"{what} '{path}': exists and is not a regular file",
                               key=str(path), expected="a file name")
         kind = kind if kind is not None else kind_of_suffix(path)
+        shown_kind = f"a '{kind}' output" if kind else "an output of this kind"
         if not force and not file_kind_matches(path, kind):
             raise OutputError(f"{what} '{path}': exists and was not written by this package "
-                              f"as a {kind or 'file of this kind'}; expected a new name, or "
+                              f"as {shown_kind}; expected a new name, or "
                               "--force to replace it", key=str(path), value="an existing file",
                               expected="a new file, or --force")
     _check_folder(path, path.parent if str(path.parent) else Path("."), what, create_parent)

@@ -30,7 +30,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.errors import FileFormatError
+from pipeline._util.paths import check_name
+from pipeline.errors import FileFormatError, OutputError
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -173,6 +174,9 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     from pipeline import __version__
 
     path = Path(path)
+    for name in tree:  # every part of a key is a plain name (a region, port or case name)
+        for part in name.split("/"):
+            check_name(part, f"HDF5 key '{name}': part", error=OutputError)
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             h5.attrs["schema"] = SCHEMA

@@ -373,7 +373,7 @@ def run_batch(batch: str | Path | BatchSpec, output: str | Path | None = None, *
         if removed:
             log.info("removed %d partial file(s) of an interrupted run", removed)
         token = secrets.token_hex(16)
-        (cases_dir / TOKEN_FILE).write_text(token, encoding="utf-8")
+        write_text(cases_dir / TOKEN_FILE, token)
         outcomes: dict[str, CaseRecord] = {}
         cached: set[str] = set()
         unique = list({c.key: c for c in spec.cases}.values())
