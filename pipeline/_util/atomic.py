@@ -127,6 +127,24 @@ def output_error(path: Path, exc: OSError) -> OutputError:
 
 
 @contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Hold SIGINT, SIGTERM and SIGHUP (delivered on leaving) while cleaning up, so that a
+    second Ctrl-C cannot interrupt the removal of a temporary file (main thread only)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM,
+                                                     signal.SIGHUP})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path to write ``path`` to; rename it over ``path`` on success.
 
@@ -160,7 +178,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except OSError as exc:
         raise output_error(path, exc) from None
     finally:
-        with contextlib.suppress(OSError):
+        with signals_held(), contextlib.suppress(OSError):
             tmp.unlink()
 
 

@@ -9,7 +9,9 @@ existing file unless ``--force``, a writable folder). :func:`add_force_flags` ad
 :func:`handle_signals` turns SIGTERM (and SIGHUP) into the same
 :class:`KeyboardInterrupt` as Ctrl-C, so that every writer's cleanup runs (the atomic
 writer removes its temporary file, private folders are deleted) and the command ends with
-one line; a second signal during that cleanup is ignored so the cleanup completes.
+one line. A signal that lands in code where Python would swallow the exception (a
+weakref callback, a finaliser) is delivered again 50 ms later; the atomic writer blocks
+signals while it removes its temporary file, so a second Ctrl-C cannot skip that.
 """
 
 from __future__ import annotations
@@ -36,10 +38,29 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+#: code where an exception raised by a signal handler is printed and swallowed by Python
+#: (weakref callbacks, finalisers): the signal is delivered again a moment later instead
+_SWALLOWING = ("weakref.py", "_weakrefset.py")
+
+
+def _would_be_swallowed(frame) -> bool:
+    for _ in range(3):
+        if frame is None:
+            return False
+        code = frame.f_code
+        if code.co_name == "__del__" or code.co_filename.endswith(_SWALLOWING):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _on_signal(signum, frame) -> None:
-    # the first signal stops the command; later ones would interrupt its cleanup
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
+    if _would_be_swallowed(frame):
+        import os
+        import threading
+
+        threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+        return
     if signum == signal.SIGINT:
         raise KeyboardInterrupt
     raise Terminated(signum)
@@ -47,9 +68,11 @@ def _on_signal(signum, frame) -> None:
 
 def handle_signals() -> None:
     """SIGINT, SIGTERM and SIGHUP raise KeyboardInterrupt (a :class:`Terminated` for the
-    latter two) in the main thread."""
+    latter two) in the main thread; a signal this process was started ignoring (``nohup``,
+    a background job of a script) stays ignored."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, _on_signal)
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
+            signal.signal(sig, _on_signal)
 
 
 def exit_code(exc: KeyboardInterrupt) -> int:

@@ -105,12 +105,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _setup_logging(-1 if args.quiet else args.verbose)
     from pipeline.cli import guard
 
-    guard.handle_signals()
+    guard.handle_signals()  # first: an interrupt while the commands are imported is handled
+    try:
+        parser = build_parser()
+    except KeyboardInterrupt as exc:
+        print(f"error: interrupted ({exc.args[0] if exc.args else 'SIGINT'}) while starting; "
+              "nothing was written", file=sys.stderr)
+        return guard.exit_code(exc)
+    args = parser.parse_args(argv)
+    _setup_logging(-1 if args.quiet else args.verbose)
     try:
         guard.check_destinations(args)  # before any work: one line if a destination is bad
         return int(args.func(args) or 0)
