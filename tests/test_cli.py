@@ -57,6 +57,7 @@ def test_mesh_failure_is_an_error_not_a_crash(tmp_path):
 
 
 def test_degenerate_and_non_tetrahedral_meshes_are_refused(tmp_path):
+    import meshio
     import numpy as np
 
     from pipeline.errors import MeshError
