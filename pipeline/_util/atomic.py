@@ -145,6 +145,28 @@ def signals_held() -> Iterator[None]:
 
 
 @contextlib.contextmanager
+def private_folder(prefix: str, parent: str | Path | None = None) -> Iterator[Path]:
+    """A new private folder (``tempfile.mkdtemp``) removed with its content on leaving.
+
+    Its creation and removal run with signals held (:func:`signals_held`): an interrupt
+    cannot fall between creating the folder and taking charge of removing it, nor cut the
+    removal short, so an interrupted command leaves no temporary folder behind.
+    """
+    import shutil
+    import tempfile
+
+    def remove(folder: Path) -> None:
+        with signals_held():
+            shutil.rmtree(folder, ignore_errors=True)
+
+    with contextlib.ExitStack() as cleanup:
+        with signals_held():
+            folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+            cleanup.callback(remove, folder)
+        yield folder
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path to write ``path`` to; rename it over ``path`` on success.
 

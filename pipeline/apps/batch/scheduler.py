@@ -224,7 +224,8 @@ def start_forkserver_ignoring_sigint() -> None:
         _WORKER_STDERR.update(file=tempfile.TemporaryFile(), relayed=0)
     sys.stderr.flush()
     saved = os.dup(2)
-    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if main else None
+    blocked = (signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM,
+                                                         signal.SIGHUP}) if main else None)
     handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
         os.dup2(_WORKER_STDERR["file"].fileno(), 2)

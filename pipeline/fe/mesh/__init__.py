@@ -18,10 +18,9 @@ from __future__ import annotations
 
 import hashlib
 import shutil
-import tempfile
 from pathlib import Path
 
-from pipeline._util.atomic import atomic_path
+from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError
 from pipeline.fe.mesh.box import box_faces, generate_mesh, mesh_box
@@ -79,8 +78,8 @@ def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path | None, n
     if geometry.kind == "mesh":
         body, path = mesh_geometry(geometry, spec, Path(geometry.path))
         return body, Path(path), file_sha256(Path(path))
-    with tempfile.TemporaryDirectory(prefix=f"pipeline-mesh-{name}-") as work:
-        body, path = mesh_geometry(geometry, spec, Path(work) / f"{name}.msh")
+    with private_folder(f"pipeline-mesh-{name}-") as work:
+        body, path = mesh_geometry(geometry, spec, work / f"{name}.msh")
         sha = file_sha256(path)
         if mesh_dir is None:
             return body, None, sha
