@@ -34,7 +34,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pipeline._util.atomic import write_bytes, write_text
+from pipeline._util.atomic import private_folder, write_bytes, write_text
 from pipeline.apps.batch import report
 from pipeline.apps.batch.cache import (
     CaseRecord,
@@ -252,7 +252,8 @@ def relay_worker_output(interrupted: bool) -> None:
         log.log(logging.WARNING if loud else logging.DEBUG, "worker: %s", line)
 
 
-def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int):
+def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int,
+                        local_directory: Path | None = None):
     """Worker processes on 127.0.0.1, one thread each; each has ``memory_limit`` (the
     machine's available memory: a case may use it all while the others wait, the client
     admits cases by their estimates) and advertises 80 % of it as the ``memory``
@@ -273,9 +274,12 @@ def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int
     with contextlib.ExitStack() as restore:
         restore.enter_context(dask.config.set(
             {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in env.items()}
-            | {"distributed.worker.multiprocessing-method": "forkserver"}))
+            | {"distributed.worker.multiprocessing-method": "forkserver"}
+            | ({} if local_directory is None else {"temporary-directory": str(local_directory)})))
         try:
             cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                   local_directory=None if local_directory is None
+                                   else str(local_directory),
                                    memory_limit=memory_limit, host="127.0.0.1",
                                    dashboard_address=None, silence_logs=logging.WARNING,
                                    # its HTTP server (health routes) would take :8787 otherwise
@@ -298,6 +302,7 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
     from distributed.client import FIRST_COMPLETED
 
     cluster = None
+    scratch_holder = contextlib.ExitStack()
     machine_budget: float | None = None  # local: the estimates of running cases share it
     slots = 1 << 30                      # local: one case per worker process at a time
     if scheduler:
@@ -322,7 +327,14 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
         n = plan_local_workers(workers, pending)
         available = available_memory_bytes()
         threads_per_case = max(1, (os.cpu_count() or 1) // n)
-        cluster, client = start_local_cluster(n, available, threads_per_case)
+        # the workers' scratch folder is private and removed with the cluster (dask's
+        # default, <TMPDIR>/dask-scratch-space, is shared and stays behind)
+        scratch = scratch_holder.enter_context(private_folder("pipeline-dask-"))
+        try:
+            cluster, client = start_local_cluster(n, available, threads_per_case, scratch)
+        except BaseException:
+            scratch_holder.close()
+            raise
         budgets = [BUDGET_FRACTION * available] * n
         machine_budget = BUDGET_FRACTION * available
         slots = n
@@ -405,6 +417,7 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
             with contextlib.suppress(Exception):
                 cluster.close(timeout=20)
             relay_worker_output(interrupted)
+        scratch_holder.close()
     return where
 
 
