@@ -108,6 +108,9 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
                  progress: ProgressFactory | None = None) -> RunResult:
     """Run every stage for ``cfg`` and write the HDF5 file ``output``.
 
+    The mesh is made in a private temporary folder; ``mesh_dir``, if given, keeps a copy
+    as ``<mesh_dir>/<name>.<sha256[:12]>.msh`` (see :func:`pipeline.fe.mesh.mesh_body`).
+
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
