@@ -29,7 +29,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline._util.atomic import atomic_path
+from pipeline._util.atomic import atomic_path, signals_held
 from pipeline._util.paths import check_name
 from pipeline.errors import FileFormatError, OutputError
 from pipeline.store.tree import Dataset
@@ -73,7 +73,8 @@ def _dataset_digests(h5, check=None) -> tuple[str, dict[str, str]]:
     digest = hashlib.sha256()
     each: dict[str, str] = {}
     paths: list[str] = []
-    h5.visititems(lambda name, obj: paths.append(name) if hasattr(obj, "dtype") else None)
+    with signals_held():  # an exception raised inside HDF5's visit callback can crash it
+        h5.visititems(lambda name, obj: paths.append(name) if hasattr(obj, "dtype") else None)
     for name in sorted(paths):
         dset = h5[name]
         one = hashlib.sha256()
@@ -128,7 +129,8 @@ def _attrs_digests(h5) -> tuple[str, dict[str, str]]:
     attributes}). The root's signatures are left out; ``content_index`` is in the total
     but not in the root's own entry (the index cannot hold its own digest)."""
     objects = ["/"]
-    h5.visit(lambda name: objects.append(name))
+    with signals_held():
+        h5.visit(lambda name: objects.append(name))
     digest = hashlib.sha256()
     each: dict[str, str] = {}
     for name in sorted(objects):
@@ -177,7 +179,10 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     for name in tree:  # every part of a key is a plain name (a region, port or case name)
         for part in name.split("/"):
             check_name(part, f"HDF5 key '{name}': part", error=OutputError)
-    with atomic_path(path) as tmp:
+    # signals are held while HDF5 writes (an interrupt inside it crashed the interpreter
+    # at exit, SIGSEGV); one that arrives meanwhile is delivered before the rename, so the
+    # temporary file is removed and nothing appears under the final name
+    with atomic_path(path) as tmp, signals_held():
         with h5py.File(tmp, "w") as h5:
             h5.attrs["schema"] = SCHEMA
             h5.attrs["schema_version"] = SCHEMA_VERSION
