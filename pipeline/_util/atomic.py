@@ -126,22 +126,12 @@ def output_error(path: Path, exc: OSError) -> OutputError:
                        value=reason, expected="a writable file path")
 
 
-@contextlib.contextmanager
-def signals_held() -> Iterator[None]:
-    """Hold SIGINT, SIGTERM and SIGHUP (delivered on leaving) while cleaning up, so that a
-    second Ctrl-C cannot interrupt the removal of a temporary file (main thread only)."""
-    import signal
-    import threading
+def signals_held():
+    """A region where SIGINT/SIGTERM/SIGHUP wait (:func:`pipeline._util.interrupts.held`):
+    cleanup that a second Ctrl-C must not cut short."""
+    from pipeline._util.interrupts import held
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM,
-                                                     signal.SIGHUP})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return held()
 
 
 @contextlib.contextmanager

@@ -20,6 +20,7 @@ import argparse
 import signal
 from pathlib import Path
 
+from pipeline._util.interrupts import Terminated, on_signal
 from pipeline._util.paths import check_output, check_output_dir, file_kind_matches
 
 __all__ = ["Terminated", "handle_signals", "add_force_flags", "check_destinations"]
@@ -28,14 +29,6 @@ WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch")
 
 #: export format -> kind of the file it writes (see pipeline._util.paths.KINDS)
 EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn"}
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP arrived (handled like Ctrl-C); ``signum`` says which."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
 
 
 #: code where an exception raised by a signal handler is printed and swallowed by Python
@@ -61,9 +54,7 @@ def _on_signal(signum, frame) -> None:
 
         threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
         return
-    if signum == signal.SIGINT:
-        raise KeyboardInterrupt
-    raise Terminated(signum)
+    on_signal(signum)  # raises now, or when a region that must not be cut short ends
 
 
 def handle_signals() -> None:
