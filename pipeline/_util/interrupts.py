@@ -20,9 +20,9 @@ import signal
 import threading
 from typing import Iterator
 
-__all__ = ["Terminated", "on_signal", "held", "raise_for"]
+__all__ = ["Terminated", "on_signal", "held", "raise_for", "raised_count"]
 
-_state = {"depth": 0, "pending": 0}
+_state = {"depth": 0, "pending": 0, "raised": 0}
 
 
 class Terminated(KeyboardInterrupt):
@@ -35,6 +35,7 @@ class Terminated(KeyboardInterrupt):
 
 def raise_for(signum: int) -> None:
     """Raise the exception of ``signum``: KeyboardInterrupt or Terminated."""
+    _state["raised"] += 1
     if signum == signal.SIGINT:
         raise KeyboardInterrupt("SIGINT")
     raise Terminated(signum)
@@ -46,6 +47,11 @@ def on_signal(signum: int) -> None:
         _state["pending"] = _state["pending"] or signum
         return
     raise_for(signum)
+
+
+def raised_count() -> int:
+    """How many interrupts were raised so far (to tell whether one was swallowed)."""
+    return _state["raised"]
 
 
 @contextlib.contextmanager

@@ -20,7 +20,7 @@ import argparse
 import signal
 from pathlib import Path
 
-from pipeline._util.interrupts import Terminated, on_signal
+from pipeline._util.interrupts import Terminated, on_signal, raised_count
 from pipeline._util.paths import check_output, check_output_dir, file_kind_matches
 
 __all__ = ["Terminated", "handle_signals", "add_force_flags", "check_destinations"]
@@ -52,7 +52,13 @@ def _on_signal(signum, frame) -> None:
         import os
         import threading
 
-        threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+        seen = raised_count()
+
+        def again() -> None:  # only if no interrupt was raised meanwhile
+            if raised_count() == seen:
+                os.kill(os.getpid(), signum)
+
+        threading.Timer(0.05, again).start()
         return
     on_signal(signum)  # raises now, or when a region that must not be cut short ends
 
@@ -67,7 +73,10 @@ def handle_signals() -> None:
 
 
 def exit_code(exc: KeyboardInterrupt) -> int:
-    """128 + the signal number (130 for Ctrl-C, 143 for SIGTERM)."""
+    """128 + the signal number (130 for Ctrl-C, 143 for SIGTERM). The command is ending:
+    further signals are ignored, so that they cannot interrupt the interpreter's exit."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     return 128 + getattr(exc, "signum", int(signal.SIGINT))
 
 
