@@ -461,10 +461,7 @@ def _cli_bounded(*args, timeout=60) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=timeout, preexec_fn=limit)
 
 
-def test_unbounded_inputs_are_refused_quickly(tmp_path):
-    """Class 6: a FIFO (on main: the read blocks forever), /dev/zero (on main: read until
-    memory runs out), a 5 MiB config and an alias bomb, as config, scenario and batch
-    files: one line, exit 2, in seconds."""
+def _unbounded_inputs(tmp_path: Path, commands: tuple[str, ...]) -> None:
     fifo = tmp_path / "c.yaml"
     os.mkfifo(fifo)
     big = tmp_path / "big.yaml"
@@ -479,7 +476,8 @@ def test_unbounded_inputs_are_refused_quickly(tmp_path):
     model.write_bytes(b"\x89HDF\r\n\x1a\n")
     for src, says in ((fifo, "not a regular file"), (Path("/dev/zero"), "not a regular file"),
                       (big, "larger than"), (bomb, "aliases")):
-        for args in (["run", src], ["batch", src], ["simulate", model, src]):
+        for args in [{"run": ["run", src], "batch": ["batch", src],
+                      "simulate": ["simulate", model, src]}[c] for c in commands]:
             proc = _cli_bounded(*args)
             err = proc.stderr.strip()
             assert proc.returncode in (2, 7) and "Traceback" not in err, (args, err[-2000:])
@@ -487,6 +485,19 @@ def test_unbounded_inputs_are_refused_quickly(tmp_path):
                 assert says in err, (args, err)
             assert len(err.splitlines()) == 1, (args, err)
             COUNTS["unbounded_refused"] += 1
+
+
+def test_unbounded_inputs_are_refused_quickly(tmp_path):
+    """Class 6: a FIFO (on main: the read blocks forever), /dev/zero (on main: read until
+    memory runs out), a 5 MiB config and an alias bomb as a config file: one line, exit 2,
+    in seconds."""
+    _unbounded_inputs(tmp_path, ("run",))
+
+
+@pytest.mark.reliability
+def test_unbounded_inputs_every_reader(tmp_path):
+    """Class 6: the same four as batch and scenario files."""
+    _unbounded_inputs(tmp_path, ("batch", "simulate"))
 
 
 @pytest.mark.skipif(shutil.which("unshare") is None or os.geteuid() != 0,
