@@ -20,7 +20,7 @@ import argparse
 import signal
 from pathlib import Path
 
-from pipeline._util.interrupts import Terminated, on_signal, raised_count
+from pipeline._util.interrupts import Terminated, handle_signals, received
 from pipeline._util.paths import check_output, check_output_dir, file_kind_matches
 
 __all__ = ["Terminated", "handle_signals", "add_force_flags", "check_destinations"]
@@ -31,45 +31,30 @@ WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch")
 EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn"}
 
 
-#: code where an exception raised by a signal handler is printed and swallowed by Python
-#: (weakref callbacks, finalisers): the signal is delivered again a moment later instead
-_SWALLOWING = ("weakref.py", "_weakrefset.py")
+def interrupted_by(exc: BaseException) -> bool:
+    """True when ``exc`` came while an interrupt was being handled (a library turned the
+    KeyboardInterrupt into another exception): the command reports the interrupt."""
+    return bool(received())
 
 
-def _would_be_swallowed(frame) -> bool:
-    for _ in range(3):
-        if frame is None:
-            return False
-        code = frame.f_code
-        if code.co_name == "__del__" or code.co_filename.endswith(_SWALLOWING):
-            return True
-        frame = frame.f_back
-    return False
+def interruption() -> KeyboardInterrupt:
+    """The exception of the interrupt received (for its message and exit code)."""
+    signum = received() or int(signal.SIGINT)
+    return KeyboardInterrupt("SIGINT") if signum == signal.SIGINT else Terminated(signum)
 
 
-def _on_signal(signum, frame) -> None:
-    if _would_be_swallowed(frame):
-        import os
-        import threading
+def _forget_unhandled_interrupt() -> None:
+    """CPython marks a KeyboardInterrupt that left code run by ``PyRun_String`` (some
+    extension modules run Python code that way while they are imported) as unhandled, and
+    then kills itself with SIGINT at exit although the interrupt was handled here (exit
+    status -2 instead of ours). Running an empty string through the same path clears the
+    mark."""
+    import ctypes
 
-        seen = raised_count()
-
-        def again() -> None:  # only if no interrupt was raised meanwhile
-            if raised_count() == seen:
-                os.kill(os.getpid(), signum)
-
-        threading.Timer(0.05, again).start()
-        return
-    on_signal(signum)  # raises now, or when a region that must not be cut short ends
-
-
-def handle_signals() -> None:
-    """SIGINT, SIGTERM and SIGHUP raise KeyboardInterrupt (a :class:`Terminated` for the
-    latter two) in the main thread; a signal this process was started ignoring (``nohup``,
-    a background job of a script) stays ignored."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup, a background job: kept
-            signal.signal(sig, _on_signal)
+    try:
+        ctypes.pythonapi.PyRun_SimpleString(b"")
+    except (AttributeError, OSError):  # not CPython
+        pass
 
 
 def exit_code(exc: KeyboardInterrupt) -> int:
@@ -77,6 +62,7 @@ def exit_code(exc: KeyboardInterrupt) -> int:
     further signals are ignored, so that they cannot interrupt the interpreter's exit."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
+    _forget_unhandled_interrupt()
     return 128 + getattr(exc, "signum", int(signal.SIGINT))
 
 

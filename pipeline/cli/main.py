@@ -104,12 +104,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _interrupted(exc: KeyboardInterrupt, guard) -> int:
+    print(f"error: interrupted ({exc.args[0] if exc.args else 'SIGINT'}); no partial output "
+          "was left under the final name", file=sys.stderr)
+    return guard.exit_code(exc)
+
+
 def main(argv: list[str] | None = None) -> int:
     from pipeline.cli import guard
 
     guard.handle_signals()  # first: an interrupt while the commands are imported is handled
     try:
         parser = build_parser()
+    except Exception as exc:
+        if not guard.interrupted_by(exc):
+            raise
+        exc = guard.interruption()
+        print(f"error: interrupted ({exc.args[0]}) while starting; nothing was written",
+              file=sys.stderr)
+        return guard.exit_code(exc)
     except KeyboardInterrupt as exc:
         print(f"error: interrupted ({exc.args[0] if exc.args else 'SIGINT'}) while starting; "
               "nothing was written", file=sys.stderr)
@@ -120,8 +133,14 @@ def main(argv: list[str] | None = None) -> int:
         guard.check_destinations(args)  # before any work: one line if a destination is bad
         return int(args.func(args) or 0)
     except PipelineError as exc:
+        if guard.interrupted_by(exc):
+            return _interrupted(guard.interruption(), guard)
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except Exception as exc:
+        if not guard.interrupted_by(exc):
+            raise  # a bug: its traceback is wanted
+        return _interrupted(guard.interruption(), guard)
     except KeyboardInterrupt as exc:
         print(f"error: interrupted ({getattr(exc, 'args', None) and exc.args[0] or 'SIGINT'}); "
               "no partial output was left under the final name", file=sys.stderr)
