@@ -105,9 +105,12 @@ class RunResult:
     extras: dict[str, Any] = field(default_factory=dict)
 
 
-def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes",
+def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = None,
                  progress: ProgressFactory | None = None) -> RunResult:
     """Run every stage for ``cfg`` and write the HDF5 file ``output``.
+
+    The mesh is made in a private temporary folder; ``mesh_dir``, if given, keeps a copy
+    as ``<mesh_dir>/<name>.<sha256[:12]>.msh`` (see :func:`pipeline.fe.mesh.mesh_body`).
 
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable (the CLI passes tqdm bars).
@@ -135,6 +138,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     # K, M and full by deleting them), so the FEModel record is dropped here
     space, regions, fixed, free, props, mesh_path = (fe.space, fe.regions, fe.fixed,
                                                      fe.free, fe.props, fe.mesh_path)
+    mesh_sha256 = fe.mesh_sha256
     body = space.body
     K, M = fe.K, fe.M
     full = (fe.K_full, fe.M_full) if fe.K_full is not None else None
@@ -165,7 +169,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path = "meshes
     group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
                             "solver": modes.backend, "shift_rad2_s2": modes.shift}
     group_attrs["mesh"] = {"cell_type": space.cell_type, "element_order": cfg.mesh.order,
-                           "source": str(mesh_path), "n_dofs": space.n_dofs,
+                           "source": "" if mesh_path is None else str(mesh_path),
+                           "source_sha256": mesh_sha256, "n_dofs": space.n_dofs,
                            "n_free_dofs": int(free.size)}
     with _stage("write", times):
         group_attrs["run"] = {f"{k}_s": v for k, v in times.items()}

@@ -321,6 +321,8 @@ def _wait_for(predicate, timeout: float, what: str):
 def _ok_records(out: Path) -> set[str]:
     keys = set()
     for p in (out / "cases").glob("*.json"):
+        if p.name.startswith("."):  # a writer's temporary file (killed before its rename)
+            continue
         with contextlib.suppress(ValueError, OSError):
             if json.loads(p.read_text()).get("status") == "ok":
                 keys.add(p.stem)

@@ -108,3 +108,203 @@ def test_run_prints_a_short_summary_and_stage_lines_when_piped(tmp_path):
     verbose = run_cli("-v", *args)
     assert verbose.returncode == 0, verbose.stderr
     assert "refined        1" in verbose.stdout and "(table with -v)" not in verbose.stdout
+
+
+# --------------------------------------------------------------------------- issue 17
+# Destinations are checked before any work (classes 1, 4, 7 of issue 17). The commands
+# run in this process (``pipeline.cli.main.main``); refusals come before meshing, so each
+# takes milliseconds. ``signals`` restores the handlers main() installs.
+import os  # noqa: E402
+import shutil  # noqa: E402
+import signal  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+
+@pytest.fixture
+def signals():
+    """Restore the signal handlers and log handlers that main() installs."""
+    import logging
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    for s, h in saved.items():
+        signal.signal(s, h)
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory) -> Path:
+    from pipeline.config import load_config
+    from pipeline.run import run_pipeline
+
+    tmp = tmp_path_factory.mktemp("guard")
+    cfg = load_config(ROOT / "configs/cantilever.yaml", ["mesh.size=0.03", "modes.count=4"])
+    return run_pipeline(cfg, tmp / "model.h5").output
+
+
+def cli(capsys, *args) -> tuple[int, str]:
+    from pipeline.cli.main import main
+
+    code = main([str(a) for a in args])
+    err = capsys.readouterr().err
+    return code, err
+
+
+def digest(path: Path) -> bytes:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).digest()
+
+
+def test_run_never_writes_over_its_config_or_a_foreign_file(tmp_path, capsys, signals):
+    """Class 1: ``run c.yaml -o c.yaml`` (on main: the config replaced by HDF5, exit 0),
+    through a symlink and a hard link to it, over the geometry file, over a foreign file."""
+    cfg = tmp_path / "c.yaml"
+    shutil.copy(ROOT / "configs/cantilever.yaml", cfg)
+    (tmp_path / "link.h5").symlink_to(cfg)
+    os.link(cfg, tmp_path / "hard.h5")
+    (tmp_path / "foreign.h5").write_text("someone else's file")
+    before = digest(cfg)
+    for out, says in ((cfg, "is the input"), (tmp_path / "link.h5", "is the input"),
+                      (tmp_path / "hard.h5", "is the input"),
+                      (tmp_path / "foreign.h5", "not written by this package")):
+        for force in ([], ["--force"]):
+            if force and says != "is the input":
+                continue  # --force replaces a foreign file (not run: it would solve)
+            code, err = cli(capsys, "run", cfg, "--set", "mesh.size=0.03", "-o", out, *force)
+            assert code == 8 and says in err and len(err.strip().splitlines()) == 1, err
+    assert digest(cfg) == before and (tmp_path / "foreign.h5").read_text() == "someone else's file"
+    geo = tmp_path / "beam.geo"
+    shutil.copy(ROOT / "meshes/slender_beam.geo", geo)
+    slender = tmp_path / "s.yaml"
+    slender.write_text((ROOT / "configs/slender_beam.yaml").read_text().replace(
+        "../meshes/slender_beam.geo", str(geo)))
+    code, err = cli(capsys, "run", slender, "-o", geo, "--force")
+    assert code == 8 and "is the input" in err, err
+
+
+def test_export_never_writes_over_its_input_or_another_model(model_file, tmp_path, capsys,
+                                                             signals):
+    """Class 1: ``export F.h5 --to json -o F.h5`` (on main: the model replaced by JSON);
+    the XDMF data file ``<stem>.h5`` landing on another model file (on main: destroyed)."""
+    f = tmp_path / "F.h5"
+    g = tmp_path / "G.h5"
+    shutil.copy(model_file, f)
+    shutil.copy(model_file, g)
+    before = digest(f)
+    code, err = cli(capsys, "export", f, "--to", "json", "-o", f, "--force")
+    assert code == 8 and "is the input" in err, err
+    code, err = cli(capsys, "export", g, "--to", "xdmf", "-o", tmp_path / "F.xdmf")
+    assert code == 8 and "XDMF data file" in err and "--force" in err, err
+    assert digest(f) == before
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("name: x\n")
+    code, err = cli(capsys, "export", f, "--to", "json", "-o", cfg)
+    assert code == 8 and "not written by this package" in err, err
+    assert cfg.read_text() == "name: x\n"
+    # what this package wrote for the purpose is replaced without --force
+    out = tmp_path / "F.json"
+    assert cli(capsys, "export", f, "--to", "json", "-o", out)[0] == 0
+    assert cli(capsys, "export", f, "--to", "json", "-o", out)[0] == 0
+    assert cli(capsys, "export", f, "--to", "xdmf", "-o", tmp_path / "H.xdmf")[0] == 0
+    assert cli(capsys, "export", f, "--to", "xdmf", "-o", tmp_path / "H.xdmf")[0] == 0
+
+
+def test_destinations_are_checked_before_any_work(model_file, tmp_path, capsys, signals,
+                                                  monkeypatch):
+    """Class 4: a missing folder, a directory as -o, a file as a folder, a read-only
+    folder: one line, exit 8, before meshing (on main: created folders, or a traceback
+    after the solve)."""
+    import pipeline.fe.mesh as mesh_pkg
+
+    def no_mesh(*a, **k):
+        raise AssertionError("meshing started before the destination was checked")
+
+    monkeypatch.setattr(mesh_pkg, "mesh_body", no_mesh)
+    monkeypatch.setattr("pipeline.fe.model.mesh_body", no_mesh)
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "dir").mkdir()
+    cases = [
+        (["run", ROOT / "configs/cantilever.yaml", "-o", tmp_path / "nope/out.h5"], "does not exist"),
+        (["run", ROOT / "configs/cantilever.yaml", "-o", tmp_path / "dir"], "is a directory"),
+        (["run", ROOT / "configs/cantilever.yaml", "-o", tmp_path / "file/out.h5"], "is a file"),
+        (["run", ROOT / "configs/cantilever.yaml", "-o", tmp_path / "ok.h5", "--mesh-dir",
+          tmp_path / "file"], "is a file"),
+        (["simulate", model_file, ROOT / "configs/cantilever.yaml", "-o", tmp_path / "dir"],
+         "is a directory"),
+        (["export", model_file, "--to", "mat", "-o", tmp_path / "nope/x.mat"], "does not exist"),
+        (["plot", model_file, "-o", tmp_path / "file"], "is a file"),
+        (["plot", model_file, "-o", tmp_path], "not made by this package"),
+    ]
+    for args, says in cases:
+        code, err = cli(capsys, *args)
+        assert code == 8 and says in err and len(err.strip().splitlines()) == 1, (args, err)
+    assert not (tmp_path / "nope").exists()
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or os.geteuid() != 0,
+                    reason="needs unshare (a private read-only mount)")
+def test_read_only_folder_is_refused_before_work(tmp_path):
+    """Class 4: a read-only folder (a read-only mount: permissions do not stop root)."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    script = (f"mount -t tmpfs -o ro,size=1m tmpfs {ro} && cd {ROOT} && "
+              f"{sys.executable} -m pipeline run configs/cantilever.yaml -o {ro}/x.h5")
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    if "mount" in proc.stderr and "permission" in proc.stderr.lower():
+        pytest.skip("mount not permitted here")
+    assert proc.returncode == 8, proc.stderr
+    assert "read-only" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_region_names_that_cannot_be_keys_are_refused(tmp_path):
+    """Class 7: a region (physical group) named ``a/b`` or with a newline in a user's mesh
+    (on main: nested HDF5 groups, then a TypeError in an exporter)."""
+    import numpy as np
+
+    from pipeline.errors import MeshError
+    from pipeline.fe.mesh import read_mesh
+
+    import gmsh
+
+    for bad in ("a/b", "..", "x\ty", " tip"):
+        path = tmp_path / "m.msh"
+        gmsh.initialize(interruptible=False)
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+            gmsh.model.occ.synchronize()
+            gmsh.model.addPhysicalGroup(3, [1], name="body")
+            gmsh.model.addPhysicalGroup(2, [1], name=bad)
+            gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+            gmsh.model.mesh.generate(3)
+            gmsh.write(str(path))
+        finally:
+            gmsh.finalize()
+        with pytest.raises(MeshError, match="region name") as info:
+            read_mesh(path)
+        assert "\n" not in str(info.value)
+    # the writer refuses such a key whatever its origin
+    from pipeline.errors import OutputError
+    from pipeline.store.h5file import write_file
+    from pipeline.store.tree import Dataset
+
+    with pytest.raises(OutputError, match="control character"):
+        write_file(tmp_path / "k.h5", {"mesh/regions/a\nb": Dataset(np.zeros(3), "1", "")})
+    assert not (tmp_path / "k.h5").exists()
+
+
+def test_batch_names_that_cannot_be_folders_are_refused(tmp_path, capsys, signals):
+    """Class 7: a batch name with a newline or a slash never becomes a folder."""
+    for bad in ('"a\\nb"', '"../up"', '"a/b"', '""'):
+        f = tmp_path / "b.yaml"
+        f.write_text(f"batch:\n  name: {bad}\n  base: {ROOT / 'configs/cantilever.yaml'}\n"
+                     "  cases: [{mesh.size: 0.03}]\n")
+        code, err = cli(capsys, "batch", f, "-o", tmp_path / "out")
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.yaml"]

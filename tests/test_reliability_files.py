@@ -344,3 +344,181 @@ def test_random_bit_flips_full(good, tmp_path):
     outcomes = _random_flips(good, tmp_path, 400, seed=11)
     COUNTS.update({f"random_flips_{k}": v for k, v in outcomes.items()})
     assert outcomes["refused"] > 0.8 * sum(outcomes.values())
+
+
+# --------------------------------------------------------------------------- issue 17
+# Class 5: what the checksum does not cover. Each file is altered and then re-signed with
+# pipeline.store.sign (anyone can recompute a checksum): what is refused here is refused
+# for what it is, not for a checksum mismatch.
+from pipeline.store.h5file import sign  # noqa: E402
+
+
+def _resigned(good: Path, tmp_path: Path, edit) -> Path:
+    bad = copy_of(good, tmp_path)
+    with h5py.File(bad, "a") as h5:
+        edit(h5, tmp_path)
+        sign(h5)
+    return bad
+
+
+def _external_link(h5, tmp):
+    other = tmp / "other.h5"
+    with h5py.File(other, "w") as o:
+        h5.copy(h5["statespace"], o, "statespace")
+    del h5["statespace"]
+    h5["statespace"] = h5py.ExternalLink(str(other), "/statespace")
+
+
+def _soft_link(h5, tmp):
+    del h5["statespace_filtered"]
+    h5["statespace_filtered"] = h5py.SoftLink("/statespace")
+
+
+def _external_storage(h5, tmp):
+    a = h5["statespace/A"][()]
+    raw = tmp / "A.raw"
+    raw.write_bytes(np.ascontiguousarray(a).tobytes())
+    attrs = dict(h5["statespace/A"].attrs)
+    del h5["statespace/A"]
+    d = h5.create_dataset("statespace/A", shape=a.shape, dtype=a.dtype,
+                          external=[(str(raw), 0, a.nbytes)])
+    d.attrs.update(attrs)
+
+
+def _virtual(h5, tmp):
+    a = h5["statespace/A"][()]
+    src = tmp / "src.h5"
+    with h5py.File(src, "w") as s:
+        s["A"] = a
+    layout = h5py.VirtualLayout(shape=a.shape, dtype=a.dtype)
+    layout[...] = h5py.VirtualSource(str(src), "A", shape=a.shape)
+    attrs = dict(h5["statespace/A"].attrs)
+    del h5["statespace/A"]
+    h5.create_virtual_dataset("statespace/A", layout).attrs.update(attrs)
+
+
+def _nan(h5, tmp):
+    h5["statespace/A"][0, 0] = np.nan
+
+
+def _inf(h5, tmp):
+    h5["modes/frequencies_hz"][-1] = np.inf
+
+
+def _complex(h5, tmp):
+    b = h5["statespace/B"][()]
+    attrs = dict(h5["statespace/B"].attrs)
+    del h5["statespace/B"]
+    h5.create_dataset("statespace/B", data=b.astype(np.complex128)).attrs.update(attrs)
+
+
+@pytest.mark.parametrize("edit, pattern", [
+    (_external_link, "external link"), (_soft_link, "soft link"),
+    (_external_storage, "external file"), (_virtual, "virtual dataset"),
+    (_nan, "NaN or infinite"), (_inf, "NaN or infinite"), (_complex, "dtype complex"),
+], ids=["external_link", "soft_link", "external_storage", "virtual", "nan", "inf", "complex"])
+def test_what_the_checksum_does_not_cover_is_refused(good, tmp_path, edit, pattern):
+    """On main every one of these passed verification (external/soft links and external
+    or virtual storage: load_model read data from outside the signed content)."""
+    bad = _resigned(good, tmp_path, edit)
+    refused_everywhere(bad, pattern, cli=edit is _external_link)
+    COUNTS["uncovered_refused"] += 1
+
+
+def test_a_small_file_declaring_gigabytes_is_refused_unread(good, tmp_path):
+    """Class 6: a compressed dataset of 512 MiB zeros (a file of kB) is refused before
+    any data is read: peak memory stays far below the declared size (on main it was read
+    whole to compute the checksum)."""
+    import tracemalloc
+
+    bad = copy_of(good, tmp_path)
+    with h5py.File(bad, "a") as h5:
+        d = h5.create_dataset("extra/zeros", shape=(1 << 26,), dtype="f8", chunks=(1 << 20,),
+                              compression="gzip", fillvalue=0.0)
+        d[:1 << 20] = 0.0  # one chunk written: the rest is the fill value
+    assert bad.stat().st_size < good.stat().st_size + (1 << 20)
+    tracemalloc.start()
+    try:
+        with pytest.raises(FileFormatError, match="declare") as info:
+            open_verified(bad)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert str(bad) in str(info.value)
+    assert peak < 64 << 20, peak  # 8x below the 512 MiB declared
+    COUNTS["uncovered_refused"] += 1
+
+
+def _cli_bounded(*args, timeout=60) -> subprocess.CompletedProcess:
+    """The CLI in a child with 3 GB of address space at most (a test that fails must not
+    take the machine's memory) and a time limit."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+
+    return subprocess.run([sys.executable, "-m", "pipeline", *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout, preexec_fn=limit)
+
+
+def _unbounded_inputs(tmp_path: Path, commands: tuple[str, ...]) -> None:
+    fifo = tmp_path / "c.yaml"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.yaml"
+    big.write_text("name: x\n" + "# padding\n" * (1 << 19))
+    bomb = tmp_path / "bomb.yaml"
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    for i in range(1, 8):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]")
+    lines += [f"e{i}: [" + ", ".join(["*a7"] * 10) + "]" for i in range(120)]
+    bomb.write_text("\n".join(lines) + "\n")
+    model = tmp_path / "m.h5"
+    model.write_bytes(b"\x89HDF\r\n\x1a\n")
+    for src, says in ((fifo, "not a regular file"), (Path("/dev/zero"), "not a regular file"),
+                      (big, "larger than"), (bomb, "aliases")):
+        for args in [{"run": ["run", src], "batch": ["batch", src],
+                      "simulate": ["simulate", model, src]}[c] for c in commands]:
+            proc = _cli_bounded(*args)
+            err = proc.stderr.strip()
+            assert proc.returncode in (2, 7) and "Traceback" not in err, (args, err[-2000:])
+            if args[0] != "simulate":  # simulate reads the model first
+                assert says in err, (args, err)
+            assert len(err.splitlines()) == 1, (args, err)
+            COUNTS["unbounded_refused"] += 1
+
+
+def test_unbounded_inputs_are_refused_quickly(tmp_path):
+    """Class 6: a FIFO (on main: the read blocks forever), /dev/zero (on main: read until
+    memory runs out), a 5 MiB config and an alias bomb as a config file: one line, exit 2,
+    in seconds."""
+    _unbounded_inputs(tmp_path, ("run",))
+
+
+@pytest.mark.reliability
+def test_unbounded_inputs_every_reader(tmp_path):
+    """Class 6: the same four as batch and scenario files."""
+    _unbounded_inputs(tmp_path, ("batch", "simulate"))
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or os.geteuid() != 0,
+                    reason="needs unshare (a private small file system)")
+def test_full_disk_says_no_space_left_and_leaves_no_partial_file(tmp_path):
+    """Class 3: the mesh (gmsh ignores failed writes: on main a truncated mesh stayed under
+    its final name and the run failed with 'meshio cannot read it'), then the HDF5 output,
+    on a full file system: exit 8, 'no space left', nothing under the final name."""
+    full = tmp_path / "full"
+    full.mkdir()
+    for size_kb, args in ((64, ["--mesh-dir", full / "m", "-o", tmp_path / "x.h5"]),
+                          (512, ["-o", full / "x.h5"])):
+        script = (f"mount -t tmpfs -o size={size_kb}k tmpfs {full} && cd {ROOT} && "
+                  f"{sys.executable} -m pipeline -q run configs/cantilever.yaml --set "
+                  f"mesh.size=0.006 {' '.join(map(str, args))}; rc=$?; "
+                  f"find {full} -type f; exit $rc")
+        proc = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True,
+                              text=True, timeout=300)
+        if "mount" in proc.stderr and "ermission" in proc.stderr:
+            pytest.skip("mount not permitted here")
+        assert proc.returncode == 8, proc.stderr[-2000:]
+        assert "no space left" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert proc.stdout.strip() == "", proc.stdout  # no file left in the full folder
+        COUNTS["enospc_refused"] += 1

@@ -101,8 +101,7 @@ def check_after_kill(out: Path, mesh_dir: Path, previous: bytes | None) -> str:
     """Whatever is under the final names is complete; returns what was found."""
     from pipeline.fe.mesh import read_mesh
 
-    mesh = mesh_dir / "cantilever.msh"
-    if mesh.exists():
+    for mesh in mesh_dir.glob("cantilever*.msh"):
         read_mesh(mesh)  # a complete mesh (MeshError otherwise)
     if not out.exists():
         assert previous is None, "the previous complete file disappeared"
@@ -329,3 +328,242 @@ def test_a_broken_file_is_never_loaded(tmp_path):
         cut.write_bytes(data[:n])
         with pytest.raises(FileFormatError, match="truncated"):
             load_model(cut)
+
+
+# --------------------------------------------------------------------------- issue 17
+# Class 2: runs share no state. Class 8: SIGINT (to the whole process group, as Ctrl-C
+# does) and SIGTERM (to the process) at any point of every command end it with one line,
+# no temporary or partial file, no process left behind.
+def _session_processes(sid: int) -> list[str]:
+    import psutil
+
+    left = []
+    for p in psutil.process_iter(["pid", "status", "cmdline"]):
+        try:
+            if os.getsid(p.info["pid"]) == sid and p.info["status"] != psutil.STATUS_ZOMBIE:
+                left.append(" ".join(p.info["cmdline"] or [])[:120])
+        except (ProcessLookupError, PermissionError, psutil.Error):
+            pass
+    return left
+
+
+def interrupt(args: list, cwd: Path, sig: int, *, stage: str | None = None,
+              delay: float = 0.0, tmpdir: Path) -> dict:
+    """Start ``python -m pipeline -v ARGS`` in its own session; ``delay`` s after its log
+    shows ``stage ...`` (or after ``delay`` s) send ``sig``: SIGINT to its process group,
+    SIGTERM to the process. Returns rc, stderr, and what was left behind."""
+    env = {**os.environ, "TMPDIR": str(tmpdir)}
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "-v", *map(str, args)],
+                            cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True, env=env)
+    seen = threading.Event()
+    log: list[str] = []
+
+    def reader():
+        for line in proc.stderr:
+            log.append(line)
+            if stage is not None and f" {stage} ..." in line:
+                seen.set()
+        seen.set()
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    if stage is not None:
+        seen.wait(timeout=120)
+    time.sleep(delay)
+    finished = proc.poll() is not None
+    if not finished:
+        if sig == signal.SIGINT:
+            os.killpg(proc.pid, sig)
+        else:
+            os.kill(proc.pid, sig)
+    try:
+        proc.wait(timeout=120)
+    finally:
+        t.join(timeout=10)
+    deadline = time.monotonic() + 10.0  # a helper that exits on its own is not left behind
+    while (left := _session_processes(proc.pid)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    _kill_group(proc) if left else None
+    return {"rc": proc.returncode, "finished": finished, "log": "".join(log), "left": left}
+
+
+def _check_interrupted(info: dict, folders: list[Path], tmpdir: Path, what: str) -> str:
+    """The command ended with one line (or finished), left nothing partial, no process."""
+    err = info["log"]
+    assert "Traceback" not in err, (what, err[-3000:])
+    assert not info["left"], (what, info["left"])
+    partial = [p for f in folders if f.exists() for p in f.rglob("*") if ".partial" in p.name]
+    assert not partial, (what, partial)
+    assert not list(tmpdir.iterdir()), (what, list(tmpdir.iterdir()))
+    if info["finished"] or info["rc"] == 0:
+        assert info["rc"] == 0, (what, err[-3000:])
+        return "finished"
+    if info["rc"] < 0 and " wrote " in err.rstrip().splitlines()[-1]:
+        # the signal came after the command's last write, while the interpreter exits
+        # (it restores the default handlers then): nothing was left, the output is whole
+        return "exiting"
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert info["rc"] in (130, 143, 129), (what, info["rc"], err[-3000:])
+    assert len(errors) == 1 and "interrupted" in errors[0], (what, err[-3000:])
+    assert err.rstrip().splitlines()[-1].startswith("error:"), (what, err[-3000:])
+    return "interrupted"
+
+
+def _interrupt_points(points, tmp_path: Path) -> Counter:
+    """``points``: (command, signal, stage, delay); each on a fresh copy of the inputs."""
+    outcomes: Counter = Counter()
+    model = tmp_path / "model.h5"
+    run_pipeline(load_config(CONFIG, SETS), model)
+    for i, (command, sig, stage, delay) in enumerate(points):
+        folder = tmp_path / f"i{i}"
+        folder.mkdir()
+        tmpdir = tmp_path / f"tmp{i}"
+        tmpdir.mkdir()
+        args = {"run": ["run", CONFIG, "-o", folder / "out.h5", "--mesh-dir", folder,
+                        *sum((["--set", s] for s in SETS), [])],
+                "export-vtu": ["export", model, "--to", "vtu", "-o", folder / "m.vtu"],
+                "export-xdmf": ["export", model, "--to", "xdmf", "-o", folder / "m.xdmf"],
+                "export-mat": ["export", model, "--to", "mat", "-o", folder / "m.mat"],
+                "plot": ["plot", model, "-o", folder / "plots", "--modes", "2"],
+                "simulate": ["simulate", model, ROOT / "configs/scenarios/step_load.yaml",
+                             "-o", folder / "sim.h5", "--no-plots"]}[command]
+        info = interrupt(args, tmp_path, sig, stage=stage, delay=delay, tmpdir=tmpdir)
+        what = f"{command} {signal.Signals(sig).name} {stage or ''} +{delay:.2f} s"
+        found = _check_interrupted(info, [folder, tmp_path], tmpdir, what)
+        outcomes[found] += 1
+        COUNTS[f"interrupt_{command}_{found}"] += 1
+    return outcomes
+
+
+def test_interrupt_run_quick(tmp_path):
+    """SIGINT in the modes stage, SIGTERM in the write stage (on main: SIGTERM killed the
+    run with no message, and no cleanup: its temporary file stayed)."""
+    outcomes = _interrupt_points([("run", signal.SIGINT, "modes", 0.0),
+                                  ("run", signal.SIGTERM, "write", 0.02)], tmp_path)
+    assert outcomes["interrupted"] >= 1
+
+
+@pytest.mark.reliability
+def test_interrupt_every_command(tmp_path):
+    """Every stage of a run with both signals, and every other writing command at random
+    points (their whole run takes 2-6 s here, most of it imports)."""
+    rng = random.Random(40)
+    points = [("run", sig, stage, rng.uniform(0.0, 0.05))
+              for stage in STAGES for sig in (signal.SIGINT, signal.SIGTERM)]
+    for command in ("export-vtu", "export-xdmf", "export-mat", "plot", "simulate"):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            points.append((command, sig, None, rng.uniform(0.5, 5.0)))
+    outcomes = _interrupt_points(points, tmp_path)
+    assert outcomes["interrupted"] > len(points) // 2
+
+
+@pytest.mark.reliability
+def test_interrupt_batch_one_line_no_worker_left(tmp_path):
+    """Ctrl-C (SIGINT to the process group: the dask workers get it too) and SIGTERM on a
+    2-worker batch at random points (on main: worker tracebacks on the terminal, and the
+    interrupt lost while the cluster started)."""
+    reason = _batch_available()
+    if reason:
+        pytest.skip(reason)
+    (tmp_path / "base.yaml").write_text(BATCH_BASE)
+    path = tmp_path / "batch.yaml"
+    path.write_text(BATCH)
+    rng = random.Random(41)
+    outcomes: Counter = Counter()
+    for i in range(6):
+        sig = signal.SIGINT if i % 3 else signal.SIGTERM
+        tmpdir = tmp_path / f"tmp{i}"
+        tmpdir.mkdir()
+        out = tmp_path / "out"
+        info = interrupt(["batch", path, "--workers", "2", "-o", out], tmp_path, sig,
+                         delay=rng.uniform(2.0, 14.0), tmpdir=tmpdir)
+        err = info["log"]
+        assert "Traceback" not in err and " - WARNING - " not in err, err[-3000:]
+        assert not info["left"], info["left"]
+        assert not [p for p in out.rglob("*") if ".partial" in p.name] if out.exists() else True
+        assert not list(tmpdir.iterdir()), list(tmpdir.iterdir())
+        if info["rc"] != 0:
+            assert info["rc"] in (130, 143), (info["rc"], err[-3000:])
+            assert err.rstrip().splitlines()[-1].startswith("error:"), err[-3000:]
+            outcomes["interrupted"] += 1
+        else:
+            outcomes["finished"] += 1
+        if out.exists():
+            _check_cases(out / "cases")
+        COUNTS[f"interrupt_batch_{'interrupted' if info['rc'] else 'finished'}"] += 1
+    assert outcomes["interrupted"] >= 3
+
+
+def _two_runs_same_name(tmp_path: Path, i: int) -> tuple[Path, Path]:
+    """Two runs of configs named alike (different mesh sizes) started together in one
+    folder, the default mesh location."""
+    folder = tmp_path / f"pair{i}"
+    folder.mkdir()
+    procs = []
+    outs = []
+    for size in ("0.02", "0.015"):
+        out = folder / f"out_{size}.h5"
+        outs.append(out)
+        procs.append(subprocess.Popen(
+            [sys.executable, "-m", "pipeline", "-q", "run", str(CONFIG), "--set",
+             f"mesh.size={size}", "-o", str(out)], cwd=folder, stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE, text=True))
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    return outs[0], outs[1]
+
+
+def _mesh_matches_config(out: Path) -> bool:
+    """The stored mesh is the one its stored config makes (gmsh is deterministic on one
+    thread: the same config gives the same mesh)."""
+    import h5py
+
+    from pipeline.config import config_from_dict
+    from pipeline.fe.mesh import generate_mesh, read_mesh
+    from pipeline._util.yamlio import parse_yaml
+
+    with h5py.File(out, "r") as h5:
+        cfg = config_from_dict(parse_yaml(h5.attrs["config_yaml"], "stored"))
+        n_points = h5["mesh/points"].shape[0]
+        n_cells = h5["mesh/cells/tetra10"].shape[0]
+    mesh = read_mesh(generate_mesh(cfg.geometry, cfg.mesh, out.with_suffix(".check.msh")))
+    return mesh.tetrahedra.shape[0] == n_cells and n_points > mesh.vertices.shape[0]
+
+
+def test_runs_keep_their_mesh_private(tmp_path):
+    """Class 2: nothing is written to ./meshes; /mesh names no shared file: either no
+    source (not kept) or a content-addressed copy whose SHA-256 is stored beside it (on
+    main: meshes/<name>.msh, overwritten by the next run of that name)."""
+    import hashlib
+
+    import h5py
+
+    a, b = _two_runs_same_name(tmp_path, 0)
+    assert not (tmp_path / "pair0" / "meshes").exists()
+    for out in (a, b):
+        assert _mesh_matches_config(out)
+        with h5py.File(out, "r") as h5:
+            source = h5["mesh"].attrs["source"]
+            sha = h5["mesh"].attrs["source_sha256"]
+        assert source == "" and len(sha) == 64
+    cfg = load_config(CONFIG, SETS)
+    kept = run_pipeline(cfg, tmp_path / "k.h5", mesh_dir=tmp_path / "m").output
+    with h5py.File(kept, "r") as h5:
+        source = Path(h5["mesh"].attrs["source"])
+        sha = h5["mesh"].attrs["source_sha256"]
+    assert source.parent == tmp_path / "m" and sha[:12] in source.name
+    assert hashlib.sha256(source.read_bytes()).hexdigest() == sha
+    COUNTS["concurrent_pairs"] += 1
+
+
+@pytest.mark.reliability
+def test_concurrent_runs_of_one_name_never_mix_meshes(tmp_path):
+    """Class 2: six pairs of runs of one config name started together (on main: in 3 to
+    5 of 6 the result of one held the other's mesh while its stored config said
+    otherwise)."""
+    for i in range(6):
+        a, b = _two_runs_same_name(tmp_path, i)
+        assert _mesh_matches_config(a) and _mesh_matches_config(b), i
+        COUNTS["concurrent_pairs"] += 1

@@ -12,6 +12,10 @@ Temporaries of writers that were killed (SIGKILL, power loss) are recognised by 
 and pid and removed by the next writer of the same file on the same host; those of a
 live process, or of another host, are left alone.
 
+Writers that ignore failed writes (gmsh writes a truncated mesh and returns normally on a
+full disk) are caught by checking, after the writer returns, that the device still has a
+free block: if it has none the file is presumed truncated and not kept.
+
 OS errors (no space left, read-only folder, permission) become one
 :class:`~pipeline.errors.OutputError` line naming the file and the reason.
 
@@ -98,6 +102,15 @@ def fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def device_full(folder: Path) -> bool:
+    """True when the file system of ``folder`` has no free block left (for this user)."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail == 0 or st.f_bfree == 0
+
+
 def output_error(path: Path, exc: OSError) -> OutputError:
     """One line for an OS error on writing ``path``, naming the reason."""
     reason = {errno.ENOSPC: "no space left on the device",
@@ -111,6 +124,36 @@ def output_error(path: Path, exc: OSError) -> OutputError:
                   exc.errno, exc.strerror or type(exc).__name__)
     return OutputError(f"output '{path}': cannot be written: {reason}", key=str(path),
                        value=reason, expected="a writable file path")
+
+
+def signals_held():
+    """A region where SIGINT/SIGTERM/SIGHUP wait (:func:`pipeline._util.interrupts.held`):
+    cleanup that a second Ctrl-C must not cut short."""
+    from pipeline._util.interrupts import held
+
+    return held()
+
+
+@contextlib.contextmanager
+def private_folder(prefix: str, parent: str | Path | None = None) -> Iterator[Path]:
+    """A new private folder (``tempfile.mkdtemp``) removed with its content on leaving.
+
+    Its creation and removal run with signals held (:func:`signals_held`): an interrupt
+    cannot fall between creating the folder and taking charge of removing it, nor cut the
+    removal short, so an interrupted command leaves no temporary folder behind.
+    """
+    import shutil
+    import tempfile
+
+    def remove(folder: Path) -> None:
+        with signals_held():
+            shutil.rmtree(folder, ignore_errors=True)
+
+    with contextlib.ExitStack() as cleanup:
+        with signals_held():
+            folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+            cleanup.callback(remove, folder)
+        yield folder
 
 
 @contextlib.contextmanager
@@ -138,12 +181,16 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             raise OutputError(f"output '{path}': the writer produced no file", key=str(path))
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        if device_full(tmp.parent):
+            # some writers (gmsh) ignore a failed write() and return normally: a full
+            # device after writing means the file may be truncated, so it is not kept
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
         os.replace(tmp, path)
         fsync_dir(path.parent)
     except OSError as exc:
         raise output_error(path, exc) from None
     finally:
-        with contextlib.suppress(OSError):
+        with signals_held(), contextlib.suppress(OSError):
             tmp.unlink()
 
 

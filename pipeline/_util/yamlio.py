@@ -17,6 +17,40 @@ from typing import Any
 from pipeline.errors import ConfigError
 
 
+#: the largest YAML file read (configs, scenarios, batch files are a few kB)
+MAX_YAML_BYTES = 4 << 20
+#: the most aliases (``*name``) a document may use ("billion laughs" structures)
+MAX_ALIASES = 1000
+
+
+def read_text_bounded(path: str | Path, what: str = "file",
+                      limit: int = MAX_YAML_BYTES) -> str:
+    """The UTF-8 text of the regular file ``path``, at most ``limit`` bytes.
+
+    A FIFO, a device (``/dev/zero``), a socket or a larger file is refused with one
+    :class:`ConfigError` line before anything is read (a FIFO is opened non-blocking, so
+    the check itself cannot hang). ``FileNotFoundError``, other ``OSError`` and
+    ``UnicodeDecodeError`` propagate for the caller's own message.
+    """
+    import os
+    import stat
+
+    path = Path(path)
+    if path.exists() and not path.is_dir() and not stat.S_ISREG(path.stat().st_mode):
+        raise ConfigError(f"{what} '{path}': not a regular file (a FIFO, device or socket); "
+                          "expected a YAML file", key=str(path))
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    with os.fdopen(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            raise ConfigError(f"{what} '{path}': not a regular file; expected a YAML file",
+                              key=str(path))
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise ConfigError(f"{what} '{path}': larger than {limit >> 20} MiB; expected a YAML "
+                          "file of a few kB", key=str(path))
+    return data.decode("utf-8")
+
+
 def safe_loader():
     """yaml.SafeLoader that also reads YAML 1.2 floats such as ``69.0e9`` and ``1e-3``.
 
@@ -40,6 +74,18 @@ def safe_loader():
             (tag, regexp) for tag, regexp in Loader.yaml_implicit_resolvers.get(first, [])
             if tag != "tag:yaml.org,2002:float"]
     Loader.add_implicit_resolver("tag:yaml.org,2002:float", float_re, list("-+0123456789."))
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            self.n_aliases = getattr(self, "n_aliases", 0) + 1
+            if self.n_aliases > MAX_ALIASES:
+                event = self.peek_event()
+                raise yaml.composer.ComposerError(
+                    None, None, f"more than {MAX_ALIASES} aliases (a 'billion laughs' "
+                    "structure?)", event.start_mark)
+        return yaml.SafeLoader.compose_node(self, parent, index)
+
+    Loader.compose_node = compose_node
     return Loader
 
 
@@ -69,7 +115,7 @@ def read_yaml(path: str | Path, what: str = "file") -> Any:
     """Parse the YAML file ``path``; ``what`` names it in errors (``config file``)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text_bounded(path, what)
     except FileNotFoundError:
         raise ConfigError(f"{what} '{path}': not found", key=str(path)) from None
     except IsADirectoryError:

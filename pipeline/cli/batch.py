@@ -60,10 +60,12 @@ def cmd_batch(args: argparse.Namespace) -> int:
         result = run_batch(args.file, args.output, workers=args.workers,
                            scheduler=args.scheduler, verify=args.verify,
                            compute=not args.report_only)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        from pipeline.cli.guard import exit_code
+
         print("error: batch interrupted; finished cases are kept: run the same command again "
               "to resume", file=sys.stderr)
-        return 130
+        return exit_code(exc)
     print_result(result)
     return 1 if result.failed else 0
 

@@ -131,7 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", help="HDF5 output (default outputs/<name>.h5)")
     run.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="override a config key by its dotted path, e.g. mesh.size=0.004")
-    run.add_argument("--mesh-dir", default="meshes", help="where the .msh file goes")
+    run.add_argument("--mesh-dir", default=None,
+                     help="keep the gmsh mesh there as <name>.<sha256[:12]>.msh (default: "
+                     "not kept; the mesh is in the HDF5 file)")
     run.set_defaults(func=cmd_run)
 
     insp = sub.add_parser("inspect", help="human summary of an HDF5 file")
@@ -143,23 +145,54 @@ def build_parser() -> argparse.ArgumentParser:
 
     for module, register in COMMAND_MODULES:
         getattr(importlib.import_module(f"pipeline.{module}"), register)(sub)
+    from pipeline.cli.guard import add_force_flags
+
+    add_force_flags(sub)
     return parser
 
 
+def _interrupted(exc: KeyboardInterrupt, guard) -> int:
+    print(f"error: interrupted ({exc.args[0] if exc.args else 'SIGINT'}); no partial output "
+          "was left under the final name", file=sys.stderr)
+    return guard.exit_code(exc)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    from pipeline.cli import guard
+
+    guard.handle_signals()  # first: an interrupt while the commands are imported is handled
+    try:
+        parser = build_parser()
+    except Exception as exc:
+        if not guard.interrupted_by(exc):
+            raise
+        exc = guard.interruption()
+        print(f"error: interrupted ({exc.args[0]}) while starting; nothing was written",
+              file=sys.stderr)
+        return guard.exit_code(exc)
+    except KeyboardInterrupt as exc:
+        print(f"error: interrupted ({exc.args[0] if exc.args else 'SIGINT'}) while starting; "
+              "nothing was written", file=sys.stderr)
+        return guard.exit_code(exc)
     args = parser.parse_args(argv)
     _setup_logging(-1 if args.quiet else args.verbose)
     from pipeline._util.progress import using
 
     try:
+        guard.check_destinations(args)  # before any work: one line if a destination is bad
         # the reporter is this command's (main may be called again in one process)
         with using(_progress_reporter(-1 if args.quiet else args.verbose)):
             return int(args.func(args) or 0)
     except PipelineError as exc:
+        if guard.interrupted_by(exc):
+            return _interrupted(guard.interruption(), guard)
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt:
-        print("error: interrupted; no partial output was left under the final name",
-              file=sys.stderr)
-        return 130
+    except Exception as exc:
+        if not guard.interrupted_by(exc):
+            raise  # a bug: its traceback is wanted
+        return _interrupted(guard.interruption(), guard)
+    except KeyboardInterrupt as exc:
+        print(f"error: interrupted ({getattr(exc, 'args', None) and exc.args[0] or 'SIGINT'}); "
+              "no partial output was left under the final name", file=sys.stderr)
+        return guard.exit_code(exc)

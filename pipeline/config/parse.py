@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
-from pipeline._util.yamlio import parse_yaml
+from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.schema import (BOX_FACES, GAUGE_KINDS, GEOMETRY_KINDS, SOLVERS, Config, Connection,
@@ -364,7 +364,7 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> Config:
     """Read a YAML config file, apply ``--set`` overrides and validate it."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text_bounded(path, "config file")  # regular file, bounded size
     except FileNotFoundError:
         raise ConfigError(f"config file '{path}': not found") from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -50,7 +50,8 @@ class FEModel:
     K_full, M_full: (n_dofs, n_dofs) unsupported matrices, or None (kept only when
     connection points need them).
     props: mass, centre of mass, inertia and rigid mass matrix from M.
-    mesh_path: the mesh file; n_elements: number of tetrahedra.
+    mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
+    the run read; n_elements: number of tetrahedra.
     """
 
     space: FESpace
@@ -60,10 +61,11 @@ class FEModel:
     K: sp.csr_matrix
     M: sp.csr_matrix
     props: BodyProperties
-    mesh_path: Path
+    mesh_path: Path | None
     n_elements: int
     K_full: sp.csr_matrix | None = None
     M_full: sp.csr_matrix | None = None
+    mesh_sha256: str = ""
 
 
 @contextlib.contextmanager
@@ -75,7 +77,7 @@ def _untimed(name: str) -> ContextManager[Any]:
     return contextlib.nullcontext()
 
 
-def build_fe_model(cfg: Config, mesh_dir: str | Path = "meshes",
+def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                    progress: ProgressFactory | None = None,
                    stage: StageTimer | None = None) -> FEModel:
     """Mesh, space, regions (stage ``mesh``), memory check, assembly and supports (stage
@@ -88,7 +90,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path = "meshes",
     progress = progress or _no_progress
     stage = stage or _untimed
     with stage("mesh"):
-        body, mesh_path = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
+        body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
@@ -114,5 +116,5 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path = "meshes",
         M = restrict(M, free, overwrite=full[1] is None)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
-                   props=props, mesh_path=Path(mesh_path), n_elements=body.n_tetrahedra,
+                   props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
                    K_full=full[0], M_full=full[1])

@@ -104,7 +104,11 @@ def _mkl_library() -> Any | None:
         candidates += sorted(glob.glob(os.path.join(prefix, "lib", "libmkl_rt.so*")), key=len)
         candidates += sorted(glob.glob(os.path.join(prefix, "Library", "bin", "mkl_rt*.dll")),
                              key=len)
-    found = find_library("mkl_rt")
+    # find_library runs gcc on a named temporary file: an interrupt there would leave it
+    from pipeline._util.atomic import signals_held
+
+    with signals_held():
+        found = find_library("mkl_rt")
     if found:
         candidates.append(found)
     for path in candidates:

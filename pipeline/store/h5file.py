@@ -29,8 +29,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline._util.atomic import atomic_path
-from pipeline.errors import FileFormatError
+from pipeline._util.atomic import atomic_path, signals_held
+from pipeline._util.paths import check_name
+from pipeline.errors import FileFormatError, OutputError
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -66,12 +67,14 @@ def _attr_value(value: Any) -> Any:
     return value
 
 
-def _dataset_digests(h5) -> tuple[str, dict[str, str]]:
-    """(SHA-256 over every dataset, {path: SHA-256 of that dataset}) of an open File."""
+def _dataset_digests(h5, check=None) -> tuple[str, dict[str, str]]:
+    """(SHA-256 over every dataset, {path: SHA-256 of that dataset}) of an open File;
+    ``check(name, array)``, if given, sees every numeric dataset as it is read."""
     digest = hashlib.sha256()
     each: dict[str, str] = {}
     paths: list[str] = []
-    h5.visititems(lambda name, obj: paths.append(name) if hasattr(obj, "dtype") else None)
+    with signals_held():  # an exception raised inside HDF5's visit callback can crash it
+        h5.visititems(lambda name, obj: paths.append(name) if hasattr(obj, "dtype") else None)
     for name in sorted(paths):
         dset = h5[name]
         one = hashlib.sha256()
@@ -90,7 +93,10 @@ def _dataset_digests(h5) -> tuple[str, dict[str, str]]:
                 update(str(item).encode("utf-8", "surrogateescape") + b"\0")
         else:
             update(dset.dtype.str.encode())
-            update(np.ascontiguousarray(dset[()]).tobytes())
+            data = np.ascontiguousarray(dset[()])
+            if check is not None:
+                check(name, data)
+            update(data.tobytes())
         each[name] = one.hexdigest()
     return digest.hexdigest(), each
 
@@ -123,7 +129,8 @@ def _attrs_digests(h5) -> tuple[str, dict[str, str]]:
     attributes}). The root's signatures are left out; ``content_index`` is in the total
     but not in the root's own entry (the index cannot hold its own digest)."""
     objects = ["/"]
-    h5.visit(lambda name: objects.append(name))
+    with signals_held():
+        h5.visit(lambda name: objects.append(name))
     digest = hashlib.sha256()
     each: dict[str, str] = {}
     for name in sorted(objects):
@@ -169,7 +176,13 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     from pipeline import __version__
 
     path = Path(path)
-    with atomic_path(path) as tmp:
+    for name in tree:  # every part of a key is a plain name (a region, port or case name)
+        for part in name.split("/"):
+            check_name(part, f"HDF5 key '{name}': part", error=OutputError)
+    # signals are held while HDF5 writes (an interrupt inside it crashed the interpreter
+    # at exit, SIGSEGV); one that arrives meanwhile is delivered before the rename, so the
+    # temporary file is removed and nothing appears under the final name
+    with atomic_path(path) as tmp, signals_held():
         with h5py.File(tmp, "w") as h5:
             h5.attrs["schema"] = SCHEMA
             h5.attrs["schema_version"] = SCHEMA_VERSION
@@ -309,7 +322,7 @@ def _verify(h5, path: Path, verify_checksum: bool) -> None:
         raise FileFormatError(f"file '{path}': has no content_sha256 attribute")
     stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
     index = h5.attrs.get("content_index")
-    actual, each = _dataset_digests(h5)
+    actual, each = _dataset_digests(h5, _finite_check(h5, path))
     if actual != stored:
         detail = _diagnose(h5, index, each, "datasets")
         raise FileFormatError(f"file '{path}': content checksum mismatch (stored "
@@ -334,18 +347,112 @@ def _verify(h5, path: Path, verify_checksum: bool) -> None:
                               "names, settings) was modified or corrupted after it was written")
 
 
+#: the most objects (groups, datasets, links) a file of ours may hold
+MAX_OBJECTS = 200_000
+#: data a file may declare beyond its own size (our writer never compresses; a small file
+#: that declares gigabytes is a decompression bomb or sparse storage, refused unread)
+DECLARED_SLACK_BYTES = 1 << 20
+
+
+def _check_structure(h5, path: Path) -> None:
+    """Refuse what the checksums do not cover, before any dataset is read: soft and
+    external links, external raw storage, virtual datasets, committed datatypes, compound
+    or complex values, more than :data:`MAX_OBJECTS` objects, and datasets declaring more
+    data than the file holds (compression or sparse storage: a decompression bomb)."""
+    import h5py
+
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = 0
+    declared, count, seen = 0, 0, set()
+    stack = [("", h5)]
+    while stack:
+        prefix, group = stack.pop()
+        for name in group:
+            full = f"{prefix}/{name}"
+            count += 1
+            if count > MAX_OBJECTS:
+                raise FileFormatError(f"file '{path}': holds more than {MAX_OBJECTS} objects "
+                                      "(not a file written by this pipeline)")
+            link = group.get(name, getlink=True)
+            if isinstance(link, h5py.ExternalLink):
+                raise FileFormatError(f"file '{path}': {full} is an external link to "
+                                      f"'{link.filename}:{link.path}'; links are not covered "
+                                      "by the checksum and are refused")
+            if isinstance(link, h5py.SoftLink):
+                raise FileFormatError(f"file '{path}': {full} is a soft link to {link.path}; "
+                                      "links are not covered by the checksum and are refused")
+            obj = group[name]
+            info = h5py.h5o.get_info(obj.id)
+            key = getattr(info, "token", None) or info.addr
+            if key in seen:
+                raise FileFormatError(f"file '{path}': {full} is a second hard link to an "
+                                      "object (not written by this pipeline)")
+            seen.add(key)
+            if isinstance(obj, h5py.Group):
+                stack.append((full, obj))
+            elif isinstance(obj, h5py.Dataset):
+                if obj.is_virtual:
+                    raise FileFormatError(f"file '{path}': {full} is a virtual dataset (data "
+                                          "in other files); refused")
+                if obj.external:
+                    raise FileFormatError(f"file '{path}': {full} keeps its data in external "
+                                          f"file(s) {obj.external[0][0]!r}; refused")
+                kind = obj.dtype.kind
+                if kind in "cV" or obj.dtype.fields is not None:
+                    raise FileFormatError(f"file '{path}': {full} has dtype {obj.dtype}, "
+                                          "expected real numbers or strings")
+                declared += int(obj.size) * obj.dtype.itemsize
+            else:
+                raise FileFormatError(f"file '{path}': {full} is a {type(obj).__name__}, "
+                                      "expected groups and datasets only")
+    if declared > size + DECLARED_SLACK_BYTES:
+        raise FileFormatError(f"file '{path}': its datasets declare {declared} bytes in a file "
+                              f"of {size} bytes (compressed or sparse data, which this "
+                              "pipeline never writes); refused unread")
+
+
+FINITE_GROUPS = ("mesh", "body", "modes", "fe")
+FINITE_MATRICES = ("A", "B", "C", "D")
+
+
+def _finite_check(h5, path: Path):
+    """A check(name, array) refusing NaN/inf where the schema has finite numbers: the
+    state-space matrices A, B, C, D of every model, and every float dataset under
+    /mesh, /body, /modes and /fe (elsewhere NaN has a meaning: no filter cut-off, a
+    comparison that does not apply, a quantity a simulation cannot measure)."""
+    content = h5.attrs.get("content")
+    if isinstance(content, bytes):
+        content = content.decode("utf-8", "replace")
+    if content == "simulation results":
+        return None
+
+    def check(name: str, data: np.ndarray) -> None:
+        parts = name.split("/")
+        must = parts[0] in FINITE_GROUPS or parts[-1] in FINITE_MATRICES
+        if must and data.dtype.kind == "f" and not np.all(np.isfinite(data)):
+            raise FileFormatError(f"file '{path}': dataset {name} holds NaN or infinite "
+                                  "values, expected finite numbers")
+
+    return check
+
+
 def open_verified(path: str | Path, verify_checksum: bool = True):
     """Open one of our HDF5 files read-only after checking schema, version and checksums.
 
     Returns an open ``h5py.File`` (use it as a context manager). Raises
     FileFormatError naming the file and what is wrong: not found, not HDF5, truncated,
     foreign (schema), unknown version, content or attribute checksum mismatch (naming the
-    changed datasets or missing groups when the file has a ``content_index``), or
-    metadata too corrupt to read.
+    changed datasets or missing groups when the file has a ``content_index``), metadata
+    too corrupt to read; and, before reading any data, what the checksums do not cover
+    (links, external or virtual storage, compressed data: :func:`_check_structure`); NaN
+    or infinite values in a model's numbers.
     """
     path = Path(path)
     h5 = _open_h5(path)
     try:
+        _check_structure(h5, path)
         _verify(h5, path, verify_checksum)
     except FileFormatError:
         h5.close()

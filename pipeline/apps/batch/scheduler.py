@@ -25,14 +25,16 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import secrets
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pipeline._util.atomic import write_bytes, write_text
+from pipeline._util.atomic import private_folder, write_bytes, write_text
 from pipeline.apps.batch import report
 from pipeline.apps.batch.cache import (
     CaseRecord,
@@ -182,7 +184,76 @@ def worker_info(client) -> dict[str, dict]:
     return dict(info.get("workers", {}))
 
 
-def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int):
+def quiet_distributed_logs() -> None:
+    """In a worker or nanny: log nothing more from dask (run on them when interrupted)."""
+    for name in ("distributed", "tornado", "asyncio"):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
+def close_unfinished_clusters() -> None:
+    """Close local clusters whose start was interrupted (their object never reached us),
+    so that dask's exit hook does not print an assertion traceback closing them again."""
+    from distributed.deploy.spec import SpecCluster
+
+    logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
+    for cluster in list(SpecCluster._instances):
+        with contextlib.suppress(BaseException):
+            cluster.close(timeout=5)
+        SpecCluster._instances.discard(cluster)
+
+
+#: the worker processes' stderr (see :func:`start_forkserver_ignoring_sigint`) and how
+#: much of it was relayed to the log
+_WORKER_STDERR: dict = {}
+
+
+def start_forkserver_ignoring_sigint() -> None:
+    """Start multiprocessing's forkserver (with dask's preloads) with SIGINT ignored, so
+    that every process it forks ignores SIGINT (see :func:`start_local_cluster`), and with
+    its stderr in a private temporary file: what the workers print (their shutdown when
+    interrupted, a start cut short) does not reach the terminal; :func:`relay_worker_output`
+    passes it to the log."""
+    import multiprocessing.forkserver
+    import tempfile
+
+    from distributed.utils import get_mp_context
+
+    get_mp_context()  # sets the forkserver's preload list
+    main = threading.current_thread() is threading.main_thread()
+    if not _WORKER_STDERR:
+        _WORKER_STDERR.update(file=tempfile.TemporaryFile(), relayed=0)
+    sys.stderr.flush()
+    saved = os.dup(2)
+    blocked = (signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM,
+                                                         signal.SIGHUP}) if main else None)
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        os.dup2(_WORKER_STDERR["file"].fileno(), 2)
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        if main:
+            signal.signal(signal.SIGINT, handler)
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+
+def relay_worker_output(interrupted: bool) -> None:
+    """Log what the worker processes printed since the last call: at debug level, and
+    their warnings and errors at warning level unless the batch was interrupted."""
+    if not _WORKER_STDERR:
+        return
+    fh = _WORKER_STDERR["file"]
+    fh.seek(_WORKER_STDERR["relayed"])
+    text = fh.read(1 << 20).decode("utf-8", "replace")
+    _WORKER_STDERR["relayed"] = fh.seek(0, os.SEEK_END)
+    for line in text.splitlines():
+        loud = not interrupted and (" - WARNING - " in line or " - ERROR - " in line)
+        log.log(logging.WARNING if loud else logging.DEBUG, "worker: %s", line)
+
+
+def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int,
+                        local_directory: Path | None = None):
     """Worker processes on 127.0.0.1, one thread each; each has ``memory_limit`` (the
     machine's available memory: a case may use it all while the others wait, the client
     admits cases by their estimates) and advertises 80 % of it as the ``memory``
@@ -192,14 +263,32 @@ def start_local_cluster(n_workers: int, memory_limit: int, threads_per_case: int
 
     env = {"OMP_NUM_THREADS": threads_per_case, "MKL_NUM_THREADS": threads_per_case,
            "OPENBLAS_NUM_THREADS": threads_per_case}
-    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in env.items()}):
-        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               memory_limit=memory_limit, host="127.0.0.1",
-                               dashboard_address=None, silence_logs=logging.WARNING,
-                               # its HTTP server (health routes) would take :8787 otherwise
-                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-                               resources={"memory": int(BUDGET_FRACTION * memory_limit)})
-        client = Client(cluster)
+    # Ctrl-C reaches the whole process group: only this process may handle it (it closes
+    # the cluster; workers that got it too printed tracebacks). The workers are forked by a
+    # forkserver started here with SIGINT ignored: the forkserver hands that disposition to
+    # every process it forks (the nannies, and the workers they start), and asyncio then
+    # installs no handler in them. SIGINT is ignored here only while the forkserver is
+    # spawned (milliseconds), and blocked meanwhile so a Ctrl-C then is delivered after.
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        start_forkserver_ignoring_sigint()
+    with contextlib.ExitStack() as restore:
+        restore.enter_context(dask.config.set(
+            {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in env.items()}
+            | {"distributed.worker.multiprocessing-method": "forkserver"}
+            | ({} if local_directory is None else {"temporary-directory": str(local_directory)})))
+        try:
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                   local_directory=None if local_directory is None
+                                   else str(local_directory),
+                                   memory_limit=memory_limit, host="127.0.0.1",
+                                   dashboard_address=None, silence_logs=logging.WARNING,
+                                   # its HTTP server (health routes) would take :8787 otherwise
+                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                                   resources={"memory": int(BUDGET_FRACTION * memory_limit)})
+            client = Client(cluster)
+        except BaseException:  # interrupted while starting: close what was started, quietly
+            close_unfinished_clusters()
+            raise
     return cluster, client
 
 
@@ -213,6 +302,7 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
     from distributed.client import FIRST_COMPLETED
 
     cluster = None
+    scratch_holder = contextlib.ExitStack()
     machine_budget: float | None = None  # local: the estimates of running cases share it
     slots = 1 << 30                      # local: one case per worker process at a time
     if scheduler:
@@ -237,7 +327,14 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
         n = plan_local_workers(workers, pending)
         available = available_memory_bytes()
         threads_per_case = max(1, (os.cpu_count() or 1) // n)
-        cluster, client = start_local_cluster(n, available, threads_per_case)
+        # the workers' scratch folder is private and removed with the cluster (dask's
+        # default, <TMPDIR>/dask-scratch-space, is shared and stays behind)
+        scratch = scratch_holder.enter_context(private_folder("pipeline-dask-"))
+        try:
+            cluster, client = start_local_cluster(n, available, threads_per_case, scratch)
+        except BaseException:
+            scratch_holder.close()
+            raise
         budgets = [BUDGET_FRACTION * available] * n
         machine_budget = BUDGET_FRACTION * available
         slots = n
@@ -297,18 +394,30 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
                     progress.advance(weights.get(case.key, 1), "done" if record.ok else "failed")
                 submit_more()
         except BaseException:
+            # an interrupt: the workers' shutdown (cancelled tasks, the scheduler gone)
+            # is expected, not worth a traceback on the user's terminal
+            with contextlib.suppress(Exception):
+                client.run(quiet_distributed_logs)
+                client.run(quiet_distributed_logs, nanny=True)
             for fut in not_done:
                 fut.cancel()
             raise
         finally:
             with contextlib.suppress(Exception):
                 client.unsubscribe_topic(EVENT_TOPIC)
+    except BaseException:
+        interrupted = True
+        raise
+    else:
+        interrupted = False
     finally:
         with contextlib.suppress(Exception):
             client.close(timeout=10)
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=20)
+            relay_worker_output(interrupted)
+        scratch_holder.close()
     return where
 
 
@@ -373,7 +482,7 @@ def run_batch(batch: str | Path | BatchSpec, output: str | Path | None = None, *
         if removed:
             log.info("removed %d partial file(s) of an interrupted run", removed)
         token = secrets.token_hex(16)
-        (cases_dir / TOKEN_FILE).write_text(token, encoding="utf-8")
+        write_text(cases_dir / TOKEN_FILE, token)
         outcomes: dict[str, CaseRecord] = {}
         cached: set[str] = set()
         unique = list({c.key: c for c in spec.cases}.values())

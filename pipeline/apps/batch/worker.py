@@ -93,7 +93,7 @@ def run_here(cfg: Config, target: Path, workdir: Path) -> CaseRecord:
     """Run one case in this process; the record of what happened (never raises)."""
     t0 = time.perf_counter()
     try:
-        result = run_pipeline(cfg, target, mesh_dir=workdir / "mesh")
+        result = run_pipeline(cfg, target)  # the mesh stays private to the run
         record = CaseRecord(
             status="ok",
             n_dofs=int(result.n_dofs),

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from pipeline._util import validate as v
-from pipeline._util.yamlio import parse_yaml
+from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.errors import ConfigError, SolverError
 
 __all__ = ["KINDS", "METHODS", "LOOPS", "DEFAULT_GRAVITY", "MAX_SAMPLES", "SCENARIO_KEYS",
@@ -303,7 +303,7 @@ def load_scenarios(path: str | Path) -> list[Scenario]:
     file in its message; its ``key`` stays the path inside the document."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text_bounded(path, "scenario file")  # regular file, bounded size
     except FileNotFoundError:
         raise ConfigError(f"scenario file '{path}': not found", key=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:

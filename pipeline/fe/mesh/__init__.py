@@ -16,8 +16,11 @@ gmsh helpers are in :mod:`~pipeline.fe.mesh.common`.
 
 from __future__ import annotations
 
+import hashlib
+import shutil
 from pathlib import Path
 
+from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError
 from pipeline.fe.mesh.box import box_faces, generate_mesh, mesh_box
@@ -51,8 +54,36 @@ def mesh_geometry(geometry: Geometry, spec: MeshSpec, out_path: str | Path
     return source(geometry, spec, Path(out_path))
 
 
-def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path, name: str
-              ) -> tuple[BodyMesh, Path]:
-    """The mesh stage of a run: (mesh, path of the mesh file ``<mesh_dir>/<name>.msh``, or
-    the file read for kind ``mesh``)."""
-    return mesh_geometry(geometry, spec, Path(mesh_dir) / f"{name}.msh")
+def file_sha256(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path | None, name: str
+              ) -> tuple[BodyMesh, Path | None, str]:
+    """The mesh stage of a run: (mesh, the mesh file kept, SHA-256 of the mesh file).
+
+    A run's mesh is its own: gmsh writes it into a private temporary folder and the mesh
+    is read from there, so runs started together (even of configs of the same name) never
+    read each other's mesh. With ``mesh_dir`` a copy is kept, content-addressed, as
+    ``<mesh_dir>/<name>.<sha256[:12]>.msh``: a later run never changes the content of a
+    file an earlier result names (the same name means the same bytes). Without it no file
+    is kept (None; the HDF5 file holds the mesh). For kind ``mesh`` the user's file read is
+    returned (it is an input, never written).
+    """
+    if geometry.kind == "mesh":
+        body, path = mesh_geometry(geometry, spec, Path(geometry.path))
+        return body, Path(path), file_sha256(Path(path))
+    with private_folder(f"pipeline-mesh-{name}-") as work:
+        body, path = mesh_geometry(geometry, spec, work / f"{name}.msh")
+        sha = file_sha256(path)
+        if mesh_dir is None:
+            return body, None, sha
+        kept = Path(mesh_dir) / f"{name}.{sha[:12]}.msh"
+        with atomic_path(kept) as tmp:
+            shutil.copyfile(path, tmp)
+    return body, kept, sha

@@ -12,7 +12,7 @@ from pipeline.fe.mesh.estimate import check_mesh_fits
 from pipeline._util.atomic import atomic_path
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError, OutputError
-from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh
+from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, signals_kept
 from pipeline.fe.mesh.read import read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
@@ -40,9 +40,15 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
 
     path = Path(path)
     threads = int(os.environ.get("PIPELINE_GMSH_THREADS", "1"))
-    if gmsh.isInitialized():
-        gmsh.finalize()
-    gmsh.initialize(interruptible=False)
+    with signals_kept() as restore:
+        if gmsh.isInitialized():
+            gmsh.finalize()
+        gmsh.initialize(interruptible=False)
+        restore()
+        return _generate(gmsh, geometry, spec, path, threads)
+
+
+def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path, threads: int) -> Path:
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 2)

@@ -20,7 +20,9 @@ import contextlib
 import logging
 import os
 import sys
+import signal
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping
@@ -150,13 +152,48 @@ def quiet_fd1():
                 log.debug("OpenCASCADE: %s", text)
 
 
+#: signals whose handling gmsh resets to the default when it starts and stops (SIGTERM
+#: and SIGHUP would then kill a run with no cleanup, SIGPIPE would kill it silently)
+KEPT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGPIPE")
+                     if hasattr(signal, n))
+
+
+@contextlib.contextmanager
+def signals_kept():
+    """Give back, after gmsh started and when it stops, the signal handling the process had
+    before (the CLI's SIGTERM handler, Python's ignored SIGPIPE). Yields the function that
+    re-installs it. Outside the main thread (handlers cannot be set there) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    saved = {sig: signal.getsignal(sig) for sig in KEPT_SIGNALS}
+
+    def restore() -> None:
+        for sig, handler in saved.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+    try:
+        yield restore
+    finally:
+        restore()
+
+
 @contextlib.contextmanager
 def gmsh_session(name: str):
     import gmsh
 
-    if gmsh.isInitialized():
-        gmsh.finalize()
-    gmsh.initialize(interruptible=False)
+    with signals_kept() as restore:
+        if gmsh.isInitialized():
+            gmsh.finalize()
+        gmsh.initialize(interruptible=False)
+        restore()
+        with _gmsh_session(gmsh, name):
+            yield gmsh
+
+
+@contextlib.contextmanager
+def _gmsh_session(gmsh, name: str):
     quiet = quiet_fd1()
     quiet.__enter__()
     try:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline._util.paths import check_name
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError
 from pipeline.fe.mesh.common import TET_TYPES, VOLUME_TYPES, BodyMesh, check_dimensions
@@ -50,6 +51,8 @@ def read_mesh(path: str | Path) -> BodyMesh:
     path = Path(path)
     if not path.exists():
         raise MeshError(f"mesh file '{path}': not found")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise MeshError(f"mesh file '{path}': not a regular file")
     try:
         mesh = meshio.read(path)
     except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
@@ -71,6 +74,8 @@ def read_mesh(path: str | Path) -> BodyMesh:
     for name, per_block in (mesh.cell_sets or {}).items():
         if name.startswith("gmsh:"):
             continue
+        # a region name becomes an HDF5 key (mesh/regions/<name>) and exported names
+        check_name(name, f"mesh file '{path}': region name", error=MeshError)
         tris = []
         for block, ids in zip(mesh.cells, per_block):
             if block.type in ("triangle", "triangle6") and ids is not None and len(ids):
@@ -92,6 +97,8 @@ def read_foreign(geometry: Geometry) -> BodyMesh:
     import meshio  # deferred: heavy, and only this source needs it here
 
     path = Path(geometry.path)
+    if not path.is_file():
+        raise MeshError(f"geometry.path '{path}': not a regular file")
     try:
         mesh = meshio.read(path)
     except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
