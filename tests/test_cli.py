@@ -308,3 +308,29 @@ def test_batch_names_that_cannot_be_folders_are_refused(tmp_path, capsys, signal
         code, err = cli(capsys, "batch", f, "-o", tmp_path / "out")
         assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.yaml"]
+
+
+def test_fmu_and_simscape_exports_replace_their_own_files_only(model_file, tmp_path, capsys,
+                                                               signals):
+    """An FMU this package exported is replaced without --force; a foreign zip of that
+    name is not (its modelDescription.xml does not name us); the default FMU name follows
+    --model, so the plant and the filtered FMU never replace each other."""
+    import zipfile
+
+    out = tmp_path / "m.fmu"
+    assert cli(capsys, "export", model_file, "--to", "fmu", "-o", out)[0] == 0
+    code, err = cli(capsys, "export", model_file, "--to", "fmu", "-o", out, "--model",
+                    "filtered")
+    assert code == 0, err
+    foreign = tmp_path / "other.fmu"
+    with zipfile.ZipFile(foreign, "w") as z:
+        z.writestr("modelDescription.xml", '<fmiModelDescription generationTool="X"/>')
+    before = digest(foreign)
+    code, err = cli(capsys, "export", model_file, "--to", "fmu", "-o", foreign)
+    assert code == 8 and "--force" in err, err
+    assert digest(foreign) == before
+    script = tmp_path / "s.m"
+    script.write_text("disp(1)\n")
+    code, err = cli(capsys, "export", model_file, "--to", "simscape", "-o", tmp_path / "s.mat")
+    assert code == 8 and "Simscape .m script" in err, err
+    assert script.read_text() == "disp(1)\n"

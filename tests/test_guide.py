@@ -97,6 +97,7 @@ def workdir(tmp_path_factory) -> Path:
     work = tmp_path_factory.mktemp("guide")
     for name in ("configs", "docs"):
         (work / name).symlink_to(ROOT / name)
+    (work / "outputs").mkdir()  # as in a clone (outputs/.gitkeep): -o never creates folders
     return work
 
 

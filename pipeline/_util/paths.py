@@ -77,7 +77,7 @@ def _ours_h5(path: Path) -> bool:
 def _xdmf_sidecar(path: Path) -> bool:
     attrs = _h5_root_attrs(path)
     return (attrs is not None and attrs.get("schema") is None and "frequencies_hz" in attrs["keys"]
-            and all(re.fullmatch(r"data\d+|frequencies_hz", k) for k in attrs["keys"]))
+            and all(re.fullmatch(r"data\d+|frequencies_hz|display_scale", k) for k in attrs["keys"]))
 
 
 def _exudyn(path: Path) -> bool:
@@ -95,6 +95,20 @@ def _json_summary(path: Path) -> bool:
     return isinstance(data, dict) and str(data.get("format", "")).startswith(OUR_SCHEMA)
 
 
+def _fmu(path: Path) -> bool:
+    """An FMU this package exported: a zip whose modelDescription.xml names us as its
+    generation tool (read at most 64 KiB of it)."""
+    import zipfile
+
+    if _head(path, 4) != b"PK\x03\x04":
+        return False
+    try:
+        with zipfile.ZipFile(path) as z, z.open("modelDescription.xml") as f:
+            return b'generationTool="fe-reduced-body' in f.read(65536)
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return False
+
+
 def _text(path: Path) -> str | None:
     head = _head(path)
     if b"\0" in head:
@@ -109,6 +123,10 @@ KINDS: dict[str, Callable[[Path], bool]] = {
     "exudyn": _exudyn,
     "json": _json_summary,
     "mat": lambda p: _head(p, 19) == b"MATLAB 5.0 MAT-file",
+    "fmu": _fmu,
+    # the .m script beside a Simscape .mat: its first line names the block
+    "simscape-script": lambda p: b"Reduced Order Flexible Solid" in _head(p)
+    and b"exported by fe-reduced-body" in _head(p),
     "vtu": lambda p: b"<VTKFile" in _head(p),
     "xdmf": lambda p: b"<Xdmf" in _head(p),
     "png": lambda p: _head(p, 8) == b"\x89PNG\r\n\x1a\n",
@@ -125,7 +143,7 @@ def kind_of_suffix(path: Path) -> str | None:
     """The kind of an output by its file ending (None: no kind; replaced only with force)."""
     name = path.name.lower()
     for ending, kind in ((".exudyn.hdf5", "exudyn"), (".h5", "h5"), (".hdf5", "h5"),
-                         (".json", "json"), (".mat", "mat"), (".vtu", "vtu"), (".xdmf", "xdmf"),
+                         (".json", "json"), (".mat", "mat"), (".fmu", "fmu"), (".vtu", "vtu"), (".xdmf", "xdmf"),
                          (".png", "png"), (".svg", "svg"), (".pdf", "pdf"), (".msh", "msh"),
                          (".csv", "csv"), (".html", "html")):
         if name.endswith(ending):

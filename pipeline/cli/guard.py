@@ -28,7 +28,8 @@ __all__ = ["Terminated", "handle_signals", "add_force_flags", "check_destination
 WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch")
 
 #: export format -> kind of the file it writes (see pipeline._util.paths.KINDS)
-EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn"}
+EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn",
+                "fmu": "fmu", "simscape": "mat"}
 
 
 def interrupted_by(exc: BaseException) -> bool:
@@ -97,8 +98,14 @@ def _simulate(args) -> None:
 def _export(args) -> None:
     from pipeline.apps.exports import default_output
 
-    out = Path(args.output) if args.output else default_output(args.file, args.to)
+    out = (Path(args.output) if args.output
+           else default_output(args.file, args.to, getattr(args, "model", None)))
     check_output(out, inputs=[args.file], force=args.force, kind=EXPORT_KINDS.get(args.to))
+    if args.to == "simscape":
+        from pipeline.apps.exports.simscape import script_path
+
+        check_output(script_path(out), inputs=[args.file], force=args.force,
+                     kind="simscape-script", what="output (Simscape .m script)")
     if args.to == "xdmf":
         check_output(out.with_suffix(".h5"), inputs=[args.file], force=args.force,
                      kind="xdmf-sidecar", what="output (XDMF data file)")
