@@ -15,8 +15,8 @@ from typing import Any, Mapping, Sequence, get_args
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml
 from pipeline.config.overrides import apply_overrides
-from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, SOLVERS, Config, Connection,
-                                    Constraints, Coupling, Damping, Filter, FilterKind,
+from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, PRECISIONS, SOLVERS, Config,
+                                    Connection, Constraints, Coupling, Damping, Filter, FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
                                     MeshAlgorithm, MeshSpec, Modes, OutputKind, Port, Ports,
                                     Reduction, RegionSelector, SelectorKind, StaticCorrection,
@@ -257,10 +257,12 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
-    modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance"))
+    modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",
+                                                              "precision"))
     modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
                   solver=v.choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
-                  tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2))
+                  tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2),
+                  precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"))
     regions = _regions(raw.get("regions"))
     for name in regions:
         if geometry.kind == "box" and name in BOX_FACES:
