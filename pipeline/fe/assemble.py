@@ -207,9 +207,9 @@ def assemble_blocks(space: FESpace, material: Material, chunk_size: int = 4096,
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Node-block values of K and M on ``pattern`` (default: :func:`block_pattern`).
 
-    Returns (kcomp (9, n_blocks) N/m, component c = 3 i + j of every 3x3 stiffness block;
-    mblock (n_blocks,) kg, the mass block is mblock * I_3); both are views of one
-    (n_blocks, 10) array whose rows hold a block's 9 stiffness components and its mass.
+    Returns (kcomp (9, n_blocks) N/m, component c = 3 i + j of every 3x3 stiffness block,
+    the transpose of a C-ordered (n_blocks, 9) array; mblock (n_blocks,) kg, the mass
+    block is mblock * I_3).
     ``progress``, if given, is called with the number of elements done after each chunk.
 
     Per chunk of ``chunk_size`` elements, one batched GEMM gives every element's nb^2
@@ -243,7 +243,10 @@ def assemble_blocks(space: FESpace, material: Material, chunk_size: int = 4096,
         del block
         if progress is not None:
             progress(m)
-    return values[:, :9].T, values[:, 9]
+    mblock = values[:, 9].copy()
+    kblocks = np.ascontiguousarray(values[:, :9])  # (n_blocks, 9): row gathers stay fast
+    del values
+    return kblocks.T, mblock
 
 
 def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 4096,
