@@ -341,6 +341,8 @@ def main(argv=None) -> int:
                     help="also run the pipeline with modes.precision=mixed")
     ap.add_argument("--ngsolve", choices=["auto", "yes", "no"], default="auto",
                     help="run NGSolve's variants beside ours (auto: when installed)")
+    ap.add_argument("--ngsolve-variants", default=",".join(NGSOLVE_VARIANTS),
+                    help="NGSolve inverses to try (comma-separated)")
     ap.add_argument("--sizes", default=None,
                     help="comma-separated subset of " + ",".join(SIZES))
     ap.add_argument("--no-reference", action="store_true",
@@ -380,7 +382,7 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown size(s) {unknown}; expected some of {list(SIZES)}")
     ngsolve = args.ngsolve == "yes" or (args.ngsolve == "auto" and _ngsolve_installed())
-    rows = []
+    rows, raw = [], []
     load_before = os.getloadavg()
     for label in labels:
         jobs = [("straightforward", None)] if not args.no_reference and (
@@ -389,7 +391,7 @@ def main(argv=None) -> int:
         if args.also_mixed and args.precision != "mixed":
             jobs.append(("pipeline", "mixed"))
         if ngsolve:
-            jobs += [("ngsolve", inverse) for inverse in NGSOLVE_VARIANTS]
+            jobs += [("ngsolve", inverse) for inverse in args.ngsolve_variants.split(",")]
         runs: dict = {job: [] for job in jobs}
         for _ in range(max(1, args.repeat)):  # interleaved: every job once per round
             for kind, variant in jobs:
@@ -399,6 +401,9 @@ def main(argv=None) -> int:
                 else:
                     one = _run_child(kind, label, args.count, args.timeout, variant or "auto")
                 runs[(kind, variant)].append(one)
+                if args.json:  # every run as it finishes: a long bench keeps what it did
+                    raw.append(one)
+                    Path(args.json).with_suffix(".runs.json").write_text(json.dumps(raw))
         for job in jobs:
             row = median_row(runs[job])
             rows.append(row)
