@@ -128,7 +128,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free, fe.space.node_points,
                               node_volume_weights(fe.space), supported=bool(cfg.supports),
                               backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
-                              keep=cfg.reduction is not None)
+                              keep=cfg.reduction is not None,
+                              precision=cfg.modes.precision)
     if modes.factorization is not None:
         # the kept factor of K (for the static correction) lives exactly as long as K:
         # freed when the reduce stage drops K, before the connection models factorise

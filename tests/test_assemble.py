@@ -176,3 +176,19 @@ def test_stiffness_straight_onto_free_dofs_equals_restriction(space, matrices, w
     np.testing.assert_array_equal(Kf.indices, ref.indices)
     np.testing.assert_array_equal(Kf.data, ref.data)
     assert Kf.indices.dtype == np.int32
+
+
+def test_scatter_fallback_equals_fast_path(space, matrices, monkeypatch):
+    """Without scipy's private CSC kernel the element sums fall back to np.bincount; the
+    two sum the same element values in different orders, so they agree to the round-off of
+    a sum of at most n_t terms per entry (bounded here by 1e-13 of the largest entry)."""
+    from scipy.sparse import _sparsetools
+
+    pattern = asm.block_pattern(space)
+    kcomp, mblock = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
+    monkeypatch.delattr(_sparsetools, "csc_matvecs")
+    kcomp2, mblock2 = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
+    assert np.abs(kcomp2 - kcomp).max() <= 1e-13 * np.abs(kcomp).max()
+    assert np.abs(mblock2 - mblock).max() <= 1e-13 * np.abs(mblock).max()
+    K, M = matrices
+    assert _rel(asm.stiffness_csr(pattern, kcomp2), K) < 1e-13

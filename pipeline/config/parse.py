@@ -17,8 +17,9 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
-from pipeline.config.schema import (BOX_FACES, GAUGE_KINDS, GEOMETRY_KINDS, SOLVERS, Config, Connection,
-                                    Constraints, Coupling, Damping, Filter, FilterKind,
+from pipeline.config.schema import (BOX_FACES, GAUGE_KINDS, GEOMETRY_KINDS, PRECISIONS, SOLVERS,
+                                    Config, Connection, Constraints, Coupling, Damping, Filter,
+                                    FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
                                     MeshAlgorithm, MeshSpec, Modes, OutputKind, Port, Ports,
                                     Reduction, RegionSelector, SelectorKind, StaticCorrection,
@@ -300,10 +301,12 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
-    modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance"))
+    modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",
+                                                              "precision"))
     modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
                   solver=v.choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
-                  tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2))
+                  tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2),
+                  precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"))
     regions = _regions(raw.get("regions"))
     for name in regions:
         if geometry.kind == "box" and name in BOX_FACES:

@@ -30,6 +30,8 @@ BoxFace = Literal["root", "tip", "bottom", "top", "back", "front"]
 
 GEOMETRY_KINDS: tuple[str, ...] = get_args(GeometryKind)
 SOLVERS: tuple[str, ...] = get_args(Solver)
+Precision = Literal["auto", "double", "mixed"]
+PRECISIONS: tuple[str, ...] = get_args(Precision)
 BOX_FACES: tuple[str, ...] = get_args(BoxFace)
 
 
@@ -97,6 +99,7 @@ class Modes:
     count: int = 10
     solver: Solver = "auto"
     tolerance: float = 0.0  # relative residual of the shift-inverted problem; 0: 1e-10 for block Lanczos (1e-8 from 100k free DOFs), machine precision for ARPACK
+    precision: Precision = "auto"  # factor precision: double; mixed (float32 factor, double refinement); auto: mixed only when a double factor does not fit
 
 
 @dataclass(frozen=True)

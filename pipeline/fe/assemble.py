@@ -181,40 +181,75 @@ def _element_factors(space: FESpace, lam: float, mu: float, elems: slice):
     return Q.reshape(9, 9, -1), vol
 
 
-def assemble_blocks(space: FESpace, material: Material, chunk_size: int = 131072,
+def _scatter_add(slots: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
+    """out[slots[r], :] += values[r, :] for every row r of ``values`` (m, k).
+
+    scipy's C++ sparse (CSC, one entry per column) times dense product with unit
+    weights, which accumulates into ``out`` (n_blocks, k) in place: one pass over the
+    element values, k contiguous columns per entry. Falls back to one ``np.bincount``
+    per column if scipy's private kernel is not there.
+    """
+    m, k = values.shape
+    try:
+        from scipy.sparse import _sparsetools
+
+        itype = slots.dtype
+        _sparsetools.csc_matvecs(out.shape[0], m, k, np.arange(m + 1, dtype=itype), slots,
+                                 np.ones(m), values.reshape(-1), out.reshape(-1))
+    except (ImportError, AttributeError, TypeError, ValueError):
+        index = slots.astype(np.intp)
+        for c in range(k):
+            out[:, c] += np.bincount(index, weights=values[:, c], minlength=out.shape[0])
+
+
+def assemble_blocks(space: FESpace, material: Material, chunk_size: int = 4096,
                     pattern: BlockPattern | None = None, progress=None
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Node-block values of K and M on ``pattern`` (default: :func:`block_pattern`).
 
-    Returns (kcomp (9, n_blocks) N/m, component c = 3 i + j of every 3x3 stiffness block;
-    mblock (n_blocks,) kg, the mass block is mblock * I_3). ``progress``, if given, is
-    called with the number of elements done after each chunk; ``chunk_size`` bounds the
-    element data held at once (about 2 kB per element).
+    Returns (kcomp (9, n_blocks) N/m, component c = 3 i + j of every 3x3 stiffness block,
+    the transpose of a C-ordered (n_blocks, 9) array; mblock (n_blocks,) kg, the mass
+    block is mblock * I_3).
+    ``progress``, if given, is called with the number of elements done after each chunk.
+
+    Per chunk of ``chunk_size`` elements, one batched GEMM gives every element's nb^2
+    node pairs x (9 stiffness components + mass): [R | m_ref] (nb^2 x 10) @ F_e (10 x 10)
+    with F_e = [[Q_e, 0], [0, rho |det J_e|]], laid out element by element so that each
+    (element, pair) row has its 10 values side by side and one element's rows fall into
+    the same few node rows of the pattern; one scatter-add (:func:`_scatter_add`) sums them
+    into the blocks. Measured at 314k DOFs against 9 + 1 ``np.bincount`` passes over
+    component-major whole-mesh arrays: about 2.5x faster (docs/performance.md).
     """
     lam, mu = lame_parameters(material)
     if pattern is None:
         pattern = block_pattern(space)
     R, mass_ref = _reference_data(space.order)
+    R_aug = np.concatenate([R, material.rho * mass_ref.reshape(-1, 1)], axis=1)  # (nb^2, 10)
     n_t = space.body.n_tetrahedra
-    n_blocks = pattern.n_blocks
-    kcomp = np.zeros((9, n_blocks))
-    mblock = np.zeros(n_blocks)
-    mref = material.rho * mass_ref.reshape(-1, 1)
+    chunk_size = max(1, int(chunk_size))
+    values = np.zeros((pattern.n_blocks, 10))
+    factors = np.zeros((min(chunk_size, max(n_t, 1)), 10, 10))  # F_e[kl, c]
     for start in range(0, n_t, chunk_size):
         sl = slice(start, min(start + chunk_size, n_t))
-        Q, vol = _element_factors(space, lam, mu, sl)
-        slots = pattern.slots[:, sl].astype(np.intp).reshape(-1)
-        for c in range(9):
-            Kc = R @ Q[c]  # (nb*nb, n)
-            kcomp[c] += np.bincount(slots, weights=Kc.reshape(-1), minlength=n_blocks)
-        del Q, Kc
-        mblock += np.bincount(slots, weights=(mref * vol).reshape(-1), minlength=n_blocks)
+        m = sl.stop - sl.start
+        Q, vol = _element_factors(space, lam, mu, sl)  # Q[c, kl, e]
+        F = factors[:m]
+        F[:, :9, :9] = Q.transpose(2, 1, 0)
+        F[:, 9, 9] = vol
+        del Q
+        block = np.matmul(R_aug, F)  # (m, nb^2, 10): [element, pair, c]
+        slots = np.ascontiguousarray(pattern.slots[:, sl].T).reshape(-1)
+        _scatter_add(slots, block.reshape(-1, 10), values)
+        del block
         if progress is not None:
-            progress(sl.stop - sl.start)
-    return kcomp, mblock
+            progress(m)
+    mblock = values[:, 9].copy()
+    kblocks = np.ascontiguousarray(values[:, :9])  # (n_blocks, 9): row gathers stay fast
+    del values
+    return kblocks.T, mblock
 
 
-def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 131072,
+def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 4096,
                             pattern: BlockPattern | None = None, progress=None
                             ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """Assemble K (N/m) and M (kg), both (n_dofs x n_dofs) CSR, in the space's DOF order.
@@ -260,7 +295,7 @@ def stiffness_csr(pattern: BlockPattern, kcomp: np.ndarray, free: np.ndarray | N
     indptr = pattern.indptr.astype(np.int64)
     indices = pattern.indices
     if nodes is None or nodes.size == n_nodes:
-        blocks = np.ascontiguousarray(kcomp.T)
+        blocks = kcomp.T  # (n_blocks, 9), a view
     else:
         new_node = np.full(n_nodes, -1, dtype=np.int64)
         new_node[nodes] = np.arange(nodes.size)
@@ -277,8 +312,9 @@ def stiffness_csr(pattern: BlockPattern, kcomp: np.ndarray, free: np.ndarray | N
         n_nodes = nodes.size
     n = 3 * n_nodes
     itype = _index_dtype(max(9 * indices.size, n))
-    K = sp.bsr_matrix((blocks.reshape(-1, 3, 3), indices.astype(itype, copy=False),
-                       indptr.astype(itype)), shape=(n, n)).tocsr()
+    K = sp.bsr_matrix((np.ascontiguousarray(blocks).reshape(-1, 3, 3),
+                       indices.astype(itype, copy=False), indptr.astype(itype)),
+                      shape=(n, n)).tocsr()
     del blocks
     itype = _index_dtype(max(K.nnz, n))
     K.indices = K.indices.astype(itype, copy=False)

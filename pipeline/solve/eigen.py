@@ -27,8 +27,10 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.errors import SolverError
 from pipeline._util import progress as watch_progress
+from pipeline._util.resources import HEADROOM, available_memory_bytes, factor_bytes
+from pipeline.errors import ConfigError, ResourceError, SolverError
+from pipeline.solve import mixed
 from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
                                       sparse_times_dense)
 from pipeline.solve.modes import Modes
@@ -85,7 +87,8 @@ def default_block_size(count: int, supported: bool = True) -> int:
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
                 progress=None, method: str = "auto", block_size: int | None = None,
-                max_basis: int | None = None, keep: bool = False) -> Modes:
+                max_basis: int | None = None, keep: bool = False,
+                precision: str = "double") -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
@@ -97,7 +100,10 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     of every solve. ``keep``: for a supported body (shift 0) solved by factorisation,
     return the factorisation of K in :attr:`Modes.factorization` instead of freeing it
     (the static correction solves with the same K); the caller then owns it and frees
-    it with :meth:`Modes.release_factorization`.
+    it with :meth:`Modes.release_factorization`. ``precision``: ``double``; ``mixed``
+    (a float32 PARDISO factor, answers refined in double: :mod:`pipeline.solve.mixed`;
+    no factor is kept); ``auto``: mixed when a double factor would not fit in memory
+    (the size estimate, or PARDISO's exact size after its analysis), else double.
     """
 
     t0 = time.perf_counter()
@@ -112,14 +118,35 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     sigma = default_shift(K, M, supported) if shift is None else float(shift)
     stats: dict = {"n": n, "count": count}
     kept = None
-    if method == "dense" or (method == "auto" and n <= DENSE_MAX):
+    if precision not in mixed.PRECISIONS:
+        raise ConfigError.field("modes.precision", precision, "double, mixed or auto")
+    dense = method == "dense" or (method == "auto" and n <= DENSE_MAX)
+    if not dense and precision == "auto" and (
+            factor_bytes(n) > HEADROOM * available_memory_bytes()):
+        precision = "mixed"  # the estimate already says a double factor will not fit
+    if not dense and precision == "mixed":
+        v, mstats = _mixed_modes(K, M, count, sigma, tolerance,
+                                 block_size or default_block_size(count, supported),
+                                 max_basis, progress, backend)
+        stats.update(mstats)
+        backend_name = "pardiso (float32 factor, double refinement)"
+    elif dense:
         backend_name = f"dense ({resolve_backend(backend)} not needed)"
         v = _dense_modes(K, M, count, sigma)
         stats["method"] = "dense"
     else:
         shifted = K - sigma * M if sigma != 0.0 else K
         t1 = time.perf_counter()
-        fact = factorize(shifted, backend, positive_definite=True, check=False)
+        try:
+            fact = factorize(shifted, backend, positive_definite=True, check=False)
+        except ResourceError:  # PARDISO's exact size after the analysis: does not fit
+            if precision != "auto":
+                raise
+            log.warning("a double-precision factor does not fit: mixed precision")
+            return solve_modes(K, M, count, supported=supported, backend=backend,
+                               tolerance=tolerance, shift=shift, progress=progress,
+                               method=method, block_size=block_size, max_basis=max_basis,
+                               keep=keep, precision="mixed")
         try:
             check_factorization(shifted, fact)
         except SolverError:
@@ -173,6 +200,32 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     return Modes(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
                  residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
                  shift=sigma, seconds=seconds, stats=stats, factorization=kept)
+
+
+def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress, backend):
+    """Eigenvectors (n, count) from a float32 factor, refined in double
+    (:mod:`pipeline.solve.mixed`), and the statistics."""
+    if resolve_backend(backend) != "pardiso":
+        raise ConfigError.field("modes.precision", "mixed",
+                                "double, or the 'pardiso' backend for mixed precision")
+    t1 = time.perf_counter()
+    sigma_f = mixed.mixed_shift(K, M, sigma)
+    fact = mixed.factorize_single(K, M, sigma_f)
+    t2 = time.perf_counter()
+    stats = {"backend": "pardiso", "precision": "mixed", "mixed_shift": sigma_f,
+             "factor_seconds": t2 - t1,
+             **{k: v for k, v in fact.info.items() if not callable(v)}}
+    try:
+        v, lstats = _lanczos_modes(fact, M, count, max(tolerance, mixed.LANCZOS_TOLERANCE),
+                                   block_size, max_basis, progress)
+        v, rstats = mixed.refine(K, M, v, fact, sigma)
+    finally:
+        fact.release()
+    stats.update(lstats, **rstats)
+    stats["eigensolver_seconds"] = time.perf_counter() - t2
+    log.info("mixed precision: %d Lanczos solves, %d refinement sweeps, residual %.1e",
+             lstats["solves"], rstats["refine_sweeps"], rstats["refine_residuals"][-1])
+    return v, stats
 
 
 # --------------------------------------------------------------------------- post-processing

@@ -249,7 +249,7 @@ def sparse_times_dense(A: sp.spmatrix, X: np.ndarray) -> np.ndarray:
 class _Pardiso:
     """One MKL PARDISO factorisation (matrix type 2 or -2), prepared once."""
 
-    def __init__(self, A: sp.spmatrix, positive_definite: bool = True):
+    def __init__(self, A: sp.spmatrix, positive_definite: bool = True, single: bool = False):
         lib = _mkl_library()
         if lib is None:
             raise ConfigError("config key 'modes.solver': 'pardiso' needs MKL (install the "
@@ -261,7 +261,9 @@ class _Pardiso:
         if U.indptr.dtype != np.int32:
             raise SolverError(f"the {self.n}x{self.n} system has {U.nnz} non-zeros in its "
                               "upper triangle: more than 32-bit PARDISO indices hold")
-        self.a, self.ia, self.ja = U.data, U.indptr, U.indices
+        # single: PARDISO factorises and solves in float32 (iparm[27] = 1; a, b, x float32)
+        self.dtype = np.float32 if single else np.float64
+        self.a, self.ia, self.ja = U.data.astype(self.dtype, copy=False), U.indptr, U.indices
         del U
         self.pt = np.zeros(64, dtype=np.int64)
         self.iparm = np.zeros(64, dtype=np.int32)
@@ -272,6 +274,7 @@ class _Pardiso:
         ip[17] = -1  # report the factor's non-zeros
         ip[20] = 1  # Bunch-Kaufman pivoting (indefinite type only)
         ip[23] = 1  # two-level parallel factorisation
+        ip[27] = 1 if single else 0  # single-precision factor (pipeline.solve.mixed)
         ip[34] = 1  # zero-based indices: scipy's arrays are passed as they are
         ip[36] = VBSR_THRESHOLD  # rows with (nearly) equal patterns -> variable blocks
         if "MKL_NUM_THREADS" not in os.environ:
@@ -298,7 +301,7 @@ class _Pardiso:
         P = ctypes.POINTER
         i32 = ctypes.c_int32
         err = i32(0)
-        dummy = np.zeros(1)
+        dummy = np.zeros(1, dtype=self.dtype)
         self.lib.pardiso(
             self.pt.ctypes.data_as(P(ctypes.c_int64)), ctypes.byref(i32(1)), ctypes.byref(i32(1)),
             ctypes.byref(i32(self.mtype)), ctypes.byref(i32(phase)), ctypes.byref(i32(self.n)),
@@ -325,7 +328,7 @@ class _Pardiso:
     def _apply(self, phase: int, b: np.ndarray) -> np.ndarray:
         if not self._alive:
             raise SolverError("the PARDISO factorisation was released")
-        b = np.asarray(b, dtype=np.float64)
+        b = np.asarray(b, dtype=self.dtype)
         if b.shape[0] != self.n:
             raise ValueError(f"right-hand side has {b.shape[0]} rows, expected {self.n}")
         if b.ndim == 1:
@@ -352,7 +355,7 @@ class _Pardiso:
         """Solve for a C-ordered (k, n) block of right-hand sides (rows); no copies."""
         if not self._alive:
             raise SolverError("the PARDISO factorisation was released")
-        bt = np.ascontiguousarray(bt, dtype=np.float64)
+        bt = np.ascontiguousarray(bt, dtype=self.dtype)
         xt = np.empty_like(bt)
         self._call(phase, bt, xt, bt.shape[0] if bt.ndim == 2 else 1)
         return xt
@@ -383,7 +386,7 @@ class _Pardiso:
     def info(self) -> dict:
         # iparm[16]: memory of numerical factorisation and solution (KB), iparm[17]: nnz
         # of the factor
-        return {"format": "csr-upper/vbsr",
+        return {"format": "csr-upper/vbsr" + ("/float32" if self.dtype == np.float32 else ""),
                 "analysis_seconds": self.seconds["analysis"],
                 "numeric_seconds": self.seconds["factorisation"],
                 "factor_nnz": int(self.iparm[17]),
@@ -391,8 +394,8 @@ class _Pardiso:
                 "analysis_bytes": int(self.iparm[14]) * 1024}
 
 
-def _pardiso(A: sp.spmatrix, positive_definite: bool) -> Factorization:
-    fact = _Pardiso(A, positive_definite)
+def _pardiso(A: sp.spmatrix, positive_definite: bool, single: bool = False) -> Factorization:
+    fact = _Pardiso(A, positive_definite, single)
     info = fact.info()
     info["rows"] = fact.solve_rows
     fwd = fact.forward if positive_definite else None
@@ -487,19 +490,24 @@ def check_factorization(A: sp.spmatrix, fact: Factorization, seed: int = 7) -> f
 
 
 def factorize(A: sp.spmatrix, backend: str = "auto", positive_definite: bool = True,
-              check: bool = True) -> Factorization:
+              check: bool = True, single: bool = False) -> Factorization:
     """Factorise the symmetric matrix ``A`` (n x n) once, with ``backend``.
 
     ``backend``: ``auto`` or one of :data:`BACKENDS`; a backend that is not installed
-    is refused (ConfigError) with the list of those that are. A singular ``A`` raises
+    is refused (ConfigError) with the list of those that are. ``single``: a float32
+    PARDISO factor (iparm[27] = 1; half the memory and about half the flops; its solves
+    take and return float32), for :mod:`pipeline.solve.mixed`. A singular ``A`` raises
     SolverError: from the factorisation itself, or (``check``) from
     :func:`check_factorization`.
     """
     backend = resolve_backend(backend)
     if A.shape[0] != A.shape[1] or A.shape[0] == 0:
         raise SolverError(f"cannot factorise a {A.shape[0]}x{A.shape[1]} matrix")
+    if single and backend != "pardiso":
+        raise ConfigError(f"config key 'modes.precision': a single-precision factor needs "
+                          f"the 'pardiso' backend, not '{backend}'", key="modes.precision")
     if backend == "pardiso":
-        fact = _pardiso(A, positive_definite)
+        fact = _pardiso(A, positive_definite, single)
     elif backend == "cholmod":
         with progress.stage("factorise (CHOLMOD)"):
             fact = _cholmod(A)
