@@ -334,3 +334,19 @@ def test_fmu_and_simscape_exports_replace_their_own_files_only(model_file, tmp_p
     code, err = cli(capsys, "export", model_file, "--to", "simscape", "-o", tmp_path / "s.mat")
     assert code == 8 and "Simscape .m script" in err, err
     assert script.read_text() == "disp(1)\n"
+
+
+def test_stdout_holds_only_what_the_command_prints(model_file, tmp_path):
+    """No stray output of a library (meshio printed an empty line for every .msh it read)
+    before the summary; a reader that goes away (``| head``) gets no traceback."""
+    out = tmp_path / "r.h5"
+    proc = run_cli("run", "configs/cantilever.yaml", "--set", "mesh.size=0.03",
+                   "--set", "modes.count=4", "-o", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[0].startswith("cantilever: "), proc.stdout[:200]
+    reader_gone = subprocess.Popen([sys.executable, "-m", "pipeline", "inspect", str(model_file)],
+                                   cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    reader_gone.stdout.close()  # before the command has printed anything
+    _, err = reader_gone.communicate(timeout=120)
+    assert b"Traceback" not in err, err.decode()[-2000:]
+    assert reader_gone.returncode in (0, 141), err.decode()[-2000:]

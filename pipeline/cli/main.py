@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -188,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
             return _interrupted(guard.interruption(), guard)
         print(f"error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except BrokenPipeError:
+        # the reader of stdout went away (``| head``): nothing more to say, no traceback;
+        # stdout is pointed at /dev/null so the interpreter's final flush does not fail
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except Exception as exc:
         if not guard.interrupted_by(exc):
             raise  # a bug: its traceback is wanted

@@ -7,6 +7,8 @@ name regions. ``mesh.size`` does not apply.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 from pathlib import Path
 
@@ -19,6 +21,21 @@ from pipeline.fe.mesh.common import TET_TYPES, VOLUME_TYPES, BodyMesh, check_dim
 from pipeline.fe.mesh.registry import SOURCES
 
 log = logging.getLogger(__name__)
+
+
+def read_quietly(path: Path):
+    """``meshio.read(path)`` with what meshio prints kept off stdout (for a ``.msh`` it
+    tries the ANSYS reader first and prints that reader's exception, an empty line, to
+    stdout); what it printed goes to the debug log."""
+    import meshio  # deferred: heavy
+
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(printed):
+            return meshio.read(path)
+    finally:
+        if printed.getvalue().strip():
+            log.debug("meshio, reading %s: %s", path, printed.getvalue().strip())
 
 
 def orient(vertices: np.ndarray, tets: np.ndarray, source: str) -> np.ndarray:
@@ -46,15 +63,13 @@ def read_mesh(path: str | Path) -> BodyMesh:
     module docstring); named regions are the triangle cell sets (gmsh physical
     groups). Unused nodes are removed and vertices renumbered 0..n_v-1.
     """
-    import meshio  # deferred: heavy
-
     path = Path(path)
     if not path.exists():
         raise MeshError(f"mesh file '{path}': not found")
     if not path.is_file():  # a FIFO or device would block or never end
         raise MeshError(f"mesh file '{path}': not a regular file")
     try:
-        mesh = meshio.read(path)
+        mesh = read_quietly(path)
     except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
         detail = str(exc) if not isinstance(exc, SystemExit) else "unknown or corrupt format"
         raise MeshError(f"mesh file '{path}': meshio cannot read it ({detail})") from None
@@ -94,13 +109,11 @@ def read_mesh(path: str | Path) -> BodyMesh:
 def read_foreign(geometry: Geometry) -> BodyMesh:
     """The tetrahedral mesh file ``geometry.path`` (any format meshio reads), scaled by
     ``geometry.scale``; other volume element types are refused."""
-    import meshio  # deferred: heavy, and only this source needs it here
-
     path = Path(geometry.path)
     if not path.is_file():
         raise MeshError(f"geometry.path '{path}': not a regular file")
     try:
-        mesh = meshio.read(path)
+        mesh = read_quietly(path)
     except (Exception, SystemExit) as exc:  # meshio raises many types, and sys.exit(1)
         if isinstance(exc, SystemExit):
             exc = RuntimeError(f"no reader of '{path.suffix}' files could parse it")
