@@ -102,9 +102,12 @@ def extreme_eigenvalues(K, M=None, n_zero: int = 0) -> tuple[float, float]:
     high = eigsh(K, k=1, M=M, which="LA", tol=1e-3, return_eigenvectors=False)
     # shift-invert about a point just below zero (a free body's K is singular)
     sigma = -1e-6 * float(abs(K.diagonal()).max() / abs(M.diagonal()).max())
-    low = eigsh(K, k=n_zero + 1, M=M, sigma=sigma, which="LM", tol=1e-6,
+    low = eigsh(K, k=n_zero + 4, M=M, sigma=sigma, which="LM", tol=1e-6,
                 return_eigenvectors=False)
-    return float(np.sort(low)[n_zero]), float(high[0])
+    # single-vector Lanczos may miss copies of the repeated zero eigenvalue: the lowest
+    # nonzero one is the lowest above round-off of zero (1e4 eps lambda_max)
+    nonzero = np.sort(low[low > 1e4 * EPS * high[0]]) if n_zero else np.sort(low)
+    return float(nonzero[0]), float(high[0])
 
 
 def condition_number(K, M=None, n_zero: int = 0) -> float:
