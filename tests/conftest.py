@@ -111,7 +111,12 @@ def extreme_eigenvalues(K, M=None, n_zero: int = 0) -> tuple[float, float]:
 
 
 def condition_number(K, M=None, n_zero: int = 0) -> float:
-    """lambda_max / lambda_min of the pencil (K, M), the 2-norm cond(K) when M is None."""
+    """lambda_max / lambda_min of the pencil (K, M), the 2-norm cond(K) when M is None
+    (for a small dense K, symmetric or not: numpy's singular-value ratio)."""
+    import scipy.sparse as sp
+
+    if M is None and n_zero == 0 and not sp.issparse(K):
+        return float(np.linalg.cond(np.asarray(K)))
     low, high = extreme_eigenvalues(K, M, n_zero)
     return high / low
 
@@ -169,3 +174,4 @@ def eigenvalue_rtol(K, M=None, tolerance: float | None = None, n_zero: int = 0,
 
     tau = default_tolerance(K.shape[0]) if tolerance is None else tolerance
     return routes * (tau + cond_eps(K, M, n_zero))
+
