@@ -175,3 +175,4 @@ def eigenvalue_rtol(K, M=None, tolerance: float | None = None, n_zero: int = 0,
     tau = default_tolerance(K.shape[0]) if tolerance is None else tolerance
     return routes * (tau + cond_eps(K, M, n_zero))
 
+
