@@ -62,3 +62,117 @@ def add_reliability_counts(prefix: str, counts) -> None:
     for key, value in counts.items():
         old[f"{prefix}.{key}"] = old.get(f"{prefix}.{key}", 0) + value
     path.write_text(json.dumps(old, indent=1, sort_keys=True))
+
+
+# --------------------------------------------------------------------------------------
+# Round-off bounds derived from the conditioning of what a test computes (issue 16, 1).
+#
+# Two results that reach the same quantity through different factorisations, orderings
+# or eigensolvers (PARDISO threads / ordering, SuperLU, dense LAPACK, ARPACK or block
+# Lanczos; MKL takes other kernels on Intel AVX-512 than on AMD Zen) are each exact for a
+# matrix perturbed by dK with ||dK|| <= c eps ||K|| (backward stability). To first order:
+#   static solve x = K^-1 b:      ||dx|| / ||x||    <= c eps cond(K)
+#   eigenvalue of (K, M):         |d lambda|        <= c eps lambda_max   (the eigenvalue
+#                                 condition number of a symmetric pencil is 1), i.e.
+#                                 |d lambda|/lambda <= c eps lambda_max / lambda,
+#                                 plus the iterative solver's tolerance tau (|d theta| <=
+#                                 tau theta on the shift-inverted problem).
+# Two such results differ by twice that. c = 10 covers the modest dimension factors of
+# the norm bounds (it is not a per-CPU fudge). cond is estimated from the test's own
+# matrices: extreme eigenvalues of the pencil (two sparse Lanczos runs with a loose
+# tolerance, an order-of-magnitude estimate is all a bound needs), or numpy on small
+# dense matrices.
+EPS = float(np.finfo(float).eps)
+ROUND_OFF_FACTOR = 10.0
+
+
+def extreme_eigenvalues(K, M=None, n_zero: int = 0) -> tuple[float, float]:
+    """(lambda_min, lambda_max) of K x = lambda M x (M = I when None), the lowest nonzero
+    one when the pencil has ``n_zero`` zero eigenvalues (a free body: 6)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import eigsh
+
+    if not sp.issparse(K):
+        import scipy.linalg as sla
+
+        w = sla.eigvalsh(K, M)
+        return float(w[n_zero]), float(w[-1])
+    K = sp.csc_matrix(K)
+    M = sp.identity(K.shape[0], format="csc") if M is None else sp.csc_matrix(M)
+    high = eigsh(K, k=1, M=M, which="LA", tol=1e-3, return_eigenvectors=False)
+    # shift-invert about a point just below zero (a free body's K is singular)
+    sigma = -1e-6 * float(abs(K.diagonal()).max() / abs(M.diagonal()).max())
+    low = eigsh(K, k=n_zero + 4, M=M, sigma=sigma, which="LM", tol=1e-6,
+                return_eigenvectors=False)
+    # single-vector Lanczos may miss copies of the repeated zero eigenvalue: the lowest
+    # nonzero one is the lowest above round-off of zero (1e4 eps lambda_max)
+    nonzero = np.sort(low[low > 1e4 * EPS * high[0]]) if n_zero else np.sort(low)
+    return float(nonzero[0]), float(high[0])
+
+
+def condition_number(K, M=None, n_zero: int = 0) -> float:
+    """lambda_max / lambda_min of the pencil (K, M), the 2-norm cond(K) when M is None
+    (for a small dense K, symmetric or not: numpy's singular-value ratio)."""
+    import scipy.sparse as sp
+
+    if M is None and n_zero == 0 and not sp.issparse(K):
+        return float(np.linalg.cond(np.asarray(K)))
+    low, high = extreme_eigenvalues(K, M, n_zero)
+    return high / low
+
+
+def cond_eps(K, M=None, n_zero: int = 0, factor: float = ROUND_OFF_FACTOR) -> float:
+    """factor * cond * eps: the first-order relative forward error of one backward-stable
+    solve with K (or of the lowest eigenvalue of (K, M)); twice it bounds the difference
+    of two such results computed by different routes."""
+    return factor * condition_number(K, M, n_zero) * EPS
+
+
+def record_tolerance(name: str, measured: float, bound: float) -> None:
+    """Append (name, measured, bound) to $TOLERANCE_LOG when set (the audit's table of
+    measured values); does nothing otherwise."""
+    import json
+    import os
+
+    target = os.environ.get("TOLERANCE_LOG")
+    if target:
+        with open(target, "a") as out:
+            out.write(json.dumps({"name": name, "measured": float(measured),
+                                  "bound": float(bound)}) + "\n")
+
+
+def assert_relative_within(got, ref, bound: float, name: str, scale=None) -> float:
+    """max |got - ref| / scale <= bound (scale: max |ref| unless given); records the
+    measured value (see record_tolerance) and returns it."""
+    got, ref = np.asarray(got), np.asarray(ref)
+    scale = float(np.abs(ref).max()) if scale is None else float(scale)
+    measured = float(np.abs(got - ref).max()) / scale
+    record_tolerance(name, measured, bound)
+    assert measured <= bound, (name, measured, bound)
+    return measured
+
+
+def assert_elementwise_within(got, ref, bound: float, name: str) -> float:
+    """max_i |got_i - ref_i| / |ref_i| <= bound (a per-entry relative error, as rtol)."""
+    got, ref = np.asarray(got), np.asarray(ref)
+    measured = float(np.max(np.abs(got - ref) / np.abs(ref)))
+    record_tolerance(name, measured, bound)
+    assert measured <= bound, (name, measured, bound)
+    return measured
+
+
+def eigenvalue_rtol(K, M=None, tolerance: float | None = None, n_zero: int = 0,
+                    routes: int = 2) -> float:
+    """Relative bound on the difference of eigenvalues of (K, M) computed by ``routes``
+    different solvers: each is within tau + c eps lambda_max / lambda_min of the exact one
+    (tau: the shift-inverted solver's relative residual tolerance, |d theta| <= tau theta
+    for a symmetric pencil; the round-off term: the eigenvalue condition number of a
+    symmetric pencil is 1, so a backward error c eps ||K|| moves lambda by c eps
+    lambda_max, worst relative on the lowest nonzero lambda). ``tolerance`` defaults to
+    pipeline.solve.eigen.default_tolerance(n). For frequencies (sqrt) halve it."""
+    from pipeline.solve.eigen import default_tolerance
+
+    tau = default_tolerance(K.shape[0]) if tolerance is None else tolerance
+    return routes * (tau + cond_eps(K, M, n_zero))
+
+
