@@ -72,13 +72,25 @@ def elasticity_matrix(material: Material) -> np.ndarray:
     return D
 
 
-def _basis(space: FESpace, elements: np.ndarray, quadrature=None):
+def shared_parts(space: FESpace) -> dict:
+    """The mesh-wide parts every chunk's basis shares (the mapping and the DOF numbering):
+    built once per call instead of once per chunk (at 300k DOFs, 34 chunks spent 4.0 s
+    re-numbering the whole mesh's DOFs and mapping its DOF locations)."""
+    from skfem import Dofs
+
+    mesh, elem = space.skfem_mesh, space.skfem_element()
+    return {"mapping": mesh._mapping(), "dofs": Dofs(mesh, elem), "disable_doflocs": True}
+
+
+def _basis(space: FESpace, elements: np.ndarray, quadrature=None, shared: dict | None = None):
     from skfem import Basis
 
+    shared = shared if shared is not None else shared_parts(space)
     if quadrature is None:
-        return Basis(space.skfem_mesh, space.skfem_element(), intorder=2, elements=elements)
+        return Basis(space.skfem_mesh, space.skfem_element(), intorder=2, elements=elements,
+                     **shared)
     return Basis(space.skfem_mesh, space.skfem_element(), elements=elements,
-                 quadrature=quadrature)
+                 quadrature=quadrature, **shared)
 
 
 def _voigt_gradients(basis) -> np.ndarray:
@@ -91,11 +103,11 @@ def _voigt_gradients(basis) -> np.ndarray:
     return np.stack(out)
 
 
-def _operator_rows(space: FESpace, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                  np.ndarray]:
+def _operator_rows(space: FESpace, elements: np.ndarray, shared: dict | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Element-average strain operator of ``elements``: (values (n_e, 6, n_local),
     global dofs (n_e, n_local), volumes (n_e,))."""
-    basis = _basis(space, elements)
+    basis = _basis(space, elements, shared=shared)
     dx = basis.dx  # (n_e, n_q) quadrature weight times |J|
     vol = dx.sum(axis=1)
     G = _voigt_gradients(basis)  # (n_local, 6, n_e, n_q)
@@ -111,9 +123,10 @@ def element_strain_operator(space: FESpace, elements: np.ndarray | None = None
     elements = np.arange(space.element_nodes.shape[0]) if elements is None \
         else np.asarray(elements, dtype=np.int64)
     parts, vols = [], []
+    shared = shared_parts(space)
     for start in range(0, elements.size, CHUNK):
         sel = elements[start:start + CHUNK]
-        vals, dofs, vol = _operator_rows(space, sel)
+        vals, dofs, vol = _operator_rows(space, sel, shared)
         n, n_loc = dofs.shape
         rows = np.repeat((6 * (start + np.arange(n)))[:, None] + np.arange(6)[None, :],
                          n_loc, axis=1).reshape(n, 6, n_loc)
@@ -138,12 +151,17 @@ def _element_nodal_chunks(space: FESpace, U: np.ndarray):
     n_e, n_loc = space.element_nodes.shape
     X = space.skfem_element().elem.doflocs.T  # (3, n_loc) reference node locations
     chunk = max(1, CHUNK // n_loc)  # n_loc quadrature points per element
+    shared = shared_parts(space)
     for start in range(0, n_e, chunk):
         sel = np.arange(start, min(start + chunk, n_e))
-        basis = _basis(space, sel, quadrature=(X, np.full(n_loc, 1.0 / n_loc)))
+        basis = _basis(space, sel, quadrature=(X, np.full(n_loc, 1.0 / n_loc)), shared=shared)
         G = _voigt_gradients(basis)  # (3 n_loc dofs, 6, n_sel, n_loc points)
         Ue = U[basis.element_dofs]  # (3 n_loc dofs, n_sel, n_s)
-        yield sel, np.einsum("dkeq,des->eqks", G, Ue)
+        # per element: (n_q 6, n_dofs_local) @ (n_dofs_local, n_s), as one batched matmul
+        # (np.einsum "dkeq,des->eqks" took 0.85 s of 1.4 s at 100k DOFs)
+        d, k, e, q = G.shape
+        Ge = np.ascontiguousarray(G.transpose(2, 3, 1, 0)).reshape(e, q * k, d)
+        yield sel, np.matmul(Ge, Ue.transpose(1, 0, 2)).reshape(e, q, k, Ue.shape[2])
 
 
 def element_volumes(space: FESpace) -> np.ndarray:
