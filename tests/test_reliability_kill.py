@@ -64,14 +64,11 @@ def _kill_group(proc: subprocess.Popen) -> None:
     proc.wait(timeout=60)
 
 
-def run_and_kill(out: Path, mesh_dir: Path, *, stage: str | None = None,
-                 delay: float = 0.0) -> dict:
-    """Start a run; SIGKILL it ``delay`` s after its log shows ``stage ...`` (or after
-    ``delay`` s when no stage is given). Returns what happened."""
-    cmd = [sys.executable, "-m", "pipeline", "-v", "run", str(CONFIG), "-o", str(out),
-           "--mesh-dir", str(mesh_dir), *sum((["--set", s] for s in SETS), [])]
-    proc = subprocess.Popen(cmd, cwd=out.parent, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+def follow_stderr(proc: subprocess.Popen, stage: str | None
+                  ) -> tuple[threading.Event, list[str], threading.Thread]:
+    """Collect ``proc``'s stderr lines in a thread; the event is set when a line shows
+    ``<stage> ...`` (or when the process ends before it)."""
     seen = threading.Event()
     log: list[str] = []
 
@@ -84,6 +81,17 @@ def run_and_kill(out: Path, mesh_dir: Path, *, stage: str | None = None,
 
     t = threading.Thread(target=reader, daemon=True)
     t.start()
+    return seen, log, t
+
+def run_and_kill(out: Path, mesh_dir: Path, *, stage: str | None = None,
+                 delay: float = 0.0) -> dict:
+    """Start a run; SIGKILL it ``delay`` s after its log shows ``stage ...`` (or after
+    ``delay`` s when no stage is given). Returns what happened."""
+    cmd = [sys.executable, "-m", "pipeline", "-v", "run", str(CONFIG), "-o", str(out),
+           "--mesh-dir", str(mesh_dir), *sum((["--set", s] for s in SETS), [])]
+    proc = subprocess.Popen(cmd, cwd=out.parent, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    seen, log, t = follow_stderr(proc, stage)
     t0 = time.monotonic()
     if stage is not None:
         seen.wait(timeout=120)
@@ -356,18 +364,7 @@ def interrupt(args: list, cwd: Path, sig: int, *, stage: str | None = None,
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", "-v", *map(str, args)],
                             cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True, start_new_session=True, env=env)
-    seen = threading.Event()
-    log: list[str] = []
-
-    def reader():
-        for line in proc.stderr:
-            log.append(line)
-            if stage is not None and f" {stage} ..." in line:
-                seen.set()
-        seen.set()
-
-    t = threading.Thread(target=reader, daemon=True)
-    t.start()
+    seen, log, t = follow_stderr(proc, stage)
     if stage is not None:
         seen.wait(timeout=120)
     time.sleep(delay)

@@ -36,11 +36,22 @@ from typing import Callable, Iterable
 
 from pipeline.errors import ConfigError, OutputError
 
-__all__ = ["KINDS", "check_output", "check_output_dir", "same_file", "check_name",
+__all__ = ["KINDS", "file_sha256", "check_output", "check_output_dir", "same_file", "check_name",
            "NAME_PROBLEMS", "file_kind_matches"]
 
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 OUR_SCHEMA = "fe-reduced-body"
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read 1 MiB at a time."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _head(path: Path, n: int = 4096) -> bytes:

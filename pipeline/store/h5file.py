@@ -323,12 +323,8 @@ def _verify(h5, path: Path, verify_checksum: bool) -> None:
     stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
     index = h5.attrs.get("content_index")
     actual, each = _dataset_digests(h5, _finite_check(h5, path))
-    if actual != stored:
-        detail = _diagnose(h5, index, each, "datasets")
-        raise FileFormatError(f"file '{path}': content checksum mismatch (stored "
-                              f"{stored[:12]}..., computed {actual[:12]}...)"
-                              f"{': ' + detail if detail else ''}: the file was modified or "
-                              "corrupted after it was written")
+    _require_digest(h5, path, index, "content", stored, actual, each, "datasets",
+                    "the file was modified or corrupted after it was written")
     signed = h5.attrs.get("attrs_sha256")
     if signed is None:
         return  # written before attribute checksums existed
@@ -339,12 +335,19 @@ def _verify(h5, path: Path, verify_checksum: bool) -> None:
         log.debug("%s: attrs_sha256 belongs to an earlier content; attributes not checked", path)
         return
     actual_attrs, each_attrs = _attrs_digests(h5)
-    if actual_attrs != stored_attrs:
-        detail = _diagnose(h5, index, each_attrs, "attrs")
-        raise FileFormatError(f"file '{path}': attribute checksum mismatch (stored "
-                              f"{stored_attrs[:12]}..., computed {actual_attrs[:12]}...)"
-                              f"{': ' + detail if detail else ''}: the metadata (units, "
-                              "names, settings) was modified or corrupted after it was written")
+    _require_digest(h5, path, index, "attribute", stored_attrs, actual_attrs, each_attrs,
+                    "attrs", "the metadata (units, names, settings) was modified or corrupted "
+                    "after it was written")
+
+
+def _require_digest(h5, path, index, what: str, stored: str, actual: str, each, part: str,
+                    meaning: str) -> None:
+    """Raise FileFormatError naming what differs when the ``what`` checksum does not match."""
+    if actual != stored:
+        detail = _diagnose(h5, index, each, part)
+        raise FileFormatError(f"file '{path}': {what} checksum mismatch (stored "
+                              f"{stored[:12]}..., computed {actual[:12]}...)"
+                              f"{': ' + detail if detail else ''}: {meaning}")
 
 
 #: the most objects (groups, datasets, links) a file of ours may hold

@@ -27,6 +27,7 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.config import Config, apply_overrides, config_from_dict, config_to_yaml
+from pipeline._util.paths import file_sha256
 from pipeline.errors import ConfigError
 from pipeline.run import estimate_memory_bytes
 
@@ -37,7 +38,6 @@ __all__ = [
     "Override",
     "case_key",
     "estimate_case_memory",
-    "file_digest",
     "format_value",
     "portable_config",
     "predict_mesh_size",
@@ -115,15 +115,6 @@ def resolve_cases(base: Mapping[str, Any], source: str, common: Sequence[Overrid
 
 
 # --------------------------------------------------------------------------- keys
-def file_digest(path: str) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def case_key(cfg: Config) -> str:
     """Cache key of a resolved config: 16 hex digits of a SHA-256 over its YAML, the
     pipeline version and the bytes of a geometry file, if any."""
@@ -134,7 +125,7 @@ def case_key(cfg: Config) -> str:
     geo_path = getattr(cfg.geometry, "path", "")
     if geo_path:
         try:
-            digest.update(f"geometry file {file_digest(geo_path)}\n".encode())
+            digest.update(f"geometry file {file_sha256(geo_path)}\n".encode())
         except OSError:
             digest.update(f"geometry file {geo_path} unreadable\n".encode())
     return digest.hexdigest()[:16]

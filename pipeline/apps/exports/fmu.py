@@ -46,7 +46,6 @@ import re
 import shutil
 import subprocess
 import sys
-import tempfile
 import uuid
 import zipfile
 from dataclasses import dataclass
@@ -56,7 +55,7 @@ from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
-from pipeline._util.atomic import atomic_path
+from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.errors import ConfigError, FileFormatError, ResourceError
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store.read import load_model, open_verified, read_strings
@@ -367,8 +366,7 @@ def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant") 
     template = resources.files("pipeline.apps.exports").joinpath("fmu_template.c").read_text()
     header = model_data_header(m, guid)
     folder, ending = platform_folder()
-    with tempfile.TemporaryDirectory(prefix="fmu_") as tmp:
-        tmp = Path(tmp)
+    with private_folder("fmu_") as tmp:  # the build folder: C sources and the library
         (tmp / "fmu.c").write_text(template)
         (tmp / "model_data.h").write_text(header)
         lib = tmp / (identifier + ending)

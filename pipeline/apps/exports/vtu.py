@@ -31,13 +31,11 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from pipeline._util.atomic import atomic_path
+from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.errors import ConfigError
 from pipeline.apps.exports.stress_arrays import stress_point_data
 from pipeline.store.read import read_modes
@@ -150,9 +148,7 @@ def export_xdmf(h5_path: str | Path, out_path: str | Path) -> Path:
     # in a private folder beside the target, then each is moved into place through the
     # atomic writer (sidecar first: a .xdmf under its final name always finds its data)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{out_path.name}.", suffix=".partial",
-                                 dir=out_path.parent))
-    try:
+    with private_folder(f".{out_path.name}.partial.", out_path.parent) as work:
         meshio.write(work / out_path.name, mesh, file_format="xdmf")
         with h5py.File(work / sidecar.name, "a") as side:
             side.create_dataset("frequencies_hz", data=mesh.field_data["frequencies_hz"])
@@ -160,8 +156,6 @@ def export_xdmf(h5_path: str | Path, out_path: str | Path) -> Path:
         for final in (sidecar, out_path):
             with atomic_path(final) as tmp:
                 os.replace(work / final.name, tmp)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     log.info("wrote %s and %s", out_path, sidecar)
     return out_path
 

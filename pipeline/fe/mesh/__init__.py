@@ -16,11 +16,11 @@ gmsh helpers are in :mod:`~pipeline.fe.mesh.common`.
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 from pathlib import Path
 
 from pipeline._util.atomic import atomic_path, private_folder
+from pipeline._util.paths import file_sha256
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError
 from pipeline.fe.mesh.box import box_faces, generate_mesh, mesh_box
@@ -52,15 +52,6 @@ def mesh_geometry(geometry: Geometry, spec: MeshSpec, out_path: str | Path
         raise ConfigError(f"config key 'geometry.path': got '{geometry.path}', expected an "
                           "existing file")
     return source(geometry, spec, Path(out_path))
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path | None, name: str
