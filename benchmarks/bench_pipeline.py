@@ -50,7 +50,8 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "auto") -> dict:
+def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "auto",
+                      method: str = "auto") -> dict:
     """One pipeline run; returns stage times, peak memory and the frequencies."""
     sys.path.insert(0, str(ROOT))
     import pipeline.solve.stage as modes_module  # the name run_pipeline calls
@@ -69,7 +70,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
 
     modes_module.solve_modes = spy
     cfg = load_config(CONFIG, [f"mesh.size={size}", f"modes.count={count}",
-                               f"modes.precision={precision}"])
+                               f"modes.precision={precision}", f"modes.method={method}"])
     t0 = time.perf_counter()
     result = run_pipeline(cfg, workdir / "out.hdf5", mesh_dir=workdir)
     total = time.perf_counter() - t0
@@ -82,13 +83,15 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
                          - np.eye(Phi.shape[1])).max())
     del Phi
     t = result.times
-    kind = "pipeline" if precision == "auto" else f"pipeline ({precision})"
+    kind = ("pipeline" if precision == method == "auto"
+            else f"pipeline ({method if method != 'auto' else precision})")
     return {"kind": kind, "n_dofs": result.n_dofs, "n_free": result.n_free,
             "mesh": t.get("mesh"), "assembly": t.get("assemble"), "eigensolve": t.get("modes"),
             "reduction": t.get("reduce"), "write": t.get("write"), "total": total,
             "peak_mb": _peak_mb(), "backend": result.backend,
             "frequencies": [float(f) for f in result.frequencies_hz],
-            "factor_s": captured.get("factor_seconds"),
+            "factor_s": captured.get("factor_seconds", captured.get("setup_seconds")),
+            "sweeps": captured.get("sweeps"),
             "lanczos_s": captured.get("eigensolver_seconds"),
             "factor_gb": (captured.get("factor_bytes") or 0) / 1e9,
             "solves": captured.get("solves"), "method": captured.get("method"),
@@ -129,13 +132,17 @@ def run_reference_case(size: float, count: int, workdir: Path) -> dict:
 
 
 # --------------------------------------------------------------------------- parent side
-def _run_child(kind: str, label: str, count: int, timeout: float, precision: str = "auto"
+def _run_child(kind: str, label: str, count: int, timeout: float, variant: str = "auto"
                ) -> dict:
+    """One case in its own process; ``variant``: a modes.precision (auto, double, mixed)
+    or ``multigrid`` (modes.method)."""
+    precision, method = (("auto", "multigrid") if variant == "multigrid"
+                         else (variant, "auto"))
     with tempfile.TemporaryDirectory(prefix=f"bench_{label}_") as tmp:
         out = Path(tmp) / "result.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", kind,
                "--size", str(SIZES[label]), "--count", str(count), "--result", str(out),
-               "--precision", precision]
+               "--precision", precision, "--method", method]
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
@@ -244,15 +251,19 @@ def table(rows: list[dict]) -> str:
 
 def details(rows: list[dict]) -> str:
     """Eigensolve breakdown of the pipeline rows."""
-    lines = ["| DOFs | factorisation s | factor GB | eigensolver s | vectors solved | "
-             "max residual | max abs(Phi^T M Phi - I) | HDF5 MB | process wall s |",
-             "|" + " --- |" * 9]
+    lines = ["| stack | DOFs | method | factorisation (multigrid: set-up) s | factor GB | "
+             "eigensolver s | vectors solved (LOBPCG sweeps) | max residual | "
+             "max abs(Phi^T M Phi - I) | HDF5 MB | process wall s |",
+             "|" + " --- |" * 11]
     for r in rows:
         if not r["kind"].startswith("pipeline") or "error" in r:
             continue
-        lines.append(f"| {r['n_dofs']:,} | {_fmt(r.get('factor_s'))} | "
+        solved = (f"({r['sweeps']})" if r.get("sweeps") is not None
+                  else (r.get('solves') or 0) // 2 or '-')
+        lines.append(f"| {r['kind']} | {r['n_dofs']:,} | {r.get('method') or '-'} | "
+                     f"{_fmt(r.get('factor_s'))} | "
                      f"{_fmt(r.get('factor_gb'))} | {_fmt(r.get('lanczos_s'))} | "
-                     f"{(r.get('solves') or 0) // 2 or '-'} | {_fmt(r.get('max_residual'), '.1e')} | "
+                     f"{solved} | {_fmt(r.get('max_residual'), '.1e')} | "
                      f"{_fmt(r.get('m_orthonormality'), '.1e')} | {_fmt(r.get('file_mb'), '.1f')} | "
                      f"{_fmt(r.get('process_s'))} |")
     return "\n".join(lines)
@@ -337,6 +348,10 @@ def main(argv=None) -> int:
                     help="runs per case; the table shows medians (time, peak memory)")
     ap.add_argument("--precision", default="auto", choices=["auto", "double", "mixed"],
                     help="modes.precision of the pipeline cases")
+    ap.add_argument("--method", default="auto", choices=["auto", "factor", "multigrid"],
+                    help="modes.method of the pipeline rows (default auto)")
+    ap.add_argument("--also-multigrid", action="store_true",
+                    help="also run the factor-free solver (modes.method: multigrid)")
     ap.add_argument("--also-mixed", action="store_true",
                     help="also run the pipeline with modes.precision=mixed")
     ap.add_argument("--ngsolve", choices=["auto", "yes", "no"], default="auto",
@@ -361,7 +376,8 @@ def main(argv=None) -> int:
     if args.child:
         with tempfile.TemporaryDirectory(prefix="bench_case_") as tmp:
             if args.child == "pipeline":
-                row = run_pipeline_case(args.size, args.count, Path(tmp), args.precision)
+                row = run_pipeline_case(args.size, args.count, Path(tmp), args.precision,
+                                        args.method)
             else:
                 row = run_reference_case(args.size, args.count, Path(tmp))
         Path(args.result).write_text(json.dumps(row))
@@ -387,9 +403,12 @@ def main(argv=None) -> int:
     for label in labels:
         jobs = [("straightforward", None)] if not args.no_reference and (
             label in REFERENCE_SIZES) else []
-        jobs.append(("pipeline", args.precision))
+        jobs.append(("pipeline", "multigrid" if args.method == "multigrid"
+                     else args.precision))
         if args.also_mixed and args.precision != "mixed":
             jobs.append(("pipeline", "mixed"))
+        if args.also_multigrid and args.method != "multigrid":
+            jobs.append(("pipeline", "multigrid"))
         if ngsolve:
             jobs += [("ngsolve", inverse) for inverse in args.ngsolve_variants.split(",")]
         runs: dict = {job: [] for job in jobs}

@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
 from pipeline.fe.body import node_volume_weights
+from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.stage import compute_modes
@@ -129,7 +130,9 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
                               node_volume_weights(fe.space), supported=bool(cfg.supports),
                               backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
                               keep=cfg.reduction is not None,
-                              precision=cfg.modes.precision)
+                              precision=cfg.modes.precision, method=cfg.modes.method,
+                              coarse=None if cfg.modes.method == "factor"
+                              else p1_prolongation(fe.space, fe.free))
     if modes.factorization is not None:
         # the kept factor of K (for the static correction) lives exactly as long as K:
         # freed when the reduce stage drops K, before the connection models factorise
@@ -169,6 +172,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
     group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
                             "solver": modes.backend, "shift_rad2_s2": modes.shift}
+    if modes.stats and modes.stats.get("method") == "multigrid-lobpcg":
+        group_attrs["modes"]["preconditioned_residual"] = float(min(modes.stats["history"]))
     group_attrs["mesh"] = {"cell_type": space.cell_type, "element_order": cfg.mesh.order,
                            "source": "" if mesh_path is None else str(mesh_path),
                            "source_sha256": mesh_sha256, "n_dofs": space.n_dofs,

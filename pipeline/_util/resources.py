@@ -37,6 +37,11 @@ MESH_BYTES_PER_NODE = 600
 ASSEMBLY_BYTES_PER_NODE = 7200
 BASELINE_BYTES = 250e6  # interpreter, numpy, scipy, scikit-fem, gmsh, MKL
 HEADROOM = 0.9  # use at most this fraction of the available memory
+# nodes of a P2 tetrahedral mesh per vertex (about 1.6 nodes per tetrahedron, 0.2 of them
+# vertices; measured 7.3 on the cantilever at 101k DOFs)
+VERTEX_FRACTION = 7.0
+# (n x width) double blocks held by the factor-free LOBPCG (see multigrid_bytes)
+LOBPCG_BLOCKS = 13
 
 
 def available_memory_bytes() -> int:
@@ -67,18 +72,60 @@ def factor_bytes(n_dofs: int) -> float:
     return FACTOR_BYTES_COEFF * float(n_dofs) ** (4.0 / 3.0)
 
 
-def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int) -> int:
-    """Peak bytes of the whole pipeline for a mesh of this size (see the module doc)."""
+def multigrid_bytes(n_nodes: int, order: int, n_modes: int) -> float:
+    """Bytes of the factor-free eigensolve (:mod:`pipeline.solve.multigrid`) beside K, M.
+
+    The coarse factor: the P1 problem on the vertices (about n_nodes / VERTEX_FRACTION of
+    a P2 mesh's nodes), whose factor is FACTOR_BYTES_COEFF * n_c^(4/3) at most (the P1
+    pattern is sparser than the P2 one it was calibrated on); the LOBPCG blocks X, KX,
+    MX, W, KW, MW (W up to twice as wide) plus the preconditioner's four work blocks,
+    i.e. LOBPCG_BLOCKS blocks of (n x (n_modes + guard)) doubles; the prolongation.
+    """
     n = 3 * n_nodes
-    mesh = MESH_BYTES_PER_NODE * n_nodes + 64 * n_elements
-    blocks = BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
-    matrices = BYTES_PER_BLOCK * blocks
+    coarse = factor_bytes(3 * n_nodes / VERTEX_FRACTION)
+    width = n_modes + max(3, n_modes // 4)
+    return coarse + LOBPCG_BLOCKS * 8.0 * n * width + 24.0 * n
+
+
+def factor_path_bytes(n_dofs: int, n_modes: int, single: bool = False) -> float:
+    """Bytes a shift-invert solve needs beside K and M: the factor (half of it in float32),
+    the Lanczos basis with its images F^-T v (kept so the Ritz vectors need no final
+    solve) and the Ritz vectors with K and M times them."""
     block = 4 if n_modes <= 4 else 8
-    # the Lanczos basis and its images F^-T v (kept so the Ritz vectors need no final solve)
-    lanczos = 2 * 8.0 * n * (max(3 * n_modes + 4 * block, n_modes + 8 * block) + block)
-    shapes = 8.0 * n * n_modes * 4  # Ritz vectors, K and M times them, full-size shapes
+    lanczos = 2 * 8.0 * n_dofs * (max(3 * n_modes + 4 * block, n_modes + 8 * block) + block)
+    shapes = 8.0 * n_dofs * n_modes * 4
+    return factor_bytes(n_dofs) * (0.5 if single else 1.0) + lanczos + shapes
+
+
+def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto",
+                     available: int | None = None) -> float:
+    """Peak bytes of the modes stage on top of the mesh: K, M and the eigensolver that
+    :func:`pipeline.solve.eigen.solve_modes` will choose, by the same rule: a double
+    factor if it fits, else a float32 one, else (``auto``, order 2) the factor-free
+    multigrid solver (:func:`multigrid_bytes`); ``multigrid`` always the latter, ``factor``
+    never. When nothing fits, the smallest of the allowed ones.
+    """
+    n = 3 * n_nodes
+    matrices = BYTES_PER_BLOCK * BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
+    shapes = 8.0 * n * n_modes * 4
+    usable = HEADROOM * (available_memory_bytes() if available is None else available)
+    options = []
+    if method in ("auto", "factor"):
+        options += [matrices + factor_path_bytes(n, n_modes, single)
+                    for single in (False, True)]
+    if method == "multigrid" or (method == "auto" and order == 2):
+        options.append(matrices + multigrid_bytes(n_nodes, order, n_modes) + shapes)
+    if not options:
+        raise ValueError(f"method '{method}': expected auto, factor or multigrid")
+    return next((need for need in options if need <= usable), min(options))
+
+
+def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int,
+                          method: str = "auto", available: int | None = None) -> int:
+    """Peak bytes of the whole pipeline for a mesh of this size (see the module doc)."""
+    mesh = MESH_BYTES_PER_NODE * n_nodes + 64 * n_elements
     assembly = ASSEMBLY_BYTES_PER_NODE * n_nodes + 400 * n_elements
-    eigensolve = matrices + factor_bytes(n) + lanczos + shapes
+    eigensolve = eigensolve_bytes(n_nodes, order, n_modes, method, available)
     return int(BASELINE_BYTES + mesh + max(assembly, eigensolve))
 
 
@@ -101,14 +148,16 @@ def _scale_to_fit(need: float, have: float, exponent: float = 4.0) -> float:
     return max(1.0, (need / (HEADROOM * have)) ** (1.0 / exponent)) * 1.05
 
 
-def check_memory(space, n_modes: int, available: int | None = None) -> int:
+def check_memory(space, n_modes: int, available: int | None = None,
+                 method: str = "auto") -> int:
     """Refuse a mesh whose estimate exceeds the available memory (ResourceError).
 
     Returns the estimate in bytes. The message gives both figures and the element size
     (mesh.size, m) that would fit, scaling memory like size^-4.
     """
-    need = estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra, space.order, n_modes)
     have = available_memory_bytes() if available is None else int(available)
+    need = estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra, space.order, n_modes,
+                                 method, have)
     log.info("memory estimate %.2f GB of %.2f GB available", need / 1e9, have / 1e9)
     if need > HEADROOM * have:
         h = typical_edge_length(space)

@@ -17,7 +17,8 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
-from pipeline.config.schema import (BOX_FACES, GAUGE_KINDS, GEOMETRY_KINDS, PRECISIONS, SOLVERS,
+from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
+                                    PRECISIONS, SOLVERS,
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
                                     FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
@@ -302,11 +303,12 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
     modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",
-                                                              "precision"))
+                                                              "precision", "method"))
     modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
                   solver=v.choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
                   tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2),
-                  precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"))
+                  precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"),
+                  method=v.choice(modes_raw, "method", "modes", EIGEN_METHODS, "auto"))
     regions = _regions(raw.get("regions"))
     for name in regions:
         if geometry.kind == "box" and name in BOX_FACES:
@@ -359,6 +361,14 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
             and len(cfg.damping.ratios) < cfg.reduction.modes:
         raise v.fail("damping.ratios", list(cfg.damping.ratios),
                     f"at least reduction.modes = {cfg.reduction.modes} ratios")
+    if cfg.modes.method == "multigrid" and cfg.mesh.order != 2:
+        raise v.fail("modes.method", "multigrid", "'auto' or 'factor' with mesh.order "
+                    f"{cfg.mesh.order} (the multigrid solver's coarse space is the linear "
+                    "space inside a quadratic mesh: set mesh.order: 2)")
+    if cfg.modes.method == "multigrid" and cfg.modes.precision == "mixed":
+        raise v.fail("modes.precision", "mixed", "'auto' or 'double' with modes.method: "
+                    "multigrid (mixed precision is a property of a sparse factor; the "
+                    "multigrid solver has none)")
     check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg
 

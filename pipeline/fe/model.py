@@ -95,7 +95,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         regions = resolve_regions(space, cfg.regions)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
-    check_memory(space, cfg.modes.count)
+    check_memory(space, cfg.modes.count, method=cfg.modes.method)
 
     with stage("assemble"):
         pattern = block_pattern(space)

@@ -1,0 +1,200 @@
+"""Factor-free solves for meshes whose sparse factor does not fit: a two-grid method.
+
+A quadratic (P2) tetrahedral mesh contains its own linear (P1) space: the vertices, with
+every edge midpoint interpolated halfway between its two vertices. That embedding is a
+prolongation P (n x n_c, :func:`pipeline.fe.coarse.p1_prolongation`) onto about 1/7 of
+the DOFs, and the Galerkin coarse matrix A_c = P^T A P (A = K - sigma M) is factorised
+directly: a 3M-DOF P2 problem (a ~40 GB double factor) has a ~0.4M-DOF P1 coarse
+problem (a ~1-2 GB factor). The preconditioner T ~ A^-1 is one symmetric two-grid cycle:
+
+    z  = S_pre(r)                      Chebyshev-Jacobi smoothing, degree DEGREE
+    z += P A_c^-1 P^T (r - A z)        exact coarse correction
+    z  = S_post(r, z)                  the same smoothing again (T stays symmetric)
+
+The smoother is the Chebyshev polynomial in D^-1 A (D = diag A) that damps the interval
+[LOWER, 1.1] * lambda_max(D^-1 A) (lambda_max by a few power steps): the components the
+coarse P1 space cannot represent. On the cantilever (P2, 101k DOFs) conjugate gradients
+with this T reach 1e-8 in 13-17 iterations (degree 2-4), independent of the mesh size
+because the coarse problem is solved exactly.
+
+Used by :mod:`pipeline.solve.eigen` as the preconditioner of :func:`pipeline.solve.lobpcg.lobpcg`
+(``modes.method: multigrid``) and, through :meth:`TwoGrid.factorization`, as the solver
+K^-1 F of the static correction (preconditioned conjugate gradients to a relative
+residual of :data:`PCG_RTOL`). Shapes: A (n x n) CSR, P (n x n_c) CSR, blocks (n, k).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.errors import SolverError
+from pipeline.solve.factorize import Factorization, factorize, sparse_times_dense
+
+log = logging.getLogger(__name__)
+
+DEGREE = 3  # Chebyshev smoothing steps before and after the coarse correction
+LOWER = 0.05  # lower end of the smoothed interval, as a fraction of lambda_max(D^-1 A)
+POWER_STEPS = 12
+PCG_RTOL = 1e-12  # static solves: ||F - K X|| <= PCG_RTOL ||F|| per column
+PCG_MAX_ITER = 500
+
+
+def _csr32(A: sp.spmatrix) -> sp.csr_matrix:
+    A = sp.csr_matrix(A)
+    if A.nnz < 2**31 and A.shape[0] < 2**31:
+        A.indices = A.indices.astype(np.int32, copy=False)
+        A.indptr = A.indptr.astype(np.int32, copy=False)
+    return A
+
+
+def coarse_matrix(tg: "TwoGrid", M: sp.spmatrix) -> sp.csr_matrix:
+    """P^T M P (n_c x n_c) on the coarse space of ``tg`` (the P1 mass of a P2 mesh)."""
+    return _csr32(tg.PT @ _csr32(M) @ tg.P)
+
+
+class TwoGrid:
+    """The two-grid preconditioner of the module doc for A (n x n) and P (n x n_c).
+
+    ``backend``: the factorisation backend of the coarse matrix. ``apply(R)`` returns
+    T R for R (n,) or (n, k); ``release()`` frees the coarse factor.
+    """
+
+    def __init__(self, A: sp.spmatrix, P: sp.spmatrix, backend: str = "auto"):
+        t0 = time.perf_counter()
+        self.A = _csr32(A)
+        self.P = _csr32(P)
+        self.PT = _csr32(self.P.T)
+        if self.P.shape[0] != self.A.shape[0]:
+            raise ValueError(f"prolongation P has {self.P.shape[0]} rows; expected "
+                             f"{self.A.shape[0]} (the rows of A)")
+        coarse = _csr32(self.PT @ self.A @ self.P)
+        self.coarse_n = coarse.shape[0]
+        self.coarse = factorize(coarse, backend, positive_definite=True, check=False)
+        del coarse
+        d = self.A.diagonal()
+        if not np.all(d > 0):
+            raise SolverError("multigrid: the stiffness matrix has a non-positive diagonal "
+                              "entry; expected a positive definite K")
+        self.dinv = 1.0 / d
+        self.lambda_max = self._lambda_max()
+        self.seconds = time.perf_counter() - t0
+        log.info("two-grid preconditioner: %d -> %d coarse DOFs, coarse factor %.2f GB, "
+                 "lambda_max(D^-1 A) %.3g, set up in %.1f s", self.A.shape[0], self.coarse_n,
+                 self.coarse.info.get("factor_bytes", 0) / 1e9, self.lambda_max, self.seconds)
+
+    def _lambda_max(self) -> float:
+        x = np.random.default_rng(3).standard_normal(self.A.shape[0])
+        lam = 1.0
+        for _ in range(POWER_STEPS):
+            y = self.dinv * (self.A @ x)
+            lam = float(np.linalg.norm(y) / np.linalg.norm(x))
+            x = y / np.linalg.norm(y)
+        return 1.1 * lam  # power steps approach lambda_max from below
+
+    def _smooth(self, R: np.ndarray, Z: np.ndarray | None) -> np.ndarray:
+        """Z + the Chebyshev correction of degree DEGREE for A Z = R (Z None: from 0).
+        In-place updates: each step is one sparse product and four passes over (n, k)."""
+        hi = self.lambda_max
+        lo = LOWER * hi
+        theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
+        sigma = theta / delta
+        rho = 1.0 / sigma
+        dinv = self.dinv[:, None]
+        D = self._residual(R, Z)
+        D *= dinv
+        D *= 1.0 / theta
+        if Z is None:
+            Z = D.copy()
+        else:
+            Z += D
+        for _ in range(DEGREE - 1):
+            res = self._residual(R, Z)
+            res *= dinv
+            rho_new = 1.0 / (2.0 * sigma - rho)
+            D *= rho_new * rho
+            res *= 2.0 * rho_new / delta
+            D += res
+            del res
+            Z += D
+            rho = rho_new
+        return Z
+
+    def _residual(self, R: np.ndarray, Z: np.ndarray | None) -> np.ndarray:
+        """R - A Z in a new array (R itself copied when Z is None)."""
+        if Z is None:
+            return R.copy()
+        AZ = sparse_times_dense(self.A, Z)
+        np.subtract(R, AZ, out=AZ)
+        return AZ
+
+    def apply(self, R: np.ndarray) -> np.ndarray:
+        """T R for R (n,) or (n, k)."""
+        R = np.asarray(R, dtype=np.float64)
+        vector = R.ndim == 1
+        R = np.ascontiguousarray(R.reshape(R.shape[0], -1))
+        Z = self._smooth(R, None)
+        res = self._residual(R, Z)
+        rc = np.ascontiguousarray(sparse_times_dense(self.PT, res))
+        del res
+        zc = np.asarray(self.coarse.solve(rc)).reshape(rc.shape)
+        Z += sparse_times_dense(self.P, np.ascontiguousarray(zc))
+        Z = self._smooth(R, Z)
+        return Z[:, 0] if vector else Z
+
+    def solve(self, B: np.ndarray, rtol: float = PCG_RTOL,
+              max_iter: int = PCG_MAX_ITER) -> np.ndarray:
+        """A^-1 B by preconditioned conjugate gradients, all columns of B (n,) or (n, k)
+        at once, each to ||B - A X|| <= rtol ||B||; SolverError if that takes more than
+        ``max_iter`` iterations."""
+        B = np.asarray(B, dtype=np.float64)
+        vector = B.ndim == 1
+        B = np.ascontiguousarray(B.reshape(B.shape[0], -1))
+        X = np.zeros_like(B)
+        bnorm = np.linalg.norm(B, axis=0)
+        goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
+        R = B.copy()
+        Z = self.apply(R)
+        Pd = Z.copy()
+        rz = np.einsum("ij,ij->j", R, Z)
+        it = 0
+        while True:
+            rnorm = np.linalg.norm(R, axis=0)
+            if np.all(rnorm <= goal):
+                break
+            if it >= max_iter:
+                raise SolverError(f"multigrid: conjugate gradients did not reach a relative "
+                                  f"residual of {rtol:g} in {max_iter} iterations (now "
+                                  f"{float((rnorm / goal).max() * rtol):.1e})")
+            it += 1
+            AP = sparse_times_dense(self.A, Pd)
+            pap = np.einsum("ij,ij->j", Pd, AP)
+            live = rnorm > goal
+            alpha = np.where(live & (pap > 0), rz / np.where(pap > 0, pap, 1.0), 0.0)
+            X += Pd * alpha
+            R -= AP * alpha
+            del AP
+            Z = self.apply(R)
+            rz_new = np.einsum("ij,ij->j", R, Z)
+            beta = np.where(rz != 0, rz_new / np.where(rz != 0, rz, 1.0), 0.0)
+            Pd *= beta
+            Pd += Z
+            rz = rz_new
+        log.debug("multigrid PCG: %d iterations for %d right-hand sides", it, B.shape[1])
+        self.iterations = it
+        return X[:, 0] if vector else X
+
+    def release(self) -> None:
+        self.coarse.release()
+
+    def factorization(self) -> Factorization:
+        """This solver as a :class:`Factorization` of A (``solve`` by PCG), which the
+        static correction uses like a direct factor; ``release()`` frees the coarse
+        factor."""
+        return Factorization(solve=self.solve, backend="multigrid", n=self.A.shape[0],
+                             release=self.release,
+                             info={"coarse_dofs": self.coarse_n,
+                                   "factor_bytes": self.coarse.info.get("factor_bytes", 0)})

@@ -1,0 +1,225 @@
+"""The factor-free modes solver (issue 18: 3M DOFs in 24 GB): the P1 coarse space of a P2
+mesh, the two-grid preconditioner, LOBPCG, and the whole pipeline under
+``modes.method: multigrid``.
+
+Tolerances:
+- the prolongation reproduces linear fields exactly: round-off of a mean of two numbers
+  (1e-15 of the field's scale; 1e-12 used);
+- PCG to a recursive residual of 1e-12: the true residual differs from the recursive one
+  by O(eps cond(K)) relative (the updates' round-off), so the solution differs from a
+  direct solve by <= 1e-12 cond(K) + 2 c eps cond(K); both bounded by cond_eps;
+- frequencies: the multigrid solver stops at a preconditioned residual rho <= 1e-6 and
+  its eigenvalue error is <= rho^2 / relative gap (LOBPCG's Rayleigh quotient is
+  quadratic in the energy-norm error; the smallest relative gap of the test beam is
+  above 1e-2), i.e. <= 1e-10; plus the factor route's own eigenvalue_rtol;
+- shapes and reduced matrices: energy-norm error <= rho / gap = 1e-4 of the shape,
+  compared in the max norm with that bound.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from conftest import build_model, cond_eps, eigenvalue_rtol, record_tolerance
+from pipeline.config import config_from_dict
+from pipeline.errors import ConfigError
+from pipeline.fe.coarse import p1_prolongation
+from pipeline.solve import eigen, multigrid
+from pipeline.solve.eigen import solve_modes
+from pipeline.solve.lobpcg import lobpcg
+
+COUNT = 8
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory):
+    return build_model(tmp_path_factory.mktemp("mg"), length=0.3, height=0.02, depth=0.03,
+                       size=0.006)
+
+
+@pytest.fixture(scope="module")
+def free_beam(tmp_path_factory):
+    return build_model(tmp_path_factory.mktemp("mgfree"), length=0.3, height=0.02,
+                       depth=0.03, size=0.008, supports=())
+
+
+def test_prolongation_reproduces_linear_fields_and_respects_supports(beam):
+    """P maps the vertex values of a linear field to its P2 nodal values
+    (midpoint = mean of the ends), with zero on held DOFs; P^T K P is symmetric positive
+    definite (the P1 stiffness of the clamped mesh)."""
+    space, free = beam.space, beam.free
+    P = p1_prolongation(space, free)
+    assert P.shape[0] == free.size and P.shape[1] < free.size / 4
+    c = np.array([1e-3, -2e-3, 3e-3])
+    field = space.node_points[:, :1] * c  # u = x c vanishes at x = 0: fits the clamp
+    full = field.ravel()
+    n_v = space.body.n_vertices
+    coarse_dofs = free[free < 3 * n_v]
+    got = P @ full[coarse_dofs]
+    scale = np.abs(full).max()
+    assert np.abs(got - full[free]).max() <= 1e-12 * scale
+    Kc = (P.T @ beam.K @ P).toarray()
+    assert np.allclose(Kc, Kc.T, rtol=0, atol=1e-12 * np.abs(Kc).max())
+    np.linalg.cholesky(Kc)  # positive definite, or LinAlgError
+    assert p1_prolongation(build_model_order1(beam), np.arange(3)) is None
+
+
+def build_model_order1(beam):
+    from pipeline.fe.space import build_space
+
+    return build_space(beam.space.body, 1)
+
+
+def test_two_grid_pcg_matches_a_direct_solve(beam):
+    """PCG with the two-grid cycle solves K x = b to the direct solution within the
+    conditioning bound, in a number of iterations far below n (mesh-independent: the
+    coarse problem is solved exactly)."""
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        b = np.random.default_rng(4).standard_normal((beam.K.shape[0], 2))
+        x = tg.solve(b)
+        ref = sp.linalg.spsolve(beam.K.tocsc(), b)
+        bound = 1e-12 * 1e2 + cond_eps(beam.K)  # recursive 1e-12, drift, direct round-off
+        err = float(np.abs(x - ref).max() / np.abs(ref).max())
+        record_tolerance("multigrid PCG vs direct", err, bound)
+        assert err <= bound
+        assert tg.iterations <= 60
+        assert tg.factorization().solve(b[:, 0]).shape == (beam.K.shape[0],)
+    finally:
+        tg.release()
+
+
+def test_multigrid_modes_match_the_factor_route(beam):
+    """Frequencies and shapes of the factor-free solver against the shift-invert Lanczos
+    route (module doc for the bounds)."""
+    P = p1_prolongation(beam.space, beam.free)
+    ref = solve_modes(beam.K, beam.M, COUNT, method="factor")
+    mg = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P)
+    assert mg.stats["method"] == "multigrid-lobpcg"
+    assert mg.backend.startswith("multigrid")
+    assert min(mg.stats["history"]) <= eigen.MULTIGRID_TOLERANCE
+    rel_gap = float(np.min(np.diff(ref.omega2) / ref.omega2[1:]))
+    assert rel_gap > 1e-2
+    bound = 2 * eigen.MULTIGRID_TOLERANCE ** 2 / rel_gap + 0.5 * eigenvalue_rtol(
+        beam.K, beam.M)
+    err = float(np.abs(mg.frequencies_hz / ref.frequencies_hz - 1).max())
+    record_tolerance("multigrid frequencies vs Lanczos", err, bound)
+    assert err <= bound
+    # shapes: sign convention shared; energy-norm error ~ rho / gap
+    shape_bound = 10 * eigen.MULTIGRID_TOLERANCE / rel_gap
+    d = np.abs(mg.shapes - ref.shapes).max() / np.abs(ref.shapes).max()
+    record_tolerance("multigrid shapes vs Lanczos", d, shape_bound)
+    assert d <= shape_bound
+
+
+def test_multigrid_free_body_finds_the_rigid_modes(free_beam):
+    """A free body (shift < 0): six rigid-body modes at zero, then the elastic ones as the
+    factor route gives them."""
+    P = p1_prolongation(free_beam.space, free_beam.free)
+    ref = solve_modes(free_beam.K, free_beam.M, 10, supported=False, method="factor")
+    mg = solve_modes(free_beam.K, free_beam.M, 10, supported=False, method="multigrid",
+                     coarse=P)
+    assert mg.n_rigid == ref.n_rigid == 6
+    el = slice(6, 10)
+    rel_gap = float(np.min(np.diff(ref.omega2[el]) / ref.omega2[el][1:]))
+    bound = 2 * eigen.MULTIGRID_TOLERANCE ** 2 / rel_gap + 0.5 * eigenvalue_rtol(
+        free_beam.K, free_beam.M, n_zero=6)
+    err = float(np.abs(mg.frequencies_hz[el] / ref.frequencies_hz[el] - 1).max())
+    record_tolerance("multigrid free-body frequencies vs Lanczos", err, bound)
+    assert err <= bound
+
+
+def test_auto_takes_multigrid_only_when_no_factor_fits(beam, monkeypatch, caplog):
+    P = p1_prolongation(beam.space, beam.free)
+    fits = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
+    assert fits.stats["method"] == "block-lanczos"
+    monkeypatch.setattr(eigen, "available_memory_bytes", lambda: 1)
+    with caplog.at_level(logging.INFO):
+        tight = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
+    assert tight.stats["method"] == "multigrid-lobpcg"
+    # without a coarse space (a P1 mesh) auto stays with a (float32) factor
+    mixed = solve_modes(beam.K, beam.M, COUNT, precision="auto")
+    assert mixed.stats["precision"] == "mixed"
+
+
+def test_lobpcg_on_a_diagonal_pencil():
+    """LOBPCG with an exact preconditioner on diag(1..n): the lowest eigenvalues to
+    round-off of the Rayleigh-Ritz step, whatever the start block."""
+    n = 400
+    K = sp.diags(np.arange(1.0, n + 1)).tocsr()
+    M = sp.identity(n, format="csr")
+    X0 = np.random.default_rng(2).standard_normal((n, 7))
+    r = lobpcg(K, M, X0, lambda R: R / K.diagonal()[:, None], 5, target=1e-10)
+    assert r.converged
+    assert np.allclose(r.omega2[:5], np.arange(1.0, 6.0), rtol=1e-12)
+
+
+def test_method_key_is_validated():
+    raw = {"name": "b", "geometry": {"kind": "box", "length": 0.3, "height": 0.02,
+                                     "depth": 0.03},
+           "mesh": {"order": 2, "size": 0.01},
+           "material": {"E": 69e9, "nu": 0.33, "rho": 2700.0},
+           "supports": [{"region": "root"}]}
+    assert config_from_dict(raw).modes.method == "auto"
+    raw["modes"] = {"method": "multigrid"}
+    assert config_from_dict(raw).modes.method == "multigrid"
+    raw["modes"] = {"method": "amg"}
+    with pytest.raises(ConfigError, match="modes.method"):
+        config_from_dict(raw)
+    raw["modes"] = {"method": "multigrid"}
+    raw["mesh"] = {"order": 1, "size": 0.01}
+    with pytest.raises(ConfigError, match="modes.method.*mesh.order: 2"):
+        config_from_dict(raw)
+    raw["mesh"] = {"order": 2, "size": 0.01}
+    raw["modes"] = {"method": "multigrid", "precision": "mixed"}
+    with pytest.raises(ConfigError, match="modes.precision"):
+        config_from_dict(raw)
+
+
+def test_memory_estimate_knows_the_factor_free_path(monkeypatch):
+    """At 3M DOFs neither factor fits in 24 GB; the estimate of the auto path is that of
+    the multigrid solver, which does."""
+    from pipeline._util import resources
+
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: 24e9)
+    n_nodes = 1_000_000  # 3M DOFs
+    factor = resources.eigensolve_bytes(n_nodes, 2, 20, "factor")
+    auto = resources.eigensolve_bytes(n_nodes, 2, 20, "auto")
+    assert factor > 0.9 * 24e9 > auto
+    assert resources.eigensolve_bytes(n_nodes, 1, 20, "auto") == pytest.approx(
+        resources.eigensolve_bytes(n_nodes, 1, 20, "factor"))
+
+
+def test_pipeline_under_multigrid_matches_the_factor_route(tmp_path):
+    """End to end with values the validator accepts: the cantilever under
+    ``modes.method: multigrid`` and ``factor`` gives the same frequencies, reduced
+    state-space and modal stresses (shape bound of the module doc), and the file says
+    which solver and how converged."""
+    import h5py
+
+    from pipeline.config import load_config
+    from pipeline.run import run_pipeline
+    from conftest import ROOT
+
+    out = {}
+    for method in ("factor", "multigrid"):
+        cfg = load_config(ROOT / "configs" / "cantilever.yaml",
+                          ["mesh.size=0.008", f"modes.method={method}"])
+        out[method] = run_pipeline(cfg, tmp_path / f"{method}.h5").output
+    with h5py.File(out["factor"]) as a, h5py.File(out["multigrid"]) as b:
+        fa, fb = a["modes/frequencies_hz"][()], b["modes/frequencies_hz"][()]
+        assert np.abs(fb / fa - 1).max() <= 1e-9
+        assert "multigrid" in b["modes"].attrs["solver"]
+        assert b["modes"].attrs["preconditioned_residual"] <= eigen.MULTIGRID_TOLERANCE
+        assert "preconditioned_residual" not in a["modes"].attrs
+        for key in ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
+                    "stress_modes/stress"):
+            x, y = a[key][()], b[key][()]
+            d = float(np.abs(x - y).max() / np.abs(x).max())
+            record_tolerance(f"multigrid pipeline {key}", d, 1e-4)
+            assert d <= 1e-4, key
