@@ -207,19 +207,25 @@ def test_pipeline_under_multigrid_matches_the_factor_route(tmp_path):
     from conftest import ROOT
 
     out = {}
-    for method in ("factor", "multigrid"):
-        cfg = load_config(ROOT / "configs" / "cantilever.yaml",
-                          ["mesh.size=0.008", f"modes.method={method}"])
-        out[method] = run_pipeline(cfg, tmp_path / f"{method}.h5").output
-    with h5py.File(out["factor"]) as a, h5py.File(out["multigrid"]) as b:
-        fa, fb = a["modes/frequencies_hz"][()], b["modes/frequencies_hz"][()]
-        assert np.abs(fb / fa - 1).max() <= 1e-9
-        assert "multigrid" in b["modes"].attrs["solver"]
-        assert b["modes"].attrs["preconditioned_residual"] <= eigen.MULTIGRID_TOLERANCE
-        assert "preconditioned_residual" not in a["modes"].attrs
-        for key in ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
-                    "stress_modes/stress"):
-            x, y = a[key][()], b[key][()]
-            d = float(np.abs(x - y).max() / np.abs(x).max())
-            record_tolerance(f"multigrid pipeline {key}", d, 1e-4)
-            assert d <= 1e-4, key
+    variants = {"factor": ["modes.method=factor", "modes.precision=double"],
+                "multigrid": ["modes.method=multigrid"],
+                # mixed precision: the static correction by PCG with the float32 factor
+                "mixed": ["modes.method=factor", "modes.precision=mixed"]}
+    for name, overrides in variants.items():
+        cfg = load_config(ROOT / "configs" / "cantilever.yaml", ["mesh.size=0.008"] + overrides)
+        out[name] = run_pipeline(cfg, tmp_path / f"{name}.h5").output
+    for name in ("multigrid", "mixed"):
+        with h5py.File(out["factor"]) as a, h5py.File(out[name]) as b:
+            fa, fb = a["modes/frequencies_hz"][()], b["modes/frequencies_hz"][()]
+            assert np.abs(fb / fa - 1).max() <= 1e-9
+            if name == "multigrid":
+                assert "multigrid" in b["modes"].attrs["solver"]
+                assert b["modes"].attrs["preconditioned_residual"] <= \
+                    eigen.MULTIGRID_TOLERANCE
+            assert "preconditioned_residual" not in a["modes"].attrs
+            for key in ("statespace/A", "statespace/B", "statespace/C", "statespace/D",
+                        "stress_modes/stress"):
+                x, y = a[key][()], b[key][()]
+                d = float(np.abs(x - y).max() / np.abs(x).max())
+                record_tolerance(f"{name} pipeline {key}", d, 1e-4)
+                assert d <= 1e-4, (name, key)

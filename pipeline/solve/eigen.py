@@ -156,7 +156,9 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         try:
             v, mstats = _mixed_modes(K, M, count, sigma, tolerance,
                                      block_size or default_block_size(count, supported),
-                                     max_basis, progress, backend)
+                                     max_basis, progress, backend,
+                                     keep=keep and sigma == 0.0)
+            kept = mstats.pop("kept", None)
         except ResourceError:  # the float32 factor's exact size: does not fit either
             if method != "auto" or coarse is None:
                 raise
@@ -241,9 +243,12 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
                  shift=sigma, seconds=seconds, stats=stats, factorization=kept)
 
 
-def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress, backend):
+def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress, backend,
+                 keep=False):
     """Eigenvectors (n, count) from a float32 factor, refined in double
-    (:mod:`pipeline.solve.mixed`), and the statistics."""
+    (:mod:`pipeline.solve.mixed`), and the statistics; with ``keep``,
+    ``stats["kept"]`` is K^-1 by PCG with that factor (:func:`mixed.static_solver`) for
+    the static correction (the caller owns it)."""
     if resolve_backend(backend) != "pardiso":
         raise ConfigError.field("modes.precision", "mixed",
                                 "double, or the 'pardiso' backend for mixed precision")
@@ -258,12 +263,18 @@ def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress,
         v, lstats = _lanczos_modes(fact, M, count, max(tolerance, mixed.LANCZOS_TOLERANCE),
                                    block_size, max_basis, progress)
         v, rstats = mixed.refine(K, M, v, fact, sigma)
-    finally:
+    except BaseException:
         fact.release()
+        raise
     stats.update(lstats, **rstats)
     stats["eigensolver_seconds"] = time.perf_counter() - t2
-    log.info("mixed precision: %d Lanczos solves, %d refinement sweeps, residual %.1e",
-             lstats["solves"], rstats["refine_sweeps"], rstats["refine_residuals"][-1])
+    log.info("mixed precision: %d Lanczos solves, %d refinement sweeps, preconditioned "
+             "residual %.1e", lstats["solves"], rstats["refine_sweeps"],
+             rstats["refine_residual"])
+    if keep:
+        stats["kept"] = mixed.static_solver(K, fact)
+    else:
+        fact.release()
     return v, stats
 
 

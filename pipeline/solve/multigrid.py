@@ -33,6 +33,7 @@ import scipy.sparse as sp
 
 from pipeline.errors import SolverError
 from pipeline.solve.factorize import Factorization, factorize, sparse_times_dense
+from pipeline.solve.pcg import pcg
 
 log = logging.getLogger(__name__)
 
@@ -147,45 +148,11 @@ class TwoGrid:
 
     def solve(self, B: np.ndarray, rtol: float = PCG_RTOL,
               max_iter: int = PCG_MAX_ITER) -> np.ndarray:
-        """A^-1 B by preconditioned conjugate gradients, all columns of B (n,) or (n, k)
-        at once, each to ||B - A X|| <= rtol ||B||; SolverError if that takes more than
-        ``max_iter`` iterations."""
-        B = np.asarray(B, dtype=np.float64)
-        vector = B.ndim == 1
-        B = np.ascontiguousarray(B.reshape(B.shape[0], -1))
-        X = np.zeros_like(B)
-        bnorm = np.linalg.norm(B, axis=0)
-        goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
-        R = B.copy()
-        Z = self.apply(R)
-        Pd = Z.copy()
-        rz = np.einsum("ij,ij->j", R, Z)
-        it = 0
-        while True:
-            rnorm = np.linalg.norm(R, axis=0)
-            if np.all(rnorm <= goal):
-                break
-            if it >= max_iter:
-                raise SolverError(f"multigrid: conjugate gradients did not reach a relative "
-                                  f"residual of {rtol:g} in {max_iter} iterations (now "
-                                  f"{float((rnorm / goal).max() * rtol):.1e})")
-            it += 1
-            AP = sparse_times_dense(self.A, Pd)
-            pap = np.einsum("ij,ij->j", Pd, AP)
-            live = rnorm > goal
-            alpha = np.where(live & (pap > 0), rz / np.where(pap > 0, pap, 1.0), 0.0)
-            X += Pd * alpha
-            R -= AP * alpha
-            del AP
-            Z = self.apply(R)
-            rz_new = np.einsum("ij,ij->j", R, Z)
-            beta = np.where(rz != 0, rz_new / np.where(rz != 0, rz, 1.0), 0.0)
-            Pd *= beta
-            Pd += Z
-            rz = rz_new
-        log.debug("multigrid PCG: %d iterations for %d right-hand sides", it, B.shape[1])
-        self.iterations = it
-        return X[:, 0] if vector else X
+        """A^-1 B by preconditioned conjugate gradients (:func:`pipeline.solve.pcg.pcg`),
+        all columns of B (n,) or (n, k) at once, each to ||B - A X|| <= rtol ||B||."""
+        X, self.iterations = pcg(self.A, B, self.apply, rtol, max_iter)
+        log.debug("multigrid PCG: %d iterations", self.iterations)
+        return X
 
     def release(self) -> None:
         self.coarse.release()
