@@ -72,7 +72,7 @@ def factor_bytes(n_dofs: int) -> float:
     return FACTOR_BYTES_COEFF * float(n_dofs) ** (4.0 / 3.0)
 
 
-def multigrid_bytes(n_nodes: int, order: int, n_modes: int) -> float:
+def multigrid_bytes(n_nodes: int, n_modes: int) -> float:
     """Bytes of the factor-free eigensolve (:mod:`pipeline.solve.multigrid`) beside K, M.
 
     The coarse factor: the P1 problem on the vertices (about n_nodes / VERTEX_FRACTION of
@@ -114,7 +114,7 @@ def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto
         options += [matrices + factor_path_bytes(n, n_modes, single)
                     for single in (False, True)]
     if method == "multigrid" or (method == "auto" and order == 2):
-        options.append(matrices + multigrid_bytes(n_nodes, order, n_modes) + shapes)
+        options.append(matrices + multigrid_bytes(n_nodes, n_modes) + shapes)
     if not options:
         raise ValueError(f"method '{method}': expected auto, factor or multigrid")
     return next((need for need in options if need <= usable), min(options))
