@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +41,7 @@ LARGE = ("1M", "3M")  # opt-in: --large, or named in --sizes
 # 20,109 DOFs, so DOFs ~ h^-2.95)
 NGSOLVE_MAXH = {"20k": 0.0079, "100k": 0.00497, "300k": 0.00339, "1M": 0.00229,
                 "3M": 0.00158}
-NGSOLVE_VARIANTS = ("pardiso", "sparsecholesky")
+NGSOLVE_VARIANTS = ("pardiso_spd", "sparsecholesky", "pardiso")
 REFERENCE_SIZES = ("20k", "100k")  # the straightforward stack: 300k takes 6 min, 10 GB
 COUNT = 20
 
@@ -132,6 +133,68 @@ def run_reference_case(size: float, count: int, workdir: Path) -> dict:
 
 
 # --------------------------------------------------------------------------- parent side
+#: a case is stopped when its resident memory passes this fraction of the memory that
+#: was available when it started (a case that does not fit ends in one error row
+#: instead of swapping the machine or waking the OOM killer)
+MEMORY_FRACTION = 0.92
+
+
+@dataclass(frozen=True)
+class Finished:
+    """A watched child: exit code, its output, and why it was stopped (None: it ended)."""
+
+    returncode: int | None
+    stdout: str
+    stderr: str
+    error: str | None
+    peak_rss_bytes: int
+
+
+def _available_bytes() -> int:
+    with open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _rss_bytes(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
+                poll_s: float = 0.25) -> Finished:
+    """Run ``cmd`` (cwd: the repository) and stop it, with a one-line reason, when it
+    runs past ``timeout`` seconds or its resident memory passes ``limit_bytes``
+    (default: :data:`MEMORY_FRACTION` of the memory available now)."""
+    limit = limit_bytes or int(MEMORY_FRACTION * _available_bytes())
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=err, text=True)
+        t0, peak, error = time.perf_counter(), 0, None
+        while proc.poll() is None:
+            peak = max(peak, _rss_bytes(proc.pid))
+            if peak > limit:
+                error = (f"stopped at {peak / 1e9:.1f} GB resident: over the "
+                         f"{limit / 1e9:.1f} GB available")
+            elif time.perf_counter() - t0 > timeout:
+                error = f"timed out after {timeout:.0f} s"
+            if error:
+                proc.kill()
+                proc.wait()
+                break
+            time.sleep(poll_s)
+        out.seek(0)
+        err.seek(0)
+        return Finished(proc.returncode, out.read(), err.read(), error, peak)
+
+
 def _run_child(kind: str, label: str, count: int, timeout: float, variant: str = "auto"
                ) -> dict:
     """One case in its own process; ``variant``: a modes.precision (auto, double, mixed)
@@ -144,12 +207,10 @@ def _run_child(kind: str, label: str, count: int, timeout: float, variant: str =
                "--size", str(SIZES[label]), "--count", str(count), "--result", str(out),
                "--precision", precision, "--method", method]
         t0 = time.perf_counter()
-        try:
-            proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
-                                  timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return {"kind": kind, "label": label, "error": f"timed out after {timeout:.0f} s"}
+        proc = run_watched(cmd, timeout)
         wall = time.perf_counter() - t0
+        if proc.error:
+            return {"kind": kind, "label": label, "error": proc.error}
         if proc.returncode != 0 or not out.exists():
             tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
             return {"kind": kind, "label": label,
@@ -165,10 +226,9 @@ def _run_ngsolve(label: str, inverse: str, count: int, timeout: float) -> dict:
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_ngsolve.py"), "--maxh",
            str(NGSOLVE_MAXH[label]), "--count", str(count), "--inverse", inverse]
     t0 = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"kind": kind, "label": label, "error": f"timed out after {timeout:.0f} s"}
+    proc = run_watched(cmd, timeout)
+    if proc.error:
+        return {"kind": kind, "label": label, "error": proc.error}
     lines = [x for x in proc.stdout.splitlines() if x.startswith("{")]
     if proc.returncode != 0 or not lines:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-2:]

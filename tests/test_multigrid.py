@@ -125,6 +125,33 @@ def test_multigrid_modes_match_the_factor_route(beam):
     assert d <= shape_bound
 
 
+def test_float32_cycle_preconditions_lobpcg_to_the_same_eigenpairs(beam):
+    """LOBPCG preconditioned by the float32 cycle (what the solver uses) and by the
+    double cycle reach the same target, and their eigenvalues agree within the bound of
+    both (2 rho^2 / gap each, plus the Rayleigh quotients' round-off, eigenvalue_rtol):
+    the preconditioner's precision only chooses directions.
+    The float32 cycle hands back float64 blocks of the input's shape."""
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        X0 = np.random.default_rng(4).standard_normal((beam.K.shape[0], 11))
+        Z = tg.apply_single(X0[:, :3])
+        assert Z.dtype == np.float64 and Z.shape == (beam.K.shape[0], 3)
+        assert tg.apply_single(X0[:, 0]).shape == (beam.K.shape[0],)
+        target = eigen.MULTIGRID_TOLERANCE
+        double = lobpcg(beam.K, beam.M, X0, tg.apply, COUNT, target=target)
+        single = lobpcg(beam.K, beam.M, X0, tg.apply_single, COUNT, target=target)
+    finally:
+        tg.release()
+    assert double.converged and single.converged
+    w = double.omega2[:COUNT]
+    rel_gap = float(np.min(np.diff(w) / w[1:]))
+    bound = 2 * 2 * target ** 2 / rel_gap + eigenvalue_rtol(beam.K, beam.M)
+    err = float(np.abs(single.omega2[:COUNT] / w - 1).max())
+    record_tolerance("float32 vs double cycle: LOBPCG eigenvalues", err, bound)
+    assert err <= bound
+
+
 def test_multigrid_free_body_finds_the_rigid_modes(free_beam):
     """A free body (shift < 0): six rigid-body modes at zero, then the elastic ones as the
     factor route gives them."""

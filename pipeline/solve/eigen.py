@@ -306,8 +306,9 @@ def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep):
                 watch.update(1)  # past the expected count, the total follows
                 if progress is not None:
                     progress(width)
-            result = lobpcg.lobpcg(K, M, X0, tg.apply, count, sigma=sigma, target=target,
-                                   max_sweeps=MULTIGRID_MAX_SWEEPS, on_sweep=on_sweep)
+            result = lobpcg.lobpcg(K, M, X0, tg.apply_single, count, sigma=sigma,
+                                   target=target, max_sweeps=MULTIGRID_MAX_SWEEPS,
+                                   on_sweep=on_sweep)
         del X0
         if not result.converged and min(result.history) > MULTIGRID_ACCEPT:
             raise SolverError(
