@@ -181,18 +181,21 @@ def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=err, text=True)
         t0, peak, error = time.perf_counter(), 0, None
-        while proc.poll() is None:
-            peak = max(peak, _rss_bytes(proc.pid))
-            if peak > limit:
-                error = (f"stopped at {peak / 1e9:.1f} GB resident: over the "
-                         f"{limit / 1e9:.1f} GB available")
-            elif time.perf_counter() - t0 > timeout:
-                error = f"timed out after {timeout:.0f} s"
-            if error:
+        try:
+            while proc.poll() is None:
+                peak = max(peak, _rss_bytes(proc.pid))
+                if peak > limit:
+                    error = (f"stopped at {peak / 1e9:.1f} GB resident: over the "
+                             f"{limit / 1e9:.1f} GB available")
+                elif time.perf_counter() - t0 > timeout:
+                    error = f"timed out after {timeout:.0f} s"
+                if error:
+                    break
+                time.sleep(poll_s)
+        finally:  # stopped, or the bench itself interrupted: no case left running
+            if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-                break
-            time.sleep(poll_s)
         out.seek(0)
         err.seek(0)
         return Finished(proc.returncode, out.read(), err.read(), error, peak)
