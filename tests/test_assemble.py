@@ -151,12 +151,10 @@ def test_a_material_without_positive_definite_matrices_is_refused(space, change)
 
 @pytest.mark.parametrize("which", ["whole nodes", "some components", "none fixed"])
 def test_stiffness_straight_onto_free_dofs_equals_restriction(space, matrices, which):
-    """stiffness_csr(..., free) drops fixed nodes' blocks before the CSR expansion when
-    whole nodes are fixed, else restricts the full matrix: both must equal K[free][:, free]
-    exactly (same entries, same order)."""
-    K, _ = matrices
-    pattern = asm.block_pattern(space)
-    kcomp, _ = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
+    """assemble_on_nodes(..., nodes) drops fixed nodes' blocks before anything is summed
+    when whole nodes are fixed; other supports restrict the whole matrix. Both must equal
+    K[free][:, free] exactly (same structure; values summed in the same order)."""
+    K, M = matrices
     x = space.node_points[:, 0]
     if which == "whole nodes":
         fixed_nodes = np.flatnonzero(x < x.min() + 0.3 * np.ptp(x))
@@ -167,28 +165,75 @@ def test_stiffness_straight_onto_free_dofs_equals_restriction(space, matrices, w
     else:
         fixed = np.zeros(0, dtype=np.int64)
     free = np.setdiff1d(np.arange(space.n_dofs), fixed)
-    assert (asm.whole_nodes(free, space.n_nodes) is not None) == (which != "some components")
-    Kf = asm.stiffness_csr(pattern, kcomp, free)
-    ref = K[free][:, free].tocsr()
-    ref.sort_indices()
-    assert Kf.shape == ref.shape and Kf.has_sorted_indices
-    np.testing.assert_array_equal(Kf.indptr, ref.indptr)
-    np.testing.assert_array_equal(Kf.indices, ref.indices)
-    np.testing.assert_array_equal(Kf.data, ref.data)
-    assert Kf.indices.dtype == np.int32
+    nodes = asm.whole_nodes(free, space.n_nodes)
+    assert (nodes is not None) == (which != "some components")
+    assembled = asm.assemble_on_nodes(space, ALUMINIUM, nodes)
+    Kf, Mf = assembled.K, assembled.M
+    if nodes is None:
+        Kf = asm.restrict(Kf, free, overwrite=True)
+        Mf = asm.restrict(Mf, free, overwrite=True)
+    for A, full in ((Kf, K), (Mf, M)):
+        ref = full[free][:, free].tocsr()
+        ref.sort_indices()
+        assert A.shape == ref.shape and A.has_sorted_indices
+        np.testing.assert_array_equal(A.indptr, ref.indptr)
+        np.testing.assert_array_equal(A.indices, ref.indices)
+        np.testing.assert_array_equal(A.data, ref.data)
+        assert A.indices.dtype == np.int32
+    # the spare rows were cut off in place, not by holding a view of a larger array
+    assert (Kf.data.base if Kf.data.base is not None else Kf.data).size == Kf.nnz
 
 
 def test_scatter_fallback_equals_fast_path(space, matrices, monkeypatch):
-    """Without scipy's private CSC kernel the element sums fall back to np.bincount; the
+    """Without scipy's private CSC kernel the element sums fall back to np.add.at; the
     two sum the same element values in different orders, so they agree to the round-off of
     a sum of at most n_t terms per entry (bounded here by 1e-13 of the largest entry)."""
     from scipy.sparse import _sparsetools
 
-    pattern = asm.block_pattern(space)
-    kcomp, mblock = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
-    monkeypatch.delattr(_sparsetools, "csc_matvecs")
-    kcomp2, mblock2 = asm.assemble_blocks(space, ALUMINIUM, pattern=pattern)
-    assert np.abs(kcomp2 - kcomp).max() <= 1e-13 * np.abs(kcomp).max()
-    assert np.abs(mblock2 - mblock).max() <= 1e-13 * np.abs(mblock).max()
     K, M = matrices
-    assert _rel(asm.stiffness_csr(pattern, kcomp2), K) < 1e-13
+    monkeypatch.delattr(_sparsetools, "csc_matvecs")
+    K2, M2 = asm.assemble_stiffness_mass(space, ALUMINIUM)
+    assert _rel(K2, K) < 1e-13 and _rel(M2, M) < 1e-13
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_threads_do_not_change_a_bit(space, matrices, threads):
+    """The elements are always summed in the same two halves, so one thread or two give
+    bitwise the same K and mass blocks (the result does not depend on the machine)."""
+    K, M = matrices
+    pattern = asm.block_pattern(space)
+    one = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=64,
+                                threads=threads)
+    other = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=64,
+                                  threads=3 - threads)
+    np.testing.assert_array_equal(one.K.data, other.K.data)
+    np.testing.assert_array_equal(one.node_mass.data, other.node_mass.data)
+    assert _rel(one.K, K) < 1e-14 and _rel(one.M, M) < 1e-14
+    # the node-level mass is M's: M = node_mass (x) I_3
+    assert _rel(sp.kron(one.node_mass, sp.identity(3)).tocsr(), M) < 1e-15
+
+
+def test_element_groups_split_the_rows_and_cover_every_element(space):
+    """The two halves summed side by side must never write the same node row: no node
+    of the lower group's elements is a node of the upper group's; with the cut layer the
+    three groups are a partition of the elements."""
+    lower, upper, cut = asm.element_groups(space)
+    en = space.element_nodes
+    assert np.intersect1d(en[lower], en[upper]).size == 0
+    together = np.concatenate([lower, upper, cut])
+    assert np.array_equal(np.sort(together), np.arange(space.body.n_tetrahedra))
+    assert min(lower.size, upper.size) > cut.size  # a layer, not the bulk
+
+
+def test_body_properties_from_the_node_level_mass_equal_the_full_mass(space, matrices):
+    """body_properties accepts M = N (x) I_3 as N: mass, centre of mass and inertia must
+    agree with R^T M R on the full (3n x 3n) matrix to round-off."""
+    from pipeline.fe.body import body_properties
+
+    _, M = matrices
+    node_mass = asm.assemble_on_nodes(space, ALUMINIUM).node_mass
+    full = body_properties(M, space.node_points)
+    nodal = body_properties(node_mass, space.node_points)
+    assert nodal.mass == pytest.approx(full.mass, rel=1e-13)
+    np.testing.assert_allclose(nodal.rigid_mass, full.rigid_mass, rtol=0,
+                               atol=1e-13 * np.abs(full.rigid_mass).max())

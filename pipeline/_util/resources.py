@@ -44,6 +44,14 @@ VERTEX_FRACTION = 7.0
 LOBPCG_BLOCKS = 13
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (affinity mask), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def available_memory_bytes() -> int:
     """Memory this process may use: MemAvailable, capped by a cgroup limit if any."""
     avail = None

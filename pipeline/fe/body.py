@@ -46,9 +46,18 @@ class BodyProperties:
 
 
 def body_properties(M: sp.spmatrix, node_points: np.ndarray) -> BodyProperties:
-    """Mass, centre of mass and inertia from the full (unconstrained) mass matrix M."""
+    """Mass, centre of mass and inertia from the full (unconstrained) mass matrix M.
+
+    M: (3 n, 3 n) kg, or the (n, n) node-level matrix N of a mass M = N (x) I_3 (the
+    consistent mass of a vector Lagrange space): then R^T M R = sum_c R_c^T N R_c over
+    the rows R_c of component c of the rigid-body modes.
+    """
     R = rigid_body_modes(node_points)
-    D = R.T @ (M @ R)
+    n = np.asarray(node_points).shape[0]
+    if M.shape == (n, n) and n:
+        D = sum(R[c::3].T @ (M @ R[c::3]) for c in range(3))
+    else:
+        D = R.T @ (M @ R)
     D = 0.5 * (D + D.T)
     m = D[0, 0]
     # translational-rotational block: R_t^T M R_r = -m skew(G)

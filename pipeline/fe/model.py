@@ -23,8 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.fe.assemble import (assemble_blocks, block_pattern, mass_csr, restrict,
-                                  stiffness_csr)
+from pipeline.fe.assemble import assemble_on_nodes, block_pattern, restrict, whole_nodes
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
@@ -98,22 +97,27 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     check_memory(space, cfg.modes.count, method=cfg.modes.method)
 
     with stage("assemble"):
-        pattern = block_pattern(space)
-        with progress("assemble", body.n_tetrahedra, "elem") as update:
-            kcomp, mblock = assemble_blocks(space, cfg.material, pattern=pattern,
-                                            progress=update)
-        M = mass_csr(pattern, mblock)
-        del mblock
-        props = body_properties(M, space.node_points)
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
-        # connection-point models need the unsupported body: keep it only then
-        full = (stiffness_csr(pattern, kcomp), M) if cfg.connections else (None, None)
-        # K straight onto the free DOFs (the full K is never built for a clamped body);
-        # M restricted in place when nothing else needs it: never two copies alive
-        K = stiffness_csr(pattern, kcomp, free)
-        del kcomp, pattern
-        M = restrict(M, free, overwrite=full[1] is None)
+        # connection-point models need the unsupported body: then K is assembled whole
+        # and restricted to a copy; else straight onto the free DOFs when the supports
+        # clamp whole nodes (the full K is never built), or restricted in place
+        nodes = None if cfg.connections else whole_nodes(free, space.n_nodes)
+        pattern = block_pattern(space)
+        with progress("assemble", body.n_tetrahedra, "elem") as update:
+            assembled = assemble_on_nodes(space, cfg.material, nodes, pattern=pattern,
+                                          progress=update)
+        del pattern
+        props = body_properties(assembled.node_mass, space.node_points)
+        K, M = assembled.K, assembled.M
+        del assembled
+        if cfg.connections:
+            full = (K, M)
+            K, M = restrict(K, free), restrict(M, free)
+        else:
+            full = (None, None)
+            if K.shape[0] != free.size:
+                K, M = restrict(K, free, overwrite=True), restrict(M, free, overwrite=True)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,

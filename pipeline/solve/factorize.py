@@ -49,7 +49,7 @@ import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, SolverError
 from pipeline._util import progress
-from pipeline._util.resources import check_factor_memory
+from pipeline._util.resources import check_factor_memory, usable_cores
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +78,6 @@ _MKL_DOMAIN_PARDISO = 4
 VBSR_THRESHOLD = -80
 # factors above this size (bytes, PARDISO's iparm[16]) are freed in a background thread
 BACKGROUND_RELEASE_BYTES = 1 << 30
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (affinity mask), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 @functools.lru_cache(maxsize=1)
