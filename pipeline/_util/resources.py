@@ -52,6 +52,22 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def release_free_heap() -> None:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``).
+
+    Worker threads allocate their numpy temporaries in their own malloc arenas, which
+    keep their free pages after the threads end (measured: 110-170 MB after the
+    threaded assembly at 100k DOFs, raising the run's peak by as much). A no-op where
+    the C library has no ``malloc_trim``."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def available_memory_bytes() -> int:
     """Memory this process may use: MemAvailable, capped by a cgroup limit if any."""
     avail = None

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.resources import release_free_heap, usable_cores
 from pipeline.config import Material
 from pipeline.errors import SolverError
 from pipeline.fe.space import FESpace
@@ -346,7 +347,7 @@ def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam:
 
 
 def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | None = None,
-                      pattern: BlockPattern | None = None, chunk_size: int = 4096,
+                      pattern: BlockPattern | None = None, chunk_size: int = 2048,
                       progress=None, threads: int | None = None) -> Assembled:
     """K (N/m) and M (kg) on the sorted ``nodes`` (all three DOFs of each; None: every
     node), and the whole body's node-level mass (:class:`Assembled`); CSR, sorted, 32-bit
@@ -370,8 +371,6 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     R, mass_ref = _reference_data(space.order)
     chunk_size = max(1, int(chunk_size))
     if threads is None:
-        from pipeline._util.resources import usable_cores
-
         threads = usable_cores()
     lower, upper, cut = element_groups(space)
     # three spare 3-value rows at the end take the dropped nodes' blocks, one per group
@@ -384,7 +383,9 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
         _assemble_elements(*args, elements, layout.nnz // 3 + group, chunk_size, kdata,
                            mblock, progress)
 
-    if threads < 2 or min(lower.size, upper.size) < chunk_size:
+    # threads pay off from a few chunks per half; below that (about 150k DOFs at the
+    # default chunk) the worker's malloc arena would only add to the peak (~45 MB kept)
+    if threads < 2 or min(lower.size, upper.size) < 8 * chunk_size:
         run(0, lower)
         run(1, upper)
     else:
@@ -393,6 +394,7 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
         with ThreadPoolExecutor(2) as pool:
             for f in [pool.submit(run, 0, lower), pool.submit(run, 1, upper)]:
                 f.result()
+        release_free_heap()  # the threads' malloc arenas keep their temporaries' pages
     run(2, cut)
     del kdata, run  # only ``held`` refers to the values now: cut the spare rows in place
     K = sp.csr_matrix((_shrink(held, layout.nnz), layout.indices, layout.indptr),
@@ -403,7 +405,7 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     return Assembled(K, mass_csr(layout, mblock), node_mass)
 
 
-def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 4096,
+def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 2048,
                             pattern: BlockPattern | None = None, progress=None
                             ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """Assemble K (N/m) and M (kg), both (n_dofs x n_dofs) CSR, in the space's DOF order.
