@@ -92,6 +92,22 @@ def test_linear_field_gives_exact_strain_everywhere(tmp_path, order):
             assert row @ U == pytest.approx(shear, abs=1e-10 * scale)
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_element_nodal_strains_equal_scikit_fems_basis(tmp_path, order):
+    """The element-nodal strains from reference gradients times J^-1 equal scikit-fem's
+    own basis evaluated at each element's nodes, for random (non-polynomial) nodal
+    displacements: the same local node order, the same Voigt convention, to round-off."""
+    space = build_model(tmp_path, size=0.02, order=order).space
+    n_loc = space.element_nodes.shape[1]
+    U = np.random.default_rng(7).standard_normal((space.n_dofs, 2))
+    X = space.skfem_element().elem.doflocs.T
+    for sel, values in strain._element_nodal_chunks(space, U):
+        basis = strain._basis(space, sel, quadrature=(X, np.full(n_loc, 1.0 / n_loc)))
+        G = strain._voigt_gradients(basis)  # (3 n_loc, 6, n_sel, n_loc points)
+        ref = np.einsum("dkeq,des->eqks", G, U[basis.element_dofs])
+        assert np.abs(values - ref).max() <= 1e-10 * np.abs(ref).max()
+
+
 def test_gauge_outside_body_or_empty_is_refused(coarse):
     with pytest.raises(RegionError, match="outside the mesh"):
         strain.gauge_row(coarse.space, ALUMINIUM, "strain", (1, 0, 0), point=(1.0, 0, 0),

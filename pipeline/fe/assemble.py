@@ -266,7 +266,7 @@ def _element_factors(space: FESpace, lam: float, mu: float, elems: np.ndarray):
     return F.reshape(-1, 9, 9), vol
 
 
-def _scatter_add(rows: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
+def scatter_add(rows: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
     """out[rows[r], :] += values[r, :] for every row r of ``values`` (m, k).
 
     scipy's C++ sparse (CSC, one entry per column) times dense product with unit
@@ -339,9 +339,9 @@ def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam:
         rows = layout.base[slots][:, None] + layout.step[slots][:, None] * offsets
         if spare != first_spare:
             rows[rows == first_spare] = spare
-        _scatter_add(rows.reshape(-1), block.reshape(-1, 3), kdata)
+        scatter_add(rows.reshape(-1), block.reshape(-1, 3), kdata)
         del block, rows
-        _scatter_add(slots, np.outer(vol, m_ref).reshape(-1, 1), mblock.reshape(-1, 1))
+        scatter_add(slots, np.outer(vol, m_ref).reshape(-1, 1), mblock.reshape(-1, 1))
         if progress is not None:
             progress(chunk.size)
 
