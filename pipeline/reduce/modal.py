@@ -268,6 +268,24 @@ def _dense(X) -> np.ndarray:
     return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
 
 
+def scaled_inf_norm(K, w: np.ndarray, rows_per_chunk: int = 1 << 16) -> float:
+    """|W |K| W|_inf = max_i w_i sum_j |K_ij| w_j for W = diag(w) (w (n,) >= 0).
+
+    Row chunks of K's own arrays, one CSR product with |K_ij| each: no scaled copy of K
+    (two sparse-times-sparse products and an abs copy took 0.9 s and three copies of K's
+    values at 314k DOFs)."""
+    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
+    n = K.shape[0]
+    best = 0.0
+    for r0 in range(0, n, rows_per_chunk):
+        r1 = min(n, r0 + rows_per_chunk)
+        lo, hi = int(K.indptr[r0]), int(K.indptr[r1])
+        part = sp.csr_matrix((np.abs(K.data[lo:hi]), K.indices[lo:hi],
+                              K.indptr[r0:r1 + 1] - lo), shape=(r1 - r0, K.shape[1]))
+        best = max(best, float((w[r0:r1] * (part @ w)).max(initial=0.0)))
+    return best
+
+
 def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
                   lowest_omega2: float | None = None, stiffness_scale: float | None = None
                   ) -> np.ndarray:
@@ -310,8 +328,7 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
     # thin P2 elements overstate it by orders of magnitude.)
     d = np.sqrt(np.abs(K.diagonal()))
     d = np.where(d > 0, d, 1.0)
-    Ks = sp.diags(1.0 / d) @ abs(K) @ sp.diags(1.0 / d)
-    norm_Ks = float(Ks.sum(axis=1).max()) if K.shape[0] else 0.0
+    norm_Ks = scaled_inf_norm(K, 1.0 / d)
     Fs = np.abs(Fd / d[:, None]).max(initial=0.0)
     if Fs > 0 and np.all(np.isfinite(X)):
         lower = norm_Ks * float(np.abs(X * d[:, None]).max(initial=0.0)) / Fs
