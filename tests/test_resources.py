@@ -87,3 +87,32 @@ def test_pardiso_checks_the_exact_factor_size_before_factorising(monkeypatch):
     monkeypatch.undo()
     fact = solvers.factorize(A, "pardiso")  # the refused handle was released cleanly
     assert np.allclose(A @ fact.solve(np.ones(n)), 1.0)
+
+
+def _glibc_mallopt() -> bool:
+    lib = resources._libc()
+    return lib is not None and hasattr(lib, "mallopt") and hasattr(lib, "malloc_trim")
+
+
+@pytest.mark.skipif(not _glibc_mallopt(), reason="needs glibc's mallopt")
+def test_retained_heap_keeps_freed_blocks_inside_and_gives_them_back_after():
+    """Inside the block a freed 64 MB array stays resident (the heap keeps it); after the
+    block the pages go back to the system. Nested use and a block whose growth would not
+    fit leave the allocator alone."""
+    mb = 64 * 2**20
+
+    def resident_after_free() -> int:
+        a = np.ones(mb // 8)  # written: resident
+        del a
+        return resources.resident_bytes()
+
+    before = resources.resident_bytes()
+    with resources.retained_heap(mb) as kept:
+        assert kept
+        assert resident_after_free() - before > mb // 2
+        with resources.retained_heap(mb) as nested:
+            assert not nested
+    assert resources.resident_bytes() - before < mb // 2
+    assert resident_after_free() - before < mb // 2  # mmap again: returned on free
+    with resources.retained_heap(10.0 * resources.available_memory_bytes()) as kept:
+        assert not kept

@@ -33,7 +33,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline._util import progress as watch_progress
-from pipeline._util.resources import HEADROOM, available_memory_bytes, factor_path_bytes
+from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, available_memory_bytes,
+                                      factor_path_bytes, retained_heap)
 from pipeline.errors import ConfigError, ResourceError, SolverError
 from pipeline.solve import lobpcg, mixed, multigrid
 from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
@@ -306,9 +307,11 @@ def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep):
                 watch.update(1)  # past the expected count, the total follows
                 if progress is not None:
                     progress(width)
-            result = lobpcg.lobpcg(K, M, X0, tg.apply_single, count, sigma=sigma,
-                                   target=target, max_sweeps=MULTIGRID_MAX_SWEEPS,
-                                   on_sweep=on_sweep)
+            # the sweeps free and allocate (n x width) blocks: keep them in the heap
+            with retained_heap(LOBPCG_BLOCKS * 8.0 * K.shape[0] * width):
+                result = lobpcg.lobpcg(K, M, X0, tg.apply_single, count, sigma=sigma,
+                                       target=target, max_sweeps=MULTIGRID_MAX_SWEEPS,
+                                       on_sweep=on_sweep)
         del X0
         if not result.converged and min(result.history) > MULTIGRID_ACCEPT:
             raise SolverError(

@@ -40,6 +40,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
 from pipeline.solve.factorize import Factorization, factorize, sparse_times_dense
 from pipeline.solve.pcg import pcg
@@ -49,6 +50,7 @@ log = logging.getLogger(__name__)
 DEGREE = 3  # Chebyshev smoothing steps before and after the coarse correction
 LOWER = 0.05  # lower end of the smoothed interval, as a fraction of lambda_max(D^-1 A)
 POWER_STEPS = 12
+PCG_BLOCKS = 8  # (n x k) blocks a PCG iteration allocates (residual, search direction, cycle)
 PCG_RTOL = 1e-12  # static solves: ||F - K X|| <= PCG_RTOL ||F|| per column
 PCG_MAX_ITER = 500
 
@@ -180,7 +182,9 @@ class TwoGrid:
               max_iter: int = PCG_MAX_ITER) -> np.ndarray:
         """A^-1 B by preconditioned conjugate gradients (:func:`pipeline.solve.pcg.pcg`),
         all columns of B (n,) or (n, k) at once, each to ||B - A X|| <= rtol ||B||."""
-        X, self.iterations = pcg(self.A, B, self.apply, rtol, max_iter)
+        width = 1 if np.ndim(B) == 1 else np.shape(B)[1]
+        with retained_heap(PCG_BLOCKS * 8.0 * self.A.shape[0] * width):
+            X, self.iterations = pcg(self.A, B, self.apply, rtol, max_iter)
         log.debug("multigrid PCG: %d iterations", self.iterations)
         return X
 
