@@ -3,6 +3,8 @@ storage formats behave as documented."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -240,3 +242,24 @@ def test_body_properties_from_the_node_level_mass_equal_the_full_mass(space, mat
     assert nodal.mass == pytest.approx(full.mass, rel=1e-13)
     np.testing.assert_allclose(nodal.rigid_mass, full.rigid_mass, rtol=0,
                                atol=1e-13 * np.abs(full.rigid_mass).max())
+
+
+def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
+    """An exception in one thread (here from the progress callback; an interrupt takes the
+    same path in the main thread) propagates, and the other half stops at its next chunk
+    instead of summing the rest of the body."""
+    lower, upper, _ = asm.element_groups(space)
+    chunk = min(lower.size, upper.size) // 8
+    calls = []
+
+    def progress(n):
+        calls.append(n)
+        if len(calls) == 1:
+            raise RuntimeError("stop here")
+        time.sleep(0.02)  # each further chunk takes a while: time for the stop to land
+
+    with pytest.raises(RuntimeError, match="stop here"):
+        asm.assemble_on_nodes(space, ALUMINIUM, chunk_size=chunk, progress=progress,
+                              threads=2)
+    # without the stop the other half would report all of its >= 8 chunks
+    assert len(calls) <= 4, len(calls)

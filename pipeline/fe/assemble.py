@@ -23,6 +23,7 @@ whole mesh.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -324,13 +325,16 @@ def element_groups(space: FESpace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam: float,
                        mu: float, rho: float, pattern: BlockPattern, layout: StiffnessLayout,
                        elements: np.ndarray, spare: int, chunk_size: int, kdata: np.ndarray,
-                       mblock: np.ndarray, progress) -> None:
+                       mblock: np.ndarray, progress, stop) -> None:
     """Add ``elements`` into kdata (n_rows, 3) and mblock (n_blocks,); the dropped
-    nodes' blocks go to kdata's row ``spare`` (one per concurrent caller)."""
+    nodes' blocks go to kdata's row ``spare`` (one per concurrent caller). Returns early
+    once the event ``stop`` is set (checked before each chunk)."""
     offsets = np.arange(3, dtype=layout.base.dtype)
     m_ref = rho * mass_ref.reshape(-1)
     first_spare = layout.nnz // 3
     for start in range(0, elements.size, chunk_size):
+        if stop.is_set():
+            return
         chunk = elements[start:start + chunk_size]
         F, vol = _element_factors(space, lam, mu, chunk)
         block = np.matmul(R, F)  # (m, nb^2, 9): [element, pair, 3 i + j]
@@ -379,9 +383,11 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     mblock = np.zeros(pattern.n_blocks)
     args = (space, R, mass_ref, lam, mu, material.rho, pattern, layout)
 
+    stop = threading.Event()
+
     def run(group: int, elements: np.ndarray, kdata: np.ndarray = kdata) -> None:
         _assemble_elements(*args, elements, layout.nnz // 3 + group, chunk_size, kdata,
-                           mblock, progress)
+                           mblock, progress, stop)
 
     # threads pay off from a few chunks per half; below that (about 150k DOFs at the
     # default chunk) the worker's malloc arena would only add to the peak (~45 MB kept)
@@ -389,11 +395,24 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
         run(0, lower)
         run(1, upper)
     else:
-        from concurrent.futures import ThreadPoolExecutor
+        from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+
+        if progress is not None:  # one caller at a time: progress counters are not atomic
+            lock, report = threading.Lock(), progress
+
+            def progress(n: int) -> None:
+                with lock:
+                    report(n)
 
         with ThreadPoolExecutor(2) as pool:
-            for f in [pool.submit(run, 0, lower), pool.submit(run, 1, upper)]:
-                f.result()
+            futures = [pool.submit(run, 0, lower), pool.submit(run, 1, upper)]
+            try:
+                done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+                for f in list(done) + futures:  # a failed half raises here at once
+                    f.result()
+            except BaseException:  # an interrupt or a failed half: stop the other at its
+                stop.set()         # next chunk instead of finishing the body
+                raise
         release_free_heap()  # the threads' malloc arenas keep their temporaries' pages
     run(2, cut)
     del kdata, run  # only ``held`` refers to the values now: cut the spare rows in place
