@@ -246,16 +246,20 @@ def _reference_data(order: int):
     return R, mass_ref
 
 
+def inverse_jacobians(space: FESpace, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G (n, 3, 3), |det J| (n,)) of the straight-sided tetrahedra ``elements``:
+    G[e, k, i] = d xi_k / d x_i (1/m), |det J| = 6 x volume (m^3)."""
+    v = space.body.vertices
+    t = space.body.tetrahedra[elements]
+    a = v[t[:, 0]]
+    J = np.stack([v[t[:, 1]] - a, v[t[:, 2]] - a, v[t[:, 3]] - a], axis=2)  # columns
+    return np.linalg.inv(J), np.abs(np.linalg.det(J))
+
+
 def _element_factors(space: FESpace, lam: float, mu: float, elems: np.ndarray):
     """F (n, 9, 9) with K_e[ab, c] = R[ab, :] @ F[e, :, c] for component c = 3 i + j of
     the 3x3 block (row DOF i of node a, column DOF j of node b), and |det J| (n,)."""
-    v = space.body.vertices
-    t = space.body.tetrahedra[elems]
-    a = v[t[:, 0]]
-    J = np.stack([v[t[:, 1]] - a, v[t[:, 2]] - a, v[t[:, 3]] - a], axis=2)  # columns
-    det = np.linalg.det(J)
-    G = np.linalg.inv(J)  # G[k, i] = d xi_k / d x_i
-    vol = np.abs(det)
+    G, vol = inverse_jacobians(space, elems)  # G[e, k, i] = d xi_k / d x_i
     # P[kl, ij] = G[k, i] G[l, j]; F = lam P + mu P^(ij swapped) + mu delta_ij (G G^T)[k, l]
     P = np.einsum("nki,nlj->nklij", G, G, optimize=True)
     F = lam * P + mu * P.transpose(0, 1, 2, 4, 3)

@@ -52,7 +52,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.errors import RegionError
-from pipeline.fe.assemble import lame_parameters, scatter_add
+from pipeline.fe.assemble import inverse_jacobians, lame_parameters, scatter_add
 from pipeline.fe.space import FESpace
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
@@ -153,15 +153,6 @@ def _reference_node_gradients(space: FESpace) -> np.ndarray:
     return np.ascontiguousarray(dphi.transpose(2, 0, 1))
 
 
-def _inverse_jacobians(space: FESpace, elements: np.ndarray) -> np.ndarray:
-    """(n_sel, 3, 3) G with G[e, k, i] = d xi_k / d x_i (straight-sided tetrahedra)."""
-    v = space.body.vertices
-    t = space.body.tetrahedra[elements]
-    a = v[t[:, 0]]
-    J = np.stack([v[t[:, 1]] - a, v[t[:, 2]] - a, v[t[:, 3]] - a], axis=2)  # columns
-    return np.linalg.inv(J)
-
-
 def _element_nodal_chunks(space: FESpace, U: np.ndarray):
     """Yield (elements (n_sel,), values (n_sel, n_local_nodes, 6, n_s)): the engineering
     strain of U (n_dofs, n_s) evaluated by each element at its own nodes (local order of
@@ -180,7 +171,7 @@ def _element_nodal_chunks(space: FESpace, U: np.ndarray):
     for start in range(0, n_e, chunk):
         sel = np.arange(start, min(start + chunk, n_e))
         e = sel.size
-        D = np.matmul(dref, _inverse_jacobians(space, sel))  # (e, q b, i): d phi_b/d x_i (q)
+        D = np.matmul(dref, inverse_jacobians(space, sel)[0])  # (e, q b, i): d phi_b/d x_i
         D = D.reshape(e, n_loc, n_loc, 3).transpose(0, 1, 3, 2).reshape(e, 3 * n_loc, n_loc)
         Ue = U.reshape(-1, 3, n_s)[en[sel]].reshape(e, n_loc, 3 * n_s)  # (e, b, c s)
         g = np.matmul(D, Ue).reshape(e, n_loc, 3, 3, n_s)  # (e, q, i derivative, c, s)
