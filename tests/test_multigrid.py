@@ -18,19 +18,21 @@ Tolerances:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from conftest import build_model, cond_eps, condition_number, eigenvalue_rtol, record_tolerance
+from conftest import (ALUMINIUM, build_model, cond_eps, condition_number, eigenvalue_rtol,
+                      record_tolerance)
 from pipeline.config import config_from_dict
 from pipeline.errors import ConfigError
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.solve import eigen, multigrid
 from pipeline.solve.eigen import solve_modes
-from pipeline.solve.lobpcg import lobpcg
+from pipeline.solve.lobpcg import PROJECT_FROM, lobpcg, projected_sweeps
 
 COUNT = 8
 
@@ -170,6 +172,8 @@ def test_multigrid_free_body_finds_the_rigid_modes(free_beam):
 
 
 def test_auto_takes_multigrid_only_when_no_factor_fits(beam, monkeypatch, caplog):
+    """Below MULTIGRID_AUTO_DOFS, auto factorises whenever a factor fits."""
+    assert beam.K.shape[0] < eigen.MULTIGRID_AUTO_DOFS
     P = p1_prolongation(beam.space, beam.free)
     fits = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
     assert fits.stats["method"] == "block-lanczos"
@@ -180,6 +184,82 @@ def test_auto_takes_multigrid_only_when_no_factor_fits(beam, monkeypatch, caplog
     # without a coarse space (a P1 mesh) auto stays with a (float32) factor
     mixed = solve_modes(beam.K, beam.M, COUNT, precision="auto")
     assert mixed.stats["precision"] == "mixed"
+
+
+def test_auto_tries_multigrid_from_its_size(beam, monkeypatch):
+    """From MULTIGRID_AUTO_DOFS free DOFs (lowered here to the test beam's size) auto
+    solves a compact body without a factor, to the bound of
+    test_multigrid_modes_match_the_factor_route; an explicit mixed precision or
+    tolerance (both defined for the factor path), or no coarse space, keep the factor."""
+    P = p1_prolongation(beam.space, beam.free)
+    ref = solve_modes(beam.K, beam.M, COUNT, method="factor")
+    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", beam.K.shape[0])
+    auto = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
+    assert auto.stats["method"] == "multigrid-lobpcg"
+    assert "multigrid_trial" not in auto.stats
+    rel_gap = float(np.min(np.diff(ref.omega2) / ref.omega2[1:]))
+    bound = 2 * eigen.MULTIGRID_TOLERANCE ** 2 / rel_gap + 0.5 * eigenvalue_rtol(
+        beam.K, beam.M)
+    err = float(np.abs(auto.frequencies_hz / ref.frequencies_hz - 1).max())
+    record_tolerance("auto (multigrid from its size) vs Lanczos", err, bound)
+    assert err <= bound
+    assert solve_modes(beam.K, beam.M, COUNT, coarse=P,
+                       precision="mixed").stats["precision"] == "mixed"
+    assert solve_modes(beam.K, beam.M, COUNT, coarse=P,
+                       tolerance=1e-9).stats["method"] == "block-lanczos"
+    assert solve_modes(beam.K, beam.M, COUNT).stats["method"] == "block-lanczos"
+
+
+@pytest.fixture(scope="module")
+def soft_beam(tmp_path_factory):
+    """The test beam in a nearly incompressible material (nu = 0.499), where the P1
+    coarse space locks: the two-grid cycle converges slowly (about 35 sweeps projected
+    after 4; 84 sweeps on the 100k-DOF cantilever, against 12 at nu = 0.33)."""
+    return build_model(tmp_path_factory.mktemp("mgsoft"), length=0.3, height=0.02,
+                       depth=0.03, size=0.008,
+                       material=dataclasses.replace(ALUMINIUM, nu=0.499))
+
+
+def test_auto_gives_a_slow_multigrid_trial_up_for_the_factor(soft_beam, monkeypatch,
+                                                             caplog):
+    """A slowly converging two-grid trial under auto is given up after a few sweeps, with
+    a warning naming the cause, and the factor path's answer is returned unchanged (the
+    trial recorded in the statistics); when no factor fits, there is nothing to fall back
+    to and the trial is not given up."""
+    b = soft_beam
+    P = p1_prolongation(b.space, b.free)
+    ref = solve_modes(b.K, b.M, COUNT, method="factor")
+    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", b.K.shape[0])
+    with caplog.at_level(logging.WARNING):
+        auto = solve_modes(b.K, b.M, COUNT, coarse=P)
+    assert auto.stats["method"] == "block-lanczos"
+    trial = auto.stats["multigrid_trial"]
+    assert PROJECT_FROM <= trial["sweeps"] < eigen.MULTIGRID_AUTO_SWEEPS
+    assert trial["projected_sweeps"] > eigen.MULTIGRID_AUTO_SWEEPS
+    assert "converges slowly" in caplog.text and "factor instead" in caplog.text
+    np.testing.assert_allclose(auto.omega2, ref.omega2, rtol=eigenvalue_rtol(b.K, b.M))
+    assert auto.seconds >= trial["seconds"]
+    # nothing fits: no budget, the trial runs on (stopped here by a small sweep cap)
+    monkeypatch.setattr(eigen, "available_memory_bytes", lambda: 1)
+    monkeypatch.setattr(eigen, "MULTIGRID_MAX_SWEEPS", trial["sweeps"] + 2)
+    with pytest.raises(eigen.SolverError, match="did not converge"):
+        solve_modes(b.K, b.M, COUNT, coarse=P)
+
+
+def test_lobpcg_gives_up_when_the_projection_exceeds_its_budget():
+    """With a poor preconditioner (identity) on diag(1..n), LOBPCG converges slowly: a
+    budget stops it at PROJECT_FROM sweeps, marked abandoned and not converged; the
+    same run without a budget goes on."""
+    n = 2000
+    K = sp.diags(np.arange(1.0, n + 1) ** 2).tocsr()
+    M = sp.identity(n, format="csr")
+    X0 = np.random.default_rng(5).standard_normal((n, 6))
+    quick = lobpcg(K, M, X0, lambda R: R, 4, target=1e-8, budget=5)
+    assert quick.abandoned and not quick.converged
+    assert quick.sweeps == PROJECT_FROM
+    assert projected_sweeps(quick.history, 1e-8) > 5
+    long = lobpcg(K, M, X0, lambda R: R, 4, target=1e-8, max_sweeps=PROJECT_FROM + 3)
+    assert not long.abandoned and long.sweeps == PROJECT_FROM + 3
 
 
 def test_lobpcg_on_a_diagonal_pencil():
@@ -228,6 +308,15 @@ def test_memory_estimate_knows_the_factor_free_path(monkeypatch):
     assert factor > 0.9 * 24e9 > auto
     assert resources.eigensolve_bytes(n_nodes, 1, 20, "auto") == pytest.approx(
         resources.eigensolve_bytes(n_nodes, 1, 20, "factor"))
+    # from MULTIGRID_AUTO_DOFS, auto tries the factor-free solver first (its fallback
+    # factor is checked against PARDISO's exact size when it is needed)
+    n_nodes = resources.MULTIGRID_AUTO_DOFS // 3 + 1
+    assert resources.eigensolve_bytes(n_nodes, 2, 20, "auto") == pytest.approx(
+        resources.eigensolve_bytes(n_nodes, 2, 20, "multigrid"))
+    assert resources.eigensolve_bytes(n_nodes, 2, 20, "auto") < \
+        resources.eigensolve_bytes(n_nodes, 2, 20, "factor")
+    assert resources.eigensolve_bytes(n_nodes - 2, 2, 20, "auto") == pytest.approx(
+        resources.eigensolve_bytes(n_nodes - 2, 2, 20, "factor"))
 
 
 def test_pipeline_under_multigrid_matches_the_factor_route(tmp_path):

@@ -37,8 +37,13 @@ def test_estimate_matches_the_measured_cantilever():
     # 977k DOFs (325,582 nodes, 217,000 tetrahedra), 20 modes: PARDISO factor 8.99 GB,
     # run peak 11.7 GB (make bench, docs/performance.md)
     assert resources.factor_bytes(976_746) == pytest.approx(8.99e9, rel=0.1)
-    peak = resources.estimate_memory_bytes(325_582, 217_000, 2, 20)
+    peak = resources.estimate_memory_bytes(325_582, 217_000, 2, 20, "factor",
+                                           available=24 * 10**9)
     assert 11.0e9 < peak < 13.5e9
+    # the same size under auto (factor-free from MULTIGRID_AUTO_DOFS): 999k DOFs
+    # (333,081 nodes, 222,655 tetrahedra), 20 modes, run peak 6.38 GB (2026-11-23)
+    peak = resources.estimate_memory_bytes(333_081, 222_655, 2, 20, available=24 * 10**9)
+    assert peak == pytest.approx(6.38e9, rel=0.1)
 
 
 def test_check_memory_passes_when_it_fits(space):

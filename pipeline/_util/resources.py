@@ -43,6 +43,10 @@ HEADROOM = 0.9  # use at most this fraction of the available memory
 VERTEX_FRACTION = 7.0
 # (n x width) double blocks held by the factor-free LOBPCG (see multigrid_bytes)
 LOBPCG_BLOCKS = 13
+# from this many free DOFs, modes.method auto tries the factor-free two-grid solver first
+# when the mesh is quadratic (crossover on the cantilever about 450k: see
+# pipeline.solve.eigen); a slowly converging trial falls back to a factor
+MULTIGRID_AUTO_DOFS = 500_000
 
 
 def usable_cores() -> int:
@@ -199,21 +203,25 @@ def factor_path_bytes(n_dofs: int, n_modes: int, single: bool = False) -> float:
 def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto",
                      available: int | None = None) -> float:
     """Peak bytes of the modes stage on top of the mesh: K, M and the eigensolver that
-    :func:`pipeline.solve.eigen.solve_modes` will choose, by the same rule: a double
-    factor if it fits, else a float32 one, else (``auto``, order 2) the factor-free
-    multigrid solver (:func:`multigrid_bytes`); ``multigrid`` always the latter, ``factor``
-    never. When nothing fits, the smallest of the allowed ones.
+    :func:`pipeline.solve.eigen.solve_modes` will choose, by the same rule: (``auto``,
+    order 2, from :data:`MULTIGRID_AUTO_DOFS` DOFs) the factor-free multigrid solver
+    (:func:`multigrid_bytes`), else a double factor if it fits, else a float32 one, else
+    (``auto``, order 2) the multigrid solver; ``multigrid`` always the latter,
+    ``factor`` never. When nothing fits, the smallest of the allowed ones.
     """
     n = 3 * n_nodes
     matrices = BYTES_PER_BLOCK * BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
     shapes = 8.0 * n * n_modes * 4
     usable = HEADROOM * (available_memory_bytes() if available is None else available)
     options = []
+    two_grid = matrices + multigrid_bytes(n_nodes, n_modes) + shapes
+    if method == "auto" and order == 2 and n >= MULTIGRID_AUTO_DOFS:
+        options.append(two_grid)  # tried first (its fallback factor is checked exactly)
     if method in ("auto", "factor"):
         options += [matrices + factor_path_bytes(n, n_modes, single)
                     for single in (False, True)]
     if method == "multigrid" or (method == "auto" and order == 2):
-        options.append(matrices + multigrid_bytes(n_nodes, n_modes) + shapes)
+        options.append(two_grid)
     if not options:
         raise ValueError(f"method '{method}': expected auto, factor or multigrid")
     return next((need for need in options if need <= usable), min(options))

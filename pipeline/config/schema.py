@@ -102,7 +102,7 @@ class Modes:
     solver: Solver = "auto"
     tolerance: float = 0.0  # relative residual of the shift-inverted problem; 0: 1e-10 for block Lanczos (1e-8 from 100k free DOFs), machine precision for ARPACK
     precision: Precision = "auto"  # factor precision: double; mixed (float32 factor, double refinement); auto: mixed only when a double factor does not fit
-    method: EigenMethod = "auto"  # factor: shift-invert with a sparse factor of K; multigrid: factor-free LOBPCG with a two-grid preconditioner (mesh.order 2); auto: multigrid only when no factor fits in memory
+    method: EigenMethod = "auto"  # factor: shift-invert with a sparse factor of K; multigrid: factor-free LOBPCG with a two-grid preconditioner (mesh.order 2); auto: multigrid from 500k free DOFs (a factor instead when it converges slowly) or when no factor fits in memory
 
 
 @dataclass(frozen=True)

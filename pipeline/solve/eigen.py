@@ -14,10 +14,25 @@ the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solve.fa
 - Otherwise (SuperLU), scipy's ``eigsh`` (ARPACK) in shift-invert mode with the
   factorisation as its ``OPinv``.
 
-- Without a factor of K (``method="multigrid"``, or ``auto`` when neither a double nor a
-  float32 factor fits in memory and a coarse space is given): LOBPCG
-  (:mod:`pipeline.solve.lobpcg`) preconditioned by the two-grid cycle of
-  :mod:`pipeline.solve.multigrid`, started from the coarse problem's own modes.
+- Without a factor of K (``method="multigrid"``; under ``auto`` when a coarse space is
+  given and the problem has :data:`~pipeline._util.resources.MULTIGRID_AUTO_DOFS` free
+  DOFs or more, or no factor fits in memory): LOBPCG (:mod:`pipeline.solve.lobpcg`)
+  preconditioned by the two-grid cycle of :mod:`pipeline.solve.multigrid`, started from
+  the coarse problem's own modes.
+
+Why ``auto`` switches at a size (measured on the cantilever, AMD EPYC Zen 4, 2 cores,
+20 modes, whole run): the factor path takes 32 s at 312k free DOFs and 166 s at 996k
+(factorisation flops grow like n^2 for a 3D body, the factor like n^(4/3)), the
+two-grid path 37 s and 107-118 s (about linear in n; peak 6.4 GB against 12.4 GB at
+996k). The two-grid cycle (P2 -> P1 on the same mesh, Jacobi-Chebyshev smoothing) is
+not robust for every body: on 100k-DOF problems it took 15 sweeps at nu = 0.45, 27 at
+0.49 and 84 at 0.499; 40-57 sweeps on 1-2 mm strips, and it stalled on a 0.5 mm
+strip and a slender 10 mm square beam (the P1 coarse space locks in bending and in
+volume), where a factor costs a few seconds. So under ``auto`` it runs on a budget of
+:data:`MULTIGRID_AUTO_SWEEPS` sweeps: from the fourth sweep on, as soon as the rate so
+far projects more (:func:`pipeline.solve.lobpcg.projected_sweeps`), or it stalls, the
+trial is given up and the factor path solves the problem instead -- when a factor fits;
+when none does, the two-grid solve goes on as far as ``method: multigrid`` would.
 
 Either way the Ritz vectors are then re-orthonormalised by a small dense Rayleigh-Ritz
 step with K and M, so that Phi^T M Phi = I and Phi^T K Phi = diag(omega^2) hold to
@@ -26,6 +41,7 @@ round-off even for repeated frequencies, and residuals are measured, not estimat
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -33,8 +49,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline._util import progress as watch_progress
-from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, available_memory_bytes,
-                                      factor_path_bytes, retained_heap)
+from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, MULTIGRID_AUTO_DOFS,
+                                      available_memory_bytes, factor_path_bytes,
+                                      retained_heap)
 from pipeline.errors import ConfigError, ResourceError, SolverError
 from pipeline.solve import lobpcg, mixed, multigrid
 from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
@@ -56,6 +73,18 @@ DENSE_MAX = 600  # below this many free DOFs, a dense generalized eigh
 MULTIGRID_TOLERANCE = 1e-6
 MULTIGRID_ACCEPT = 1e-4  # a stalled LOBPCG is accepted (with a warning) below this
 MULTIGRID_MAX_SWEEPS = 100
+# under method auto: the two-grid trial is given up for the factor path as soon as it
+# projects more sweeps than this (2.5 x the cantilever's 12; at 1M DOFs 30 sweeps of
+# about 7 s are about what the factor path takes)
+MULTIGRID_AUTO_SWEEPS = 30
+
+
+class _SlowMultigrid(SolverError):
+    """The two-grid trial of ``method: auto`` converges too slowly: use a factor."""
+
+    def __init__(self, message: str, summary: dict):
+        super().__init__(message)
+        self.summary = summary
 
 
 def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
@@ -109,7 +138,10 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     problem at which a mode counts as converged (0: :func:`default_tolerance` for
     Lanczos, machine precision for ARPACK, :data:`MULTIGRID_TOLERANCE` for multigrid).
     ``method``: ``auto`` (block Lanczos when the backend offers a symmetric factor, else
-    ARPACK; multigrid when no factor fits and ``coarse`` is given), ``lanczos``,
+    ARPACK; with ``coarse`` given, multigrid when no factor fits, and a multigrid trial
+    from :data:`~pipeline._util.resources.MULTIGRID_AUTO_DOFS` free DOFs when
+    ``precision`` is not ``mixed`` and ``tolerance`` is 0, see the module doc),
+    ``lanczos``,
     ``arpack``, ``dense``, ``factor`` (``auto`` without multigrid) or ``multigrid``
     (factor-free; needs ``coarse``, the (n x n_c) prolongation from a coarse space, see
     :func:`pipeline.fe.coarse.p1_prolongation`). ``progress``, if given, is called with the number of right-hand sides
@@ -142,14 +174,35 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         raise ConfigError.field("modes.precision", precision, "double, mixed or auto")
     dense = method == "dense" or (method in ("auto", "factor") and n <= DENSE_MAX)
     usable = HEADROOM * available_memory_bytes()  # K and M are already held
+    any_factor_fits = factor_path_bytes(n, count, single=True) <= usable
     if not dense and precision == "auto" and factor_path_bytes(n, count) > usable:
         precision = "mixed"  # the estimate already says a double factor will not fit
-        if method == "auto" and coarse is not None and (
-                factor_path_bytes(n, count, single=True) > usable):
+        if method == "auto" and coarse is not None and not any_factor_fits:
             method = "multigrid"  # nor a float32 one
+    budget = None
+    if (method == "auto" and coarse is not None and not dense and n >= MULTIGRID_AUTO_DOFS
+            and precision != "mixed" and tolerance == 0.0):
+        # large enough for the two-grid path to be faster (module doc): a trial, given
+        # up for a factor if it converges slowly and a factor fits
+        method = "multigrid"
+        budget = MULTIGRID_AUTO_SWEEPS if any_factor_fits else None
     if method == "multigrid":
-        v, mstats = _multigrid_modes(K, M, coarse, count, sigma, tolerance, progress,
-                                     backend, keep=keep and sigma == 0.0)
+        trial = None
+        try:
+            v, mstats = _multigrid_modes(K, M, coarse, count, sigma, tolerance, progress,
+                                         backend, keep=keep and sigma == 0.0,
+                                         budget=budget)
+        except _SlowMultigrid as slow:
+            log.warning("%s: solving with a factor instead", slow)
+            trial = slow.summary  # outside this block the trial's arrays are freed
+        if trial is not None:
+            result = solve_modes(K, M, count, supported=supported, backend=backend,
+                                 tolerance=tolerance, shift=shift, progress=progress,
+                                 method="factor", block_size=block_size,
+                                 max_basis=max_basis, keep=keep, precision=precision)
+            return dataclasses.replace(
+                result, seconds=time.perf_counter() - t0,
+                stats={**(result.stats or {}), "multigrid_trial": trial})
         kept = mstats.pop("kept", None)
         stats.update(mstats)
         backend_name = f"multigrid (coarse factor: {stats['backend']})"
@@ -279,10 +332,14 @@ def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress,
     return v, stats
 
 
-def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep):
+def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep,
+                     budget=None):
     """Eigenvectors (n, count) by two-grid preconditioned LOBPCG (no factor of K), and the
     statistics; with ``keep``, ``stats["kept"]`` is the PCG solver of K as a
-    :class:`Factorization` for the static correction (the caller owns it)."""
+    :class:`Factorization` for the static correction (the caller owns it).
+
+    ``budget``: the trial of ``method: auto`` (module doc): raises :class:`_SlowMultigrid`
+    when LOBPCG projects more sweeps than this or stalls above the target."""
     t1 = time.perf_counter()
     A = K - sigma * M if sigma != 0.0 else K
     tg = multigrid.TwoGrid(A, P, backend)
@@ -311,8 +368,17 @@ def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep):
             with retained_heap(LOBPCG_BLOCKS * 8.0 * K.shape[0] * width):
                 result = lobpcg.lobpcg(K, M, X0, tg.apply_single, count, sigma=sigma,
                                        target=target, max_sweeps=MULTIGRID_MAX_SWEEPS,
-                                       on_sweep=on_sweep)
+                                       on_sweep=on_sweep, budget=budget)
         del X0
+        if budget is not None and not result.converged:
+            projected = lobpcg.projected_sweeps(result.history, target)
+            raise _SlowMultigrid(
+                f"the factor-free multigrid eigensolver converges slowly on this body "
+                f"(preconditioned residual {min(result.history):.1e} after "
+                f"{result.sweeps} sweeps, about {projected:.0f} sweeps needed for "
+                f"{target:.0e}; thin walls and nearly incompressible materials do this)",
+                {"sweeps": result.sweeps, "seconds": time.perf_counter() - t1,
+                 "history": list(result.history), "projected_sweeps": projected})
         if not result.converged and min(result.history) > MULTIGRID_ACCEPT:
             raise SolverError(
                 f"multigrid eigensolver did not converge for {count} modes in "

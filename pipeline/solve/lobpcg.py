@@ -45,6 +45,40 @@ DROP = 1e-8
 #: sweeps a two-grid preconditioned solve of the cantilever takes to 1e-6 (11-12 from
 #: 100k to 260k DOFs): the progress estimate before the first sweep
 EXPECTED_SWEEPS = 12
+#: the first sweep whose history is used to project the sweeps still needed (the first
+#: sweeps from a coarse start block drop the residual faster than the later rate)
+PROJECT_FROM = 4
+
+
+def projected_sweeps(history, target: float, window: int = 6) -> float:
+    """Sweeps in all that the rate so far needs to bring the worst residual to ``target``.
+
+    After s sweeps (``history[0]``: the start block), with ``best`` the smallest residual
+    so far: ``s + log(target / best) / log(rate)``, where rate is the slower of the mean
+    rate since the start, (best / history[0])^(1/s), and the mean rate of the last
+    ``window`` sweeps (a plateau after a fast start shows there); ``inf`` when nothing
+    improved, ``s`` once at the target.
+
+    >>> round(projected_sweeps([1.0, 0.1, 0.01], 1e-6), 1)  # ten times per sweep
+    6.0
+    >>> round(projected_sweeps([1.0, 1e-2, 1e-2, 1e-2, 1e-3], 1e-6, window=2), 1)
+    10.0
+    >>> projected_sweeps([1.0, 1.0], 1e-6)
+    inf
+    """
+    s = len(history) - 1
+    best = min(history)
+    if best <= target:
+        return float(s)
+    if s < 1 or best >= history[0]:
+        return float("inf")
+    rate = (best / history[0]) ** (1.0 / s)
+    if s > window:
+        before = min(history[:s - window + 1])
+        rate = max(rate, (best / before) ** (1.0 / window))
+    if rate >= 1.0:
+        return float("inf")
+    return s + float(np.log(target / best) / np.log(rate))
 
 
 @dataclass(frozen=True)
@@ -52,7 +86,8 @@ class LobpcgResult:
     """X (n, m) M-orthonormal Ritz vectors, ascending; omega2 (m,) their Ritz values;
     residuals (m,) relative residuals; sweeps done; history: the largest residual of the
     wanted columns after every sweep (history[0]: the start block); converged: whether
-    every wanted residual reached the target; seconds: wall time."""
+    every wanted residual reached the target; seconds: wall time; abandoned: stopped early
+    because the rate so far projected more than the ``budget`` sweeps."""
 
     X: np.ndarray
     omega2: np.ndarray
@@ -61,6 +96,7 @@ class LobpcgResult:
     history: tuple[float, ...]
     converged: bool
     seconds: float
+    abandoned: bool = False
 
 
 def _rayleigh_ritz(Kr: np.ndarray, Gr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,8 +121,8 @@ def _residuals(KX, MX, w, sigma):
 def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
            precondition: Callable[[np.ndarray], np.ndarray], count: int, *,
            sigma: float = 0.0, target: float = 1e-6, max_sweeps: int = 100,
-           patience: int = 8, on_sweep: Callable[[int, float], None] | None = None
-           ) -> LobpcgResult:
+           patience: int = 8, on_sweep: Callable[[int, float], None] | None = None,
+           budget: float | None = None) -> LobpcgResult:
     """The ``count`` lowest eigenpairs of (K, M) from the start block X (n, m >= count).
 
     Stops when every wanted relative residual is <= ``target``, after ``max_sweeps``, or
@@ -94,7 +130,9 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
     (round-off floor); the best iterate is returned with ``converged`` False unless the
     target was met. ``sigma``: the eigensolver's shift (< 0 for a free body), which
     scales rigid-body residuals. ``on_sweep(sweep, worst_residual)`` is called after
-    every sweep.
+    every sweep. ``budget``: from sweep :data:`PROJECT_FROM` on, give up (``abandoned``)
+    as soon as :func:`projected_sweeps` exceeds it (a caller with a faster alternative
+    for a slowly converging problem; None: no projection).
     """
     t0 = time.perf_counter()
     X = np.ascontiguousarray(X, dtype=np.float64)
@@ -130,7 +168,9 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
             on_sweep(sweeps, worst)
         stalled = (len(history) > patience
                    and min(history[-patience:]) > 0.9 * min(history[:-patience]))
-        if worst <= target or sweeps >= max_sweeps or stalled:
+        abandoned = (budget is not None and sweeps >= PROJECT_FROM and worst > target
+                     and projected_sweeps(history, target) > budget)
+        if worst <= target or sweeps >= max_sweeps or stalled or abandoned:
             break
         sweeps += 1
         again = rho[active] > target
@@ -168,4 +208,4 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
     _, X, w, res = best
     return LobpcgResult(X=X, omega2=w, residuals=res, sweeps=sweeps, history=tuple(history),
                         converged=bool(history and min(history) <= target),
-                        seconds=time.perf_counter() - t0)
+                        seconds=time.perf_counter() - t0, abandoned=abandoned)
