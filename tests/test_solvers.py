@@ -245,6 +245,30 @@ def test_upper_triangle_is_one_pass_and_32_bit(beam):
     assert abs(U - sp.triu(K)).max() == 0.0
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_sparse_times_dense_matches_scipy_in_every_shape(beam, dtype):
+    """One column (1-D or (n, 1): MKL's matrix-vector product), several in row- or
+    column-major order (its matrix-matrix product): scipy's product to round-off
+    (|A| |X| per row times the precision's unit round-off times the row length), in X's
+    shape and, for float32 A and X, in float32."""
+    K = beam["K"]
+    A = sp.csr_matrix((K.data.astype(dtype), K.indices.astype(np.int32),
+                       K.indptr.astype(np.int32)), shape=K.shape)  # MKL's input
+    eps = np.finfo(dtype).eps
+    rng = np.random.default_rng(6)
+    row_len = int(np.diff(A.indptr).max())
+    for X in (rng.standard_normal(A.shape[1]), rng.standard_normal((A.shape[1], 1)),
+              rng.standard_normal((A.shape[1], 3)),
+              np.asfortranarray(rng.standard_normal((A.shape[1], 3)))):
+        X = X.astype(dtype)
+        got = solvers.sparse_times_dense(A, X)
+        assert got.shape == X.shape and got.dtype == dtype
+        ref = A.astype(np.float64) @ X.astype(np.float64)
+        scale = abs(A).astype(np.float64) @ np.abs(X.astype(np.float64))
+        bound = 2 * row_len * eps * scale
+        assert np.all(np.abs(got - ref) <= bound)
+
+
 def test_block_lanczos_on_a_diagonal_operator():
     """Largest eigenvalues of diag(d), including a 3-fold one, to round-off."""
     d = np.concatenate([[5.0, 5.0, 5.0, 4.0], np.linspace(0.1, 3.0, 400)])

@@ -103,7 +103,7 @@ class TwoGrid:
         x = np.random.default_rng(3).standard_normal(self.A.shape[0])
         lam = 1.0
         for _ in range(POWER_STEPS):
-            y = self.dinv * (self.A @ x)
+            y = self.dinv * sparse_times_dense(self.A, x)
             lam = float(np.linalg.norm(y) / np.linalg.norm(x))
             x = y / np.linalg.norm(y)
         return 1.1 * lam  # power steps approach lambda_max from below
