@@ -288,7 +288,7 @@ def test_scaled_inf_norm_equals_the_scaled_matrix_row_sums(rows_per_chunk):
     """The singularity bound of static_shapes uses |W |K| W|_inf without building W|K|W:
     equal to the explicit product's largest row sum (to round-off of one row sum), with
     empty rows, negative entries and any chunking."""
-    from pipeline.reduce.modal import scaled_inf_norm
+    from pipeline.solve.factorize import scaled_inf_norm
 
     rng = np.random.default_rng(5)
     n, m = 300, 2000
@@ -299,3 +299,7 @@ def test_scaled_inf_norm_equals_the_scaled_matrix_row_sums(rows_per_chunk):
     got = scaled_inf_norm(A, w, rows_per_chunk=rows_per_chunk)
     assert got == pytest.approx(expected, rel=1e-14)
     assert scaled_inf_norm(sp.csr_matrix((0, 0)), np.zeros(0)) == 0.0
+    # no w: ||A||_inf, the backward error's norm
+    plain = scaled_inf_norm(A, rows_per_chunk=rows_per_chunk)
+    assert plain == pytest.approx(float(abs(A).sum(axis=1).max()), rel=1e-14)
+    assert scaled_inf_norm(sp.csr_matrix((0, 0))) == 0.0

@@ -43,7 +43,8 @@ import scipy.sparse.linalg as spla
 from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.solve.factorize import (rigid_omega2_threshold, sparse_times_dense,
+from pipeline.solve.factorize import (rigid_omega2_threshold, scaled_inf_norm,
+                                      sparse_times_dense,
                                       stiffness_scale)
 
 log = logging.getLogger(__name__)
@@ -266,24 +267,6 @@ def _solver(K, solve: Solve | None, factorize: Callable[[object], Solve] | None)
 
 def _dense(X) -> np.ndarray:
     return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
-
-
-def scaled_inf_norm(K, w: np.ndarray, rows_per_chunk: int = 1 << 16) -> float:
-    """|W |K| W|_inf = max_i w_i sum_j |K_ij| w_j for W = diag(w) (w (n,) >= 0).
-
-    Row chunks of K's own arrays, one CSR product with |K_ij| each: no scaled copy of K
-    (two sparse-times-sparse products and an abs copy took 0.9 s and three copies of K's
-    values at 314k DOFs)."""
-    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
-    n = K.shape[0]
-    best = 0.0
-    for r0 in range(0, n, rows_per_chunk):
-        r1 = min(n, r0 + rows_per_chunk)
-        lo, hi = int(K.indptr[r0]), int(K.indptr[r1])
-        part = sp.csr_matrix((np.abs(K.data[lo:hi]), K.indices[lo:hi],
-                              K.indptr[r0:r1 + 1] - lo), shape=(r1 - r0, K.shape[1]))
-        best = max(best, float((w[r0:r1] * (part @ w)).max(initial=0.0)))
-    return best
 
 
 def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,

@@ -564,6 +564,31 @@ class SolveReport:
     steps: int
 
 
+def scaled_inf_norm(A: sp.spmatrix, w: np.ndarray | None = None,
+                    rows_per_chunk: int = 1 << 16) -> float:
+    """|W |A| W|_inf = max_i w_i sum_j |A_ij| w_j for W = diag(w) (w (n,) >= 0; None:
+    the identity, i.e. ||A||_inf).
+
+    Row chunks of A's own arrays, one CSR product with |A_ij| each: no abs copy of A
+    (``abs(A)`` copies its values and indices, 1 GB for K of 1M DOFs, written fresh every
+    call: 0.7 s each; two sparse-times-sparse products with diag(w) took 0.9 s and three
+    copies of K's values at 314k DOFs)."""
+    A = A if sp.isspmatrix_csr(A) else sp.csr_matrix(A)
+    n = A.shape[0]
+    best = 0.0
+    for r0 in range(0, n, rows_per_chunk):
+        r1 = min(n, r0 + rows_per_chunk)
+        lo, hi = int(A.indptr[r0]), int(A.indptr[r1])
+        part = sp.csr_matrix((np.abs(A.data[lo:hi]), A.indices[lo:hi],
+                              A.indptr[r0:r1 + 1] - lo), shape=(r1 - r0, A.shape[1]))
+        if w is None:
+            sums = np.asarray(part.sum(axis=1)).ravel()
+        else:
+            sums = w[r0:r1] * (part @ w)
+        best = max(best, float(sums.max(initial=0.0)))
+    return best
+
+
 def backward_errors(A: sp.spmatrix, X: np.ndarray, B: np.ndarray, R: np.ndarray | None = None
                     ) -> np.ndarray:
     """Normwise (Rigal-Gaches) backward error of every column of X as a solution of A X = B:
@@ -576,7 +601,7 @@ def backward_errors(A: sp.spmatrix, X: np.ndarray, B: np.ndarray, R: np.ndarray 
     """
     if R is None:
         R = B - sparse_times_dense(A, X)
-    norm_A = float(abs(A).sum(axis=1).max()) if A.shape[0] else 0.0
+    norm_A = scaled_inf_norm(A)
     denom = norm_A * np.abs(X).max(axis=0) + np.abs(B).max(axis=0)
     return np.abs(R).max(axis=0) / np.where(denom > 0, denom, 1.0)
 
