@@ -5,14 +5,13 @@ faces (physical groups ``root``, ``tip``, ``bottom``, ``top``, ``back``, ``front
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 from pipeline.fe.mesh.estimate import check_mesh_fits
 from pipeline._util.atomic import atomic_path
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError, OutputError
-from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, signals_kept
+from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, gmsh_threads, signals_kept
 from pipeline.fe.mesh.read import read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
@@ -39,7 +38,7 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     import gmsh  # deferred: heavy, loaded only when meshing
 
     path = Path(path)
-    threads = int(os.environ.get("PIPELINE_GMSH_THREADS", "1"))
+    threads = gmsh_threads()
     with signals_kept() as restore:
         if gmsh.isInitialized():
             gmsh.finalize()
