@@ -6,9 +6,9 @@ clusters are real: a LocalCluster of worker processes, and a `dask scheduler` pl
 `dask worker` started here as subprocesses on 127.0.0.1 (random ports, bounded waits,
 always terminated).
 
-gmsh meshes with several threads and is not bit-reproducible run to run (a few
-elements more or less for the same config), so results of two runs are compared to
-1e-3, not exactly.
+gmsh meshes on one thread, so the same config gives the same mesh; the threaded
+factorisation and eigensolver are not bitwise reproducible run to run, so results of two
+runs are compared to 1e-3, not exactly.
 """
 
 from __future__ import annotations

@@ -391,7 +391,7 @@ def test_simulate_records_gauges_and_recovers_the_static_field(gauge_file, tmp_p
 def test_bracket_fillet_gauge_reads_the_full_fe_static_value(tmp_path):
     """configs/bracket_gauges.yaml (STEP geometry, h = 4 mm): the reduced model's static
     fillet strain and stresses equal a separate full FE solve through the same rows (one
-    mesh: gmsh's parallel HXT does not promise the same mesh twice)."""
+    mesh, built once: meshing the STEP file again would only cost time)."""
     from pathlib import Path
 
     from pipeline.config import load_config
