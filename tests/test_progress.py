@@ -58,7 +58,7 @@ def test_cholesky_flop_estimate_is_above_its_lower_bound():
     assert (c ** 2).sum() >= exact_bound
 
 
-def test_factorisation_and_lanczos_report_their_stages(caplog):
+def test_factorisation_and_lanczos_report_their_stages(caplog, monkeypatch):
     from pipeline.solve.eigen import solve_modes
     from pipeline.solve.factorize import available_backends
 
@@ -66,6 +66,7 @@ def test_factorisation_and_lanczos_report_their_stages(caplog):
     K = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
     M = sp.identity(n, format="csr")
     caplog.set_level(logging.INFO, logger="pipeline.progress")
+    monkeypatch.setattr(progress, "QUICK_WORK_FLOP", 0.0)  # this tiny factor gets one too
     with progress.using(progress.LogReporter()):
         solve_modes(K, M, 4)
     text = "\n".join(r.getMessage() for r in caplog.records)
@@ -84,3 +85,26 @@ def test_the_cli_leaves_no_reporter_behind(tmp_path):
         assert progress.use(None) is None  # main's reporter was its own, not left behind
     finally:
         progress.use(before)
+
+
+def test_first_flop_estimate_measures_the_machine_only_for_long_work(monkeypatch):
+    """Before any flop stage has finished, the estimate comes from the dense rate, which
+    costs 0.2 s to measure: not for work under QUICK_WORK_FLOP (seconds anywhere)."""
+    monkeypatch.setattr(progress, "_rates", {})
+    calls = []
+
+    def dense_rate(n: int = 1500) -> float:
+        calls.append(n)
+        return 2e10
+
+    monkeypatch.setattr(progress, "dense_rate", dense_rate)
+    st = progress.Stage("factorise", total=None, unit="flop")
+    st.expect_work(0.5 * progress.QUICK_WORK_FLOP)
+    assert st.expected_s is None and not calls
+    st.expect_work(2.0 * progress.QUICK_WORK_FLOP)
+    assert calls and abs(st.expected_s - st.elapsed - 2.0 * progress.QUICK_WORK_FLOP / 2e10) < 0.5
+
+
+def test_dense_rate_is_a_positive_definite_cholesky(monkeypatch):
+    monkeypatch.setattr(progress, "_rates", {})
+    assert progress.dense_rate(200) > 0  # raises LinAlgError if the matrix were not SPD

@@ -46,6 +46,11 @@ log = logging.getLogger("pipeline.progress")
 #: then catches the machine at its busiest); later estimates use the measured rate
 SPARSE_EFFICIENCY = 1.0
 
+#: flop below which a stage gets no first estimate from :func:`dense_rate`: under 1e11
+#: flop is seconds on any machine this runs on (>= 20 Gflop/s on two cores), and the
+#: measurement itself costs 0.2 s (3 % of a 100k-DOF run; its factorisation is 34 Gflop)
+QUICK_WORK_FLOP = 1e11
+
 #: measured rates (unit -> units per second) of finished stages in this process
 _rates: dict[str, float] = {}
 _reporter: "Reporter | None" = None
@@ -57,9 +62,11 @@ def dense_rate(n: int = 1500) -> float:
     if "dense_flop" not in _rates:
         import numpy as np
 
-        rng = np.random.default_rng(0)
-        a = rng.standard_normal((n, n))
-        a = a @ a.T + n * np.eye(n)
+        # symmetric and diagonally dominant, so positive definite: built in O(n^2) (the
+        # Gram matrix a a^T used before cost 6 x the Cholesky it was built for: 0.2 s)
+        a = np.random.default_rng(0).random((n, n))
+        a += a.T
+        a[np.diag_indices(n)] += 2.0 * n
         best = float("inf")
         for _ in range(3):
             t0 = time.perf_counter()
@@ -157,9 +164,11 @@ class Stage:
     def expect_work(self, work: float, unit: str = "flop") -> None:
         """This stage does ``work`` ``unit`` in all: expect work / rate seconds, with the
         rate measured by the last stage of that unit (else :func:`dense_rate` times
-        :data:`SPARSE_EFFICIENCY` for flop)."""
+        :data:`SPARSE_EFFICIENCY` for flop, from :data:`QUICK_WORK_FLOP` on)."""
         self.work, self.work_unit = float(work), unit
         measured = _rates.get(unit)
+        if measured is None and unit == "flop" and self.work < QUICK_WORK_FLOP:
+            return  # seconds of work: not worth measuring the machine for
         if measured is None and unit == "flop":
             r = SPARSE_EFFICIENCY * dense_rate()
             source = f"dense rate here {fmt_amount(dense_rate(), 'flop/s')} x {SPARSE_EFFICIENCY:g}"

@@ -10,10 +10,13 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-from pipeline.apps.batch import BatchResult, load_batch, run_batch
 from pipeline.cli.main import main as cli_main
 from pipeline.errors import ConfigError
+
+if TYPE_CHECKING:
+    from pipeline.apps.batch import BatchResult
 
 __all__ = ["add_batch_parser", "cmd_batch", "main"]
 
@@ -37,6 +40,9 @@ def print_result(result: BatchResult) -> None:
 def cmd_batch(args: argparse.Namespace) -> int:
     """``python -m pipeline batch FILE.yaml``: exit 0 when every case finished, 1 if any
     failed (they are listed), 2 for an invalid batch file (nothing runs)."""
+    # here, not at the top: the other commands (``run`` above all) do not pay for it
+    from pipeline.apps.batch import load_batch, run_batch
+
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: got {args.workers}, expected at least 1")
     if getattr(args, "dry_run", False):

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.apps.simulate import simulate
-
 __all__ = ["cmd_simulate", "add_simulate_parser"]
 
 
 def cmd_simulate(args) -> int:
+    from pipeline.apps.simulate import simulate  # here: the integrators load only for this command
+
     model = Path(args.model)
     output = Path(args.output) if args.output else Path("outputs") / f"{model.stem}_simulate.h5"
     res = simulate(model, [Path(p) for p in args.scenarios], output, plots=not args.no_plots)
