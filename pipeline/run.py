@@ -24,6 +24,7 @@ from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
+from pipeline.solve.factorize import resolve_backend
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
 from pipeline.fe.strain import modal_stress_fields
@@ -117,6 +118,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
     progress = progress or _no_progress
+    resolve_backend(cfg.modes.solver)  # a solver that is not installed: one line, before meshing
     times: dict[str, float] = {}
     output = Path(output)
     tree: dict[str, Dataset] = {}

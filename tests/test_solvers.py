@@ -50,7 +50,7 @@ def beam(tmp_path_factory):
     regions = resolve_regions(space, {})
     free = free_dofs(space.n_dofs, fixed_dofs(space, regions, [Support("root")], False))
     return {"K": restrict(K_full, free), "M": restrict(M_full, free), "K_full": K_full,
-            "M_full": M_full}
+            "M_full": M_full, "space": space, "free": free}
 
 
 @pytest.fixture(scope="module")
@@ -424,3 +424,79 @@ def test_precision_key_is_validated():
     with pytest.raises(ConfigError, match="modes.precision"):
         solve_modes(sp.identity(700, format="csr"), sp.identity(700, format="csr"), 2,
                     backend="superlu", precision="mixed")
+
+
+# ------------------------------------------------------------------ the GPU backend (cudss)
+def _cpu_stand_in_for_cudss(monkeypatch):
+    """Make ``cudss`` an installed backend whose factor is SuperLU's, named cudss (no
+    separate forward/backward substitutions, like cuDSS): what the pipeline does around
+    the GPU factor, tested where there is no GPU."""
+    import dataclasses
+
+    monkeypatch.setattr(solvers, "_cudss_modules", lambda: ("cupy", "nvmath"))
+    monkeypatch.setattr(solvers, "_cudss", lambda A: dataclasses.replace(
+        solvers._superlu(A), backend="cudss"))
+
+
+def test_gpu_backend_takes_the_factor_path_with_arpack_and_no_multigrid_trial(
+        beam, dense_reference, rounding, monkeypatch):
+    """modes.solver: cudss keeps the factor on the GPU: no multigrid trial even from its
+    size, no precision switch by host memory, ARPACK (no forward/backward) on the factor,
+    and the factor kept for the static correction."""
+    from pipeline.fe.coarse import p1_prolongation
+    from pipeline.solve import eigen
+
+    _cpu_stand_in_for_cudss(monkeypatch)
+    K, M = beam["K"], beam["M"]
+    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", 0)  # auto would try multigrid
+    coarse = p1_prolongation(beam["space"], beam["free"])
+    modes = solve_modes(K, M, COUNT, backend="cudss", keep=True, precision="auto",
+                        coarse=coarse)
+    try:
+        assert modes.backend == "cudss" and modes.stats["method"] == "arpack"
+        assert "multigrid_trial" not in modes.stats
+        assert modes.factorization is not None and modes.factorization.backend == "cudss"
+        assert_elementwise_within(modes.frequencies_hz, dense_reference, rounding["freq_rtol"],
+                                  "test_solvers::gpu_backend_routing")
+        _check_modes(modes, K, M, COUNT)
+    finally:
+        modes.release_factorization()
+    # the contrast: a host backend, same settings, tries the multigrid solver first
+    host = solve_modes(K, M, COUNT, backend="superlu", keep=False, coarse=coarse)
+    assert host.stats["method"] == "multigrid-lobpcg" or "multigrid_trial" in host.stats
+
+
+def test_missing_gpu_backend_is_one_config_line_before_meshing(tmp_path, capsys, monkeypatch):
+    """modes.solver: cudss where there is no GPU stack: the run stops before any work with
+    one line naming the key, the value, what it needs and how to install it."""
+    from pathlib import Path
+
+    from pipeline.cli.main import main
+
+    import pipeline.run
+
+    monkeypatch.setattr(solvers, "_cudss_modules", lambda: None)
+    meshed = []
+    monkeypatch.setattr(pipeline.run, "build_fe_model", lambda *a, **k: meshed.append(1))
+    config = Path(__file__).resolve().parents[1] / "configs" / "cantilever.yaml"
+    out = tmp_path / "gpu.h5"
+    rc = main(["run", str(config), "--set", "modes.solver=cudss", "-o", str(out)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert rc == ConfigError.exit_code and len(err) == 1, err
+    assert "modes.solver" in err[0] and "'cudss'" in err[0] and "NVIDIA GPU" in err[0]
+    assert "nvmath-python" in err[0]
+    assert not meshed, "the solver is checked before the mesh stage"
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_gpu_backend_memory_estimate_leaves_the_factor_on_the_gpu():
+    """With the factor in GPU memory, the host's estimate for a large mesh drops by the
+    factor's size, so a host whose RAM could not hold the factor is not refused."""
+    from pipeline._util import resources
+
+    n_nodes, modes = 1_000_000, 20  # 3M DOFs
+    host = resources.eigensolve_bytes(n_nodes, 2, modes, "factor", available=10**12)
+    gpu = resources.eigensolve_bytes(n_nodes, 2, modes, "factor", available=10**12,
+                                     solver="cudss")
+    assert host - gpu == pytest.approx(resources.factor_bytes(3 * n_nodes), rel=1e-12)
+    assert gpu < 24e9 < host

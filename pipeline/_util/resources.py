@@ -201,17 +201,21 @@ def factor_path_bytes(n_dofs: int, n_modes: int, single: bool = False) -> float:
 
 
 def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto",
-                     available: int | None = None) -> float:
+                     available: int | None = None, solver: str = "auto") -> float:
     """Peak bytes of the modes stage on top of the mesh: K, M and the eigensolver that
     :func:`pipeline.solve.eigen.solve_modes` will choose, by the same rule: (``auto``,
     order 2, from :data:`MULTIGRID_AUTO_DOFS` DOFs) the factor-free multigrid solver
     (:func:`multigrid_bytes`), else a double factor if it fits, else a float32 one, else
     (``auto``, order 2) the multigrid solver; ``multigrid`` always the latter,
-    ``factor`` never. When nothing fits, the smallest of the allowed ones.
+    ``factor`` never. When nothing fits, the smallest of the allowed ones. ``solver``
+    ``cudss`` (the GPU) keeps the factor in GPU memory (checked against cuDSS's own
+    estimate when it is known): here only the host's part of its path.
     """
     n = 3 * n_nodes
     matrices = BYTES_PER_BLOCK * BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
     shapes = 8.0 * n * n_modes * 4
+    if solver == "cudss" and method != "multigrid":
+        return matrices + factor_path_bytes(n, n_modes) - factor_bytes(n)
     usable = HEADROOM * (available_memory_bytes() if available is None else available)
     options = []
     two_grid = matrices + multigrid_bytes(n_nodes, n_modes) + shapes
@@ -228,11 +232,12 @@ def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto
 
 
 def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: int,
-                          method: str = "auto", available: int | None = None) -> int:
+                          method: str = "auto", available: int | None = None,
+                          solver: str = "auto") -> int:
     """Peak bytes of the whole pipeline for a mesh of this size (see the module doc)."""
     mesh = MESH_BYTES_PER_NODE * n_nodes + 64 * n_elements
     assembly = ASSEMBLY_BYTES_PER_NODE * n_nodes + 400 * n_elements
-    eigensolve = eigensolve_bytes(n_nodes, order, n_modes, method, available)
+    eigensolve = eigensolve_bytes(n_nodes, order, n_modes, method, available, solver)
     return int(BASELINE_BYTES + mesh + max(assembly, eigensolve))
 
 
@@ -256,7 +261,7 @@ def _scale_to_fit(need: float, have: float, exponent: float = 4.0) -> float:
 
 
 def check_memory(space, n_modes: int, available: int | None = None,
-                 method: str = "auto") -> int:
+                 method: str = "auto", solver: str = "auto") -> int:
     """Refuse a mesh whose estimate exceeds the available memory (ResourceError).
 
     Returns the estimate in bytes. The message gives both figures and the element size
@@ -264,7 +269,7 @@ def check_memory(space, n_modes: int, available: int | None = None,
     """
     have = available_memory_bytes() if available is None else int(available)
     need = estimate_memory_bytes(space.n_nodes, space.body.n_tetrahedra, space.order, n_modes,
-                                 method, have)
+                                 method, have, solver)
     log.info("memory estimate %.2f GB of %.2f GB available", need / 1e9, have / 1e9)
     if need > HEADROOM * have:
         h = typical_edge_length(space)

@@ -94,7 +94,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         regions = resolve_regions(space, cfg.regions)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
-    check_memory(space, cfg.modes.count, method=cfg.modes.method)
+    check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
 
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)

@@ -159,6 +159,9 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     (a float32 PARDISO factor, answers refined in double: :mod:`pipeline.solve.mixed`;
     no factor is kept); ``auto``: mixed when a double factor would not fit in memory
     (the size estimate, or PARDISO's exact size after its analysis), else double.
+    ``backend`` ``cudss`` (the factor on an NVIDIA GPU) keeps ``auto`` on the factor
+    (no multigrid trial, double precision: the host-memory rules do not apply) and
+    solves with ARPACK, cuDSS having no separate forward and backward substitutions.
     """
 
     t0 = time.perf_counter()
@@ -180,6 +183,11 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     if precision not in mixed.PRECISIONS:
         raise ConfigError.field("modes.precision", precision, "double, mixed or auto")
     dense = method == "dense" or (method in ("auto", "factor") and n <= DENSE_MAX)
+    # the GPU factor (cuDSS) lives in GPU memory, checked by the backend itself: no
+    # host-memory rule below applies, and no multigrid trial (its factor is fast)
+    gpu = not dense and method != "multigrid" and resolve_backend(backend) == "cudss"
+    if gpu and precision == "auto":
+        precision = "double"
     usable = HEADROOM * available_memory_bytes()  # K and M are already held
     any_factor_fits = factor_path_bytes(n, count, single=True) <= usable
     if not dense and precision == "auto" and factor_path_bytes(n, count) > usable:
@@ -188,7 +196,7 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
             method = "multigrid"  # nor a float32 one
     budget = None
     if (method == "auto" and coarse is not None and not dense and n >= MULTIGRID_AUTO_DOFS
-            and precision != "mixed" and tolerance == 0.0):
+            and precision != "mixed" and tolerance == 0.0 and not gpu):
         # large enough for the two-grid path to be faster (module doc): a trial, given
         # up for a factor if it converges slowly and a factor fits
         method = "multigrid"
