@@ -27,17 +27,16 @@ fastest installed backend:
     independent Cholesky to cross-check the others.
 
 ``cudss``
-    NVIDIA cuDSS on the GPU, through nvmath-python and CuPy (an NVIDIA GPU and
-    ``pip install nvmath-python[cu13] cupy-cuda13x``). Cholesky of the upper triangle
-    (type SPD, upper view); the reordering runs on the host's cores (cuDSS's OpenMP
-    threading layer, found beside the library or named by ``CUDSS_MT_LIB``), the
-    factorisation and the solves on the GPU, whose free memory is checked against
-    cuDSS's own estimate before the factorisation. No separate forward and backward
-    substitutions, so the eigensolver uses ARPACK's shift-invert mode with it. Never
-    chosen by ``auto``: ``modes.solver: cudss`` asks for it. Measured on an H100 (16-core
-    host) for the cantilever: 996k DOFs analysis 3.9 s, factorisation 0.67 s, one solve
-    9.6 ms; 2.83M DOFs 14.5 s, 3.2 s and 37 ms, 52 GB of GPU memory
-    (``benchmarks/bench_gpu.py``).
+    NVIDIA cuDSS on the GPU, through nvmath-python and CuPy (an NVIDIA GPU and the
+    ``gpu`` extra). Cholesky of the upper triangle (type SPD, upper view). The
+    reordering runs on the host's cores (cuDSS's OpenMP threading layer, found beside
+    the library or named by ``CUDSS_MT_LIB``), the factorisation and the solves on the
+    GPU, whose free memory is checked against cuDSS's own estimate before the
+    factorisation. No separate forward and backward substitutions, so the eigensolver
+    uses ARPACK's shift-invert mode with it. Never chosen by ``auto``:
+    ``modes.solver: cudss`` asks for it. Measured on an H100 (16-core host) for the
+    cantilever: 996k DOFs analysis 3.9 s, factorisation 0.67 s, one solve 9.6 ms;
+    2.83M DOFs 14.5 s, 3.2 s and 37 ms, 52 GB of GPU memory (``benchmarks/bench_gpu.py``).
 
 ``mumps`` (python-mumps) is an accepted name in the config but has no usable wheel
 for this Python/numpy (pip offers only the 0.0.2 wheel, built against numpy 1, which
@@ -616,8 +615,8 @@ def resolve_backend(backend: str = "auto") -> str:
             missing = " (python-mumps has no wheel for this Python/numpy)"
         elif backend == "cudss":
             missing = (" ('cudss' needs an NVIDIA GPU with its driver, CuPy and "
-                       "nvmath-python with cuDSS: pip install cupy-cuda13x "
-                       "'nvmath-python[cu13]')")
+                       "nvmath-python with cuDSS: pip install -e '.[gpu]', i.e. "
+                       "cupy-cuda13x and 'nvmath-python[cu13]')")
         raise ConfigError(f"config key 'modes.solver': got '{backend}', expected one of the "
                           f"installed backends: auto, {', '.join(available)}{missing}")
     return backend
