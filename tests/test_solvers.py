@@ -500,3 +500,16 @@ def test_gpu_backend_memory_estimate_leaves_the_factor_on_the_gpu():
                                      solver="cudss")
     assert host - gpu == pytest.approx(resources.factor_bytes(3 * n_nodes), rel=1e-12)
     assert gpu < 24e9 < host
+
+
+def test_cpu_backends_never_probe_the_gpu(monkeypatch):
+    """Probing for cudss imports CuPy and loads cuDSS (a second or so where they are
+    installed): auto and the CPU backends are resolved without it."""
+    def probe():
+        raise AssertionError("probed the GPU stack")
+
+    monkeypatch.setattr(solvers, "_cudss_modules", probe)
+    assert solvers.resolve_backend("auto") == BACKENDS[0]
+    assert solvers.resolve_backend("superlu") == "superlu"
+    with pytest.raises(AssertionError, match="probed"):
+        solvers.resolve_backend("cudss")

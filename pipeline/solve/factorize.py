@@ -164,16 +164,17 @@ def _cudss_modules() -> tuple[Any, Any] | None:
         return None
 
 
-def available_backends() -> list[str]:
+def available_backends(gpu: bool = True) -> list[str]:
     """Installed backends, fastest first (measured at 100k DOFs); ``cudss`` (the GPU)
-    last, since ``auto`` never chooses it."""
+    last, since ``auto`` never chooses it. ``gpu=False`` does not look for it (probing
+    imports CuPy and loads cuDSS: a second or so that a CPU run need not pay)."""
     found = []
     if _mkl_library() is not None:
         found.append("pardiso")
     found.append("superlu")
     if _cholespy() is not None:
         found.append("cholmod")
-    if _cudss_modules() is not None:
+    if gpu and _cudss_modules() is not None:
         found.append("cudss")
     return found
 
@@ -604,9 +605,12 @@ def _cudss(A: sp.spmatrix) -> Factorization:
 
 def resolve_backend(backend: str = "auto") -> str:
     """The backend ``backend`` names (``auto``: the fastest installed one)."""
-    available = available_backends()
+    host = available_backends(gpu=False)
     if backend == "auto":
-        return available[0]
+        return host[0]
+    if backend in host:
+        return backend
+    available = available_backends()
     if backend not in available:
         missing = ""
         if backend in ("pardiso", "cholmod"):
