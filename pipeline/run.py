@@ -24,7 +24,8 @@ from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
-from pipeline.solve.factorize import resolve_backend
+from pipeline.solve.eigen import factor_expected
+from pipeline.solve.factorize import PatternAnalysis, resolve_backend
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
 from pipeline.fe.strain import modal_stress_fields
@@ -124,17 +125,34 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     tree: dict[str, Dataset] = {}
     group_attrs: dict[str, dict[str, Any]] = {}
 
-    fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times))
-    with _stage("modes", times):
-        # the factorisation and the eigensolver report their own progress (with totals
-        # and expected durations) through pipeline._util.progress
-        modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free, fe.space.node_points,
-                              node_volume_weights(fe.space), supported=bool(cfg.supports),
-                              backend=cfg.modes.solver, tolerance=cfg.modes.tolerance,
-                              keep=cfg.reduction is not None,
-                              precision=cfg.modes.precision, method=cfg.modes.method,
-                              coarse=None if cfg.modes.method == "factor"
-                              else p1_prolongation(fe.space, fe.free))
+    # PARDISO's analysis of K's pattern runs beside the element loop when the solve
+    # stage will factorise K (it needs the pattern only); released below in any case
+    ahead: list[PatternAnalysis] = []
+
+    def analyse_ahead(indptr, indices) -> None:
+        if factor_expected(indptr.size - 1, cfg.modes.count, supported=bool(cfg.supports),
+                           backend=cfg.modes.solver, method=cfg.modes.method,
+                           precision=cfg.modes.precision):
+            ahead.append(PatternAnalysis(indptr, indices))
+
+    try:
+        fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
+                            on_stiffness_pattern=analyse_ahead)
+        with _stage("modes", times):
+            # the factorisation and the eigensolver report their own progress (with
+            # totals and expected durations) through pipeline._util.progress
+            modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free,
+                                  fe.space.node_points, node_volume_weights(fe.space),
+                                  supported=bool(cfg.supports), backend=cfg.modes.solver,
+                                  tolerance=cfg.modes.tolerance,
+                                  keep=cfg.reduction is not None,
+                                  precision=cfg.modes.precision, method=cfg.modes.method,
+                                  coarse=None if cfg.modes.method == "factor"
+                                  else p1_prolongation(fe.space, fe.free),
+                                  analysis=ahead[0] if ahead else None)
+    finally:
+        for analysis in ahead:
+            analysis.release()  # nothing to free when the factorisation took it
     if modes.factorization is not None:
         # the kept factor of K (for the static correction) lives exactly as long as K:
         # freed when the reduce stage drops K, before the connection models factorise

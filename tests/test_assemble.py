@@ -263,3 +263,18 @@ def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
                               threads=2)
     # without the stop the other half would report all of its >= 8 chunks
     assert len(calls) <= 4, len(calls)
+
+
+def test_the_stiffness_pattern_hook_gets_the_final_structure_of_k(tmp_path):
+    """build_fe_model hands K's CSR structure on the free DOFs to on_stiffness_pattern
+    before the values exist (the solver analyses it meanwhile): exactly K's."""
+    from conftest import ROOT
+    from pipeline.config import load_config
+    from pipeline.fe.model import build_fe_model
+
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml", ["mesh.size=0.02"])
+    seen = []
+    fe = build_fe_model(cfg, tmp_path, on_stiffness_pattern=lambda indptr, indices:
+                        seen.append((indptr.copy(), indices.copy())))
+    assert len(seen) == 1
+    assert np.array_equal(seen[0][0], fe.K.indptr) and np.array_equal(seen[0][1], fe.K.indices)

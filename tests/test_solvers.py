@@ -513,3 +513,67 @@ def test_cpu_backends_never_probe_the_gpu(monkeypatch):
     assert solvers.resolve_backend("superlu") == "superlu"
     with pytest.raises(AssertionError, match="probed"):
         solvers.resolve_backend("cudss")
+
+
+# ------------------------------------------------------- PARDISO's analysis ahead of the values
+@pytest.mark.skipif("pardiso" not in BACKENDS, reason="PatternAnalysis is PARDISO's")
+def test_analysis_of_the_pattern_alone_factorises_the_matrix_given_later(beam, rounding):
+    """The analysis runs on K's pattern (zero values) in a thread; the factorisation with
+    the values then solves like a factor analysed with them (two factorisations: within
+    2 c eps cond(K)); a matrix of another pattern is analysed afresh and the early
+    analysis is freed."""
+    K = beam["K"]
+    b = np.random.default_rng(3).standard_normal(K.shape[0])
+    reference = solvers.factorize(K, "pardiso")
+    x_ref = reference.solve(b)
+    reference.release()
+    with solvers.PatternAnalysis(K.indptr, K.indices) as early:
+        fact = solvers.factorize(K, "pardiso", analysis=early)
+    assert fact.info["analysis_ahead"]
+    x = fact.solve(b)
+    fact.release()
+    assert np.linalg.norm(x - x_ref) <= 2 * rounding["cond_eps"] * np.linalg.norm(x_ref)
+    # another pattern (K + eps v v^T, v = e_0 + e_last, still SPD; two entries more):
+    # not taken, and freed
+    n = K.shape[0]
+    assert K[0, n - 1] == 0.0
+    v = sp.csr_matrix(([1.0, 1.0], ([0, n - 1], [0, 0])), shape=(n, 1))
+    other = (K + 1e-3 * K[0, 0] * (v @ v.T)).tocsr()
+    other.sort_indices()
+    early = solvers.PatternAnalysis(K.indptr, K.indices)
+    fact = solvers.factorize(other, "pardiso", analysis=early)
+    assert not fact.info["analysis_ahead"] and early._result[0] is None
+    assert np.linalg.norm(other @ fact.solve(b) - b) <= 1e-8 * np.linalg.norm(b)
+    fact.release()
+
+
+@pytest.mark.skipif("pardiso" not in BACKENDS, reason="PatternAnalysis is PARDISO's")
+def test_solve_modes_takes_the_early_analysis_only_at_shift_zero(beam, dense_reference,
+                                                                 rounding):
+    K, M = beam["K"], beam["M"]
+    with solvers.PatternAnalysis(K.indptr, K.indices) as early:
+        modes = solve_modes(K, M, COUNT, backend="pardiso", keep=False, analysis=early)
+    assert modes.stats["analysis_ahead"]
+    assert_elementwise_within(modes.frequencies_hz, dense_reference, rounding["freq_rtol"],
+                              "test_solvers::analysis_ahead")
+    _check_modes(modes, K, M, COUNT)
+    Kf, Mf = beam["K_full"], beam["M_full"]  # a free body: shift < 0, K - sigma M
+    with solvers.PatternAnalysis(Kf.indptr, Kf.indices) as early:
+        free = solve_modes(Kf, Mf, 10, supported=False, backend="pardiso", keep=False,
+                           analysis=early)
+    assert not free.stats["analysis_ahead"] and early._result[0] is None
+
+
+def test_factor_expected_follows_solve_modes_rules():
+    from pipeline.solve import eigen
+
+    pardiso = "pardiso" in BACKENDS
+    n = 100_000
+    assert eigen.factor_expected(n, 20) == pardiso
+    assert eigen.factor_expected(n, 20, method="factor") == pardiso
+    assert not eigen.factor_expected(n, 20, supported=False)  # shift < 0
+    assert not eigen.factor_expected(n, 20, precision="mixed")
+    assert not eigen.factor_expected(n, 20, method="multigrid")
+    assert not eigen.factor_expected(eigen.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
+    assert not eigen.factor_expected(eigen.DENSE_MAX, 4)  # dense
+    assert not eigen.factor_expected(n, 20, backend="superlu")

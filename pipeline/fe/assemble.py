@@ -371,11 +371,15 @@ def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam:
 
 def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | None = None,
                       pattern: BlockPattern | None = None, chunk_size: int = 2048,
-                      progress=None, threads: int | None = None) -> Assembled:
+                      progress=None, threads: int | None = None,
+                      on_layout=None) -> Assembled:
     """K (N/m) and M (kg) on the sorted ``nodes`` (all three DOFs of each; None: every
     node), and the whole body's node-level mass (:class:`Assembled`); CSR, sorted, 32-bit
     indices where they fit. ``pattern`` defaults to :func:`block_pattern`.
     ``progress``, if given, is called with the number of elements done after each chunk.
+    ``on_layout(indptr, indices)``, if given, is called with K's CSR structure as soon as
+    it is known, before any value is summed (the solver can analyse the pattern
+    meanwhile: :class:`pipeline.solve.factorize.PatternAnalysis`).
 
     Per chunk of ``chunk_size`` elements: the element factors F_e (9 x 9), one batched
     GEMM R (nb^2 x 9) @ F_e giving each (element, pair) row its 9 values (i, j), and one
@@ -391,6 +395,8 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     if pattern is None:
         pattern = block_pattern(space)
     layout = stiffness_layout(pattern, nodes)
+    if on_layout is not None:
+        on_layout(layout.indptr, layout.indices)
     R, mass_ref = _reference_data(space.order)
     chunk_size = max(1, int(chunk_size))
     if threads is None:

@@ -78,13 +78,15 @@ def _untimed(name: str) -> ContextManager[Any]:
 
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                    progress: ProgressFactory | None = None,
-                   stage: StageTimer | None = None) -> FEModel:
+                   stage: StageTimer | None = None, on_stiffness_pattern=None) -> FEModel:
     """Mesh, space, regions (stage ``mesh``), memory check, assembly and supports (stage
     ``assemble``) for ``cfg``; the mesh file goes to ``mesh_dir``.
 
     ``progress(desc, total, unit)``, if given, is a context manager yielding an
     ``update(n)`` callable; ``stage(name)``, if given, wraps each of the two stages (the
-    pipeline times them).
+    pipeline times them). ``on_stiffness_pattern(indptr, indices)``, if given, receives
+    the CSR structure of the final K (on the free DOFs) before its values are summed,
+    where K is assembled straight onto the free DOFs (not called otherwise).
     """
     progress = progress or _no_progress
     stage = stage or _untimed
@@ -105,8 +107,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         nodes = None if cfg.connections else whole_nodes(free, space.n_nodes)
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
-            assembled = assemble_on_nodes(space, cfg.material, nodes, pattern=pattern,
-                                          progress=update)
+            assembled = assemble_on_nodes(
+                space, cfg.material, nodes, pattern=pattern, progress=update,
+                on_layout=on_stiffness_pattern if nodes is not None else None)
         del pattern
         props = body_properties(assembled.node_mass, space.node_points)
         K, M = assembled.K, assembled.M

@@ -133,11 +133,24 @@ def default_block_size(count: int, supported: bool = True) -> int:
     return int(min(max(count, 1), 4)) if supported else 8
 
 
+def factor_expected(n: int, count: int, *, supported: bool = True, backend: str = "auto",
+                    method: str = "auto", precision: str = "double") -> bool:
+    """Whether :func:`solve_modes` will factorise K itself with PARDISO at shift 0 for
+    ``n`` free DOFs (by its own rules, before the values exist), so that a
+    :class:`~pipeline.solve.factorize.PatternAnalysis` started during the assembly will
+    be used. A wrong guess costs only the background analysis."""
+    return (supported and n > DENSE_MAX and precision != "mixed"
+            and (method == "factor" or (method == "auto" and n < MULTIGRID_AUTO_DOFS))
+            and resolve_backend(backend) == "pardiso"
+            and factor_path_bytes(n, count) <= HEADROOM * available_memory_bytes())
+
+
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
                 progress=None, method: str = "auto", block_size: int | None = None,
                 max_basis: int | None = None, keep: bool = False,
-                precision: str = "double", coarse: sp.spmatrix | None = None) -> Modes:
+                precision: str = "double", coarse: sp.spmatrix | None = None,
+                analysis=None) -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
@@ -159,6 +172,9 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     (a float32 PARDISO factor, answers refined in double: :mod:`pipeline.solve.mixed`;
     no factor is kept); ``auto``: mixed when a double factor would not fit in memory
     (the size estimate, or PARDISO's exact size after its analysis), else double.
+    ``analysis``: a :class:`~pipeline.solve.factorize.PatternAnalysis` of K's pattern
+    started during the assembly; the factor path at shift 0 takes it (PARDISO then only
+    factorises numerically); the caller releases what is left (its ``with`` block).
     ``backend`` ``cudss`` (the factor on an NVIDIA GPU) keeps ``auto`` on the factor
     (no multigrid trial, double precision: the host-memory rules do not apply) and
     solves with ARPACK, cuDSS having no separate forward and backward substitutions.
@@ -247,7 +263,8 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         shifted = K - sigma * M if sigma != 0.0 else K
         t1 = time.perf_counter()
         try:
-            fact = factorize(shifted, backend, positive_definite=True, check=False)
+            fact = factorize(shifted, backend, positive_definite=True, check=False,
+                             analysis=analysis if sigma == 0.0 else None)
         except ResourceError:  # PARDISO's exact size after the analysis: does not fit
             if precision != "auto":
                 raise

@@ -35,17 +35,18 @@ def compute_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, free: np.ndarray,
                   supported: bool = True, backend: str = "auto", tolerance: float = 0.0,
                   progress: Callable[[int], None] | None = None, keep: bool = True,
                   precision: str = "double", method: str = "auto",
-                  coarse: sp.spmatrix | None = None) -> Modes:
+                  coarse: sp.spmatrix | None = None, analysis=None) -> Modes:
     """The ``count`` lowest modes of (K, M) with ``shapes_full`` and ``labels`` filled in.
 
     ``keep``: keep the factorisation of K in the result (supported bodies solved by
     factorisation), see :class:`pipeline.solve.modes.Modes` for who frees it.
-    ``method`` and ``coarse`` (the prolongation from a coarse space onto the free DOFs):
-    see :func:`pipeline.solve.eigen.solve_modes`.
+    ``method``, ``coarse`` (the prolongation from a coarse space onto the free DOFs) and
+    ``analysis``: see :func:`pipeline.solve.eigen.solve_modes`.
     """
     modes = solve_modes(K, M, count, supported=supported, backend=backend,
                         tolerance=tolerance, progress=progress, keep=keep,
-                        precision=precision, method=method, coarse=coarse)
+                        precision=precision, method=method, coarse=coarse,
+                        analysis=analysis)
     try:
         shapes = full_shapes(modes.shapes, free, node_points.shape[0])
         labels = label_modes(node_points, shapes, modes.n_rigid, node_weights)
