@@ -61,7 +61,8 @@ import scipy.sparse as sp
 
 from pipeline.errors import ConfigError, ResourceError, SolverError
 from pipeline._util import progress
-from pipeline._util.resources import HEADROOM, check_factor_memory, usable_cores
+from pipeline._util.resources import (HEADROOM, check_factor_memory, release_free_heap,
+                                      usable_cores)
 
 log = logging.getLogger(__name__)
 
@@ -487,6 +488,9 @@ class PatternAnalysis:
             try:
                 t0 = time.perf_counter()
                 self._result[0] = _Pardiso(pattern, analysis_only=True)
+                lib = _mkl_library()
+                if lib is not None and hasattr(lib, "mkl_thread_free_buffers"):
+                    lib.mkl_thread_free_buffers()  # MKL's pool of this thread's buffers
                 log.info("ordering (METIS) of %d DOFs beside the assembly: %.2f s", n,
                          time.perf_counter() - t0)
             except BaseException as exc:  # reported by take(); the main path then analyses
@@ -507,8 +511,11 @@ class PatternAnalysis:
         U = upper_triangle_csr(sp.csr_matrix(A))
         if not (np.array_equal(U.indptr, fact.ia) and np.array_equal(U.indices, fact.ja)):
             fact.release()
+            release_free_heap()
             return None
-        fact.a = U.data.astype(fact.dtype, copy=False)
+        fact.a = U.data.astype(fact.dtype, copy=False)  # the analysis thread's zeros go
+        del U
+        release_free_heap()  # that thread's malloc arena would keep their pages
         return fact
 
     def release(self) -> None:
@@ -516,6 +523,7 @@ class PatternAnalysis:
         fact, self._result[0] = self._result[0], None
         if fact is not None:
             fact.release()
+            release_free_heap()
 
     def __enter__(self) -> "PatternAnalysis":
         return self
