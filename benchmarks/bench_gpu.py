@@ -16,7 +16,10 @@ For each mesh (an ``.npz`` with ``vertices`` (n_v, 3) m, ``tetrahedra`` (n_t, 4)
 6. the same through the pipeline (``solve_modes(..., backend="cudss")``, the factor kept
    for a refined static solve, as the reduce stage does), against the direct run.
 
-Usage: ``python benchmarks/bench_gpu.py MESH.npz [MESH.npz ...] [--modes 20]``
+Usage: ``python benchmarks/bench_gpu.py MESH.npz [MESH.npz ...] [--modes 20]``; the
+meshes are made where gmsh is (the GPU machine needs none):
+``python benchmarks/bench_gpu.py --export 0.00211 cantilever_1m.npz`` (mesh.size in m;
+0.00211 gives 996k free DOFs, 0.00146 2.83M).
 """
 
 from __future__ import annotations
@@ -162,11 +165,36 @@ def _release_gpu_memory() -> None:
     print(f"GPU memory free: {cp.cuda.Device().mem_info[0] / 1e9:.1f} GB", file=sys.stderr)
 
 
+def export_mesh(size: str, out: Path) -> None:
+    """Mesh configs/cantilever.yaml at ``mesh.size = size`` with the pipeline (gmsh) and
+    save what :func:`assemble` reads."""
+    import tempfile
+
+    from pipeline.config import load_config
+    from pipeline.fe.mesh import mesh_body
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "cantilever.yaml",
+                      [f"mesh.size={size}"])
+    with tempfile.TemporaryDirectory() as folder:
+        body, _, _ = mesh_body(cfg.geometry, cfg.mesh, folder, cfg.name)
+    np.savez_compressed(out, vertices=body.vertices,
+                        tetrahedra=body.tetrahedra.astype(np.int32),
+                        root=body.regions["root"].astype(np.int32))
+    print(f"{out}: {len(body.vertices)} vertices, {len(body.tetrahedra)} tetrahedra")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("meshes", nargs="+", type=Path)
+    parser.add_argument("meshes", nargs="*", type=Path)
     parser.add_argument("--modes", type=int, default=20)
+    parser.add_argument("--export", nargs=2, metavar=("SIZE", "OUT.npz"),
+                        help="mesh the cantilever at mesh.size SIZE (m) into OUT.npz")
     args = parser.parse_args()
+    if args.export:
+        export_mesh(args.export[0], Path(args.export[1]))
+        return 0
+    if not args.meshes:
+        parser.error("no MESH.npz given")
     for path in args.meshes:
         t0 = time.perf_counter()
         K, M, t_asm = assemble(path)
