@@ -170,6 +170,7 @@ def export_mesh(size: str, out: Path) -> None:
     save what :func:`assemble` reads."""
     import tempfile
 
+    from pipeline._util.atomic import atomic_path
     from pipeline.config import load_config
     from pipeline.fe.mesh import mesh_body
 
@@ -177,9 +178,10 @@ def export_mesh(size: str, out: Path) -> None:
                       [f"mesh.size={size}"])
     with tempfile.TemporaryDirectory() as folder:
         body, _, _ = mesh_body(cfg.geometry, cfg.mesh, folder, cfg.name)
-    np.savez_compressed(out, vertices=body.vertices,
-                        tetrahedra=body.tetrahedra.astype(np.int32),
-                        root=body.regions["root"].astype(np.int32))
+    with atomic_path(out) as tmp, open(tmp, "wb") as fh:  # whole or not at all
+        np.savez_compressed(fh, vertices=body.vertices,
+                            tetrahedra=body.tetrahedra.astype(np.int32),
+                            root=body.regions["root"].astype(np.int32))
     print(f"{out}: {len(body.vertices)} vertices, {len(body.tetrahedra)} tetrahedra")
 
 

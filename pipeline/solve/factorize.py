@@ -347,13 +347,12 @@ class _Pardiso:
         if not analysis_only:
             self.factorise()
 
-    def factorise(self, values: np.ndarray | None = None) -> None:
-        """Numerical factorisation (phase 22) of the analysed pattern, with ``values`` (the
-        upper triangle's data in the analysed order; None: those given at construction).
-        PARDISO's analysis reads the pattern only: analysed on zero values and given the
-        values here, the factor solves bitwise like one analysed with them (measured)."""
-        if values is not None:
-            self.a = np.asarray(values, dtype=self.dtype)
+    def factorise(self) -> None:
+        """Numerical factorisation (phase 22) of the analysed pattern with the values in
+        ``self.a`` (the upper triangle's data in the analysed order). PARDISO's analysis
+        reads the pattern only: analysed on zero values and given the values before this
+        call (:meth:`PatternAnalysis.take`), the factor solves bitwise like one analysed
+        with them (measured)."""
         t1 = time.perf_counter()
         try:
             # the exact factor size is known now, before the factorisation allocates it
