@@ -154,6 +154,28 @@ def test_float32_cycle_preconditions_lobpcg_to_the_same_eigenpairs(beam):
     assert err <= bound
 
 
+def test_lobpcg_converges_without_plateaus(beam):
+    """With the two-grid cycle, every sweep cuts the worst preconditioned residual by at
+    least 2 until it nears the target (measured: 4-8 per sweep). Without the column
+    scaling of the SVQB step (lobpcg module doc), the short directions of nearly
+    converged columns were lost and the lowest modes stalled for 2-4 sweeps: here 13
+    sweeps with ratios of 1.0 at the plateaus, against 10 with the scaling."""
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        X0 = np.random.default_rng(4).standard_normal((beam.K.shape[0], 11))
+        target = eigen.MULTIGRID_TOLERANCE
+        r = lobpcg(beam.K, beam.M, X0, tg.apply_single, COUNT, target=target)
+    finally:
+        tg.release()
+    assert r.converged
+    h = np.array(r.history)
+    far = h[1:-1] > 10 * target  # sweep 0 is the random start block
+    ratios = h[2:][far] / h[1:-1][far]
+    assert ratios.size >= 4
+    assert ratios.max() <= 0.5, ratios
+
+
 def test_multigrid_free_body_finds_the_rigid_modes(free_beam):
     """A free body (shift < 0): six rigid-body modes at zero, then the elastic ones as the
     factor route gives them."""
