@@ -269,6 +269,45 @@ def test_sparse_times_dense_matches_scipy_in_every_shape(beam, dtype):
         assert np.all(np.abs(got - ref) <= bound)
 
 
+@pytest.mark.parametrize("mkl", [True, False])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_fused_products_and_axpby(beam, dtype, mkl, monkeypatch):
+    """out = alpha A X + beta out in place (one and several columns) and y = a x + b y,
+    through MKL and through the numpy fallback: the unfused numpy expression to the same
+    round-off bound as above (plus one rounding of beta out); a wrong ``out`` is one
+    ValueError naming the expected shape."""
+    if not mkl:
+        monkeypatch.setattr(solvers, "_mkl_library", lambda: None)
+    elif solvers._mkl_library() is None:
+        pytest.skip("MKL is not installed (the 'fast' extra)")
+    K = beam["K"]
+    A = sp.csr_matrix((K.data.astype(dtype), K.indices.astype(np.int32),
+                       K.indptr.astype(np.int32)), shape=K.shape)
+    eps = np.finfo(dtype).eps
+    rng = np.random.default_rng(7)
+    row_len = int(np.diff(A.indptr).max())
+    for shape in ((A.shape[1],), (A.shape[1], 1), (A.shape[1], 3)):
+        X = rng.standard_normal(shape).astype(dtype)
+        Y0 = rng.standard_normal(shape).astype(dtype)
+        out = Y0.copy()
+        got = solvers.sparse_times_dense(A, X, out=out, alpha=-0.5, beta=2.0)
+        assert got is out and got.dtype == dtype
+        ref = -0.5 * (A.astype(np.float64) @ X.astype(np.float64)) + 2.0 * Y0
+        scale = 0.5 * (abs(A).astype(np.float64) @ np.abs(X.astype(np.float64))) \
+            + 2.0 * np.abs(Y0)
+        assert np.all(np.abs(got - ref) <= 2 * (row_len + 1) * eps * scale)
+    with pytest.raises(ValueError, match=r"out: expected a C-contiguous"):
+        solvers.sparse_times_dense(A, X, out=np.empty((3, 3), dtype=dtype))
+    x, y = rng.standard_normal(50).astype(dtype), rng.standard_normal(50).astype(dtype)
+    y0 = y.astype(np.float64)
+    ref = 3.0 * x.astype(np.float64) - 0.25 * y0
+    got = solvers.axpby(3.0, x, -0.25, y)
+    assert got is y
+    assert np.all(np.abs(got - ref) <= 2 * eps * (3 * np.abs(x) + 0.25 * np.abs(y0)))
+    with pytest.raises(ValueError, match="axpby"):
+        solvers.axpby(1.0, x[:10], 1.0, y)
+
+
 def test_block_lanczos_on_a_diagonal_operator():
     """Largest eigenvalues of diag(d), including a 3-fold one, to round-off."""
     d = np.concatenate([[5.0, 5.0, 5.0, 4.0], np.linspace(0.1, 3.0, 400)])
