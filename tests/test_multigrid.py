@@ -32,7 +32,9 @@ from pipeline.errors import ConfigError
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.solve import eigen, multigrid
 from pipeline.solve.eigen import solve_modes
+from pipeline.solve.factorize import backward_errors
 from pipeline.solve.lobpcg import PROJECT_FROM, lobpcg, projected_sweeps
+from pipeline.solve.pcg import pcg
 
 COUNT = 8
 
@@ -102,6 +104,27 @@ def test_two_grid_pcg_matches_a_direct_solve(beam):
         assert tg.factorization().solve(b[:, 0]).shape == (beam.K.shape[0],)
     finally:
         tg.release()
+
+
+def test_pcg_stops_at_the_round_off_floor(beam):
+    """With rtol = 0 (unreachable), PCG still ends: once the normwise backward error of
+    its recursive residual is eps, the true one has stopped falling (pcg module doc). It
+    ends there with a true backward error below iterative refinement's floor (16 eps, so
+    no refinement solve follows) and in fewer iterations than rtol = 1e-12 takes. Without
+    the floor test it ran into max_iter."""
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        b = np.random.default_rng(8).standard_normal((beam.K.shape[0], 2))
+        x, its = pcg(beam.K, b, tg.apply, rtol=0.0)
+        _, its_rtol = pcg(beam.K, b, tg.apply, rtol=1e-12, max_iter=10_000)
+    finally:
+        tg.release()
+    eta = backward_errors(beam.K, x, b)
+    record_tolerance("PCG at the round-off floor: backward error", float(eta.max()),
+                     16 * np.finfo(float).eps)
+    assert eta.max() <= 16 * np.finfo(float).eps
+    assert its <= its_rtol
 
 
 def test_multigrid_modes_match_the_factor_route(beam):

@@ -7,7 +7,12 @@ K - sigma M, :mod:`pipeline.solve.mixed`). Each column runs its own CG recurrenc
 (alpha and beta per column) on shared (n, k) blocks, so every iteration is one sparse
 product with k columns and one application of T to them. A column stops at
 ||B - K X|| <= rtol ||B|| (the recursive residual; the caller's iterative refinement
-measures the true one).
+measures the true one), or as soon as its normwise backward error on the recursive
+residual, ||r||_inf / (||K||_inf ||x||_inf + ||b||_inf), is at most eps: past that
+round-off floor the true residual no longer falls (the recursive one keeps falling
+away from it), so further iterations cannot improve x. Measured on the cantilever at
+313k DOFs with the two-grid cycle: the true backward error stops at 2e-16 after 14
+iterations, while rtol = 1e-12 took 21-23 (a third of the static solve).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.factorize import sparse_times_dense
+from pipeline.solve.factorize import scaled_inf_norm, sparse_times_dense
 
 RTOL = 1e-12
 MAX_ITER = 500
@@ -27,7 +32,8 @@ MAX_ITER = 500
 def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.ndarray],
         rtol: float = RTOL, max_iter: int = MAX_ITER) -> tuple[np.ndarray, int]:
     """(X, iterations) with A X = B for symmetric positive definite A (n x n), B (n,) or
-    (n, k); ``precondition(R)`` returns T R for R (n, k). SolverError after ``max_iter``.
+    (n, k); ``precondition(R)`` returns T R for R (n, k). Each column stops at rtol or at
+    the round-off floor (module doc); SolverError after ``max_iter``.
 
     >>> import numpy as np, scipy.sparse as sp
     >>> A = sp.diags([4.0, 3.0, 2.0]).tocsr()
@@ -41,6 +47,9 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
     X = np.zeros_like(B)
     bnorm = np.linalg.norm(B, axis=0)
     goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
+    norm_A = scaled_inf_norm(A)
+    b_inf = np.abs(B).max(axis=0)
+    eps = np.finfo(np.float64).eps
     R = B.copy()
     Z = np.asarray(precondition(R), dtype=np.float64).reshape(R.shape)
     P = Z.copy()
@@ -48,7 +57,9 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
     it = 0
     while True:
         rnorm = np.linalg.norm(R, axis=0)
-        if np.all(rnorm <= goal):
+        floor = np.abs(R).max(axis=0) <= eps * (norm_A * np.abs(X).max(axis=0) + b_inf)
+        done = (rnorm <= goal) | floor
+        if np.all(done):
             break
         if it >= max_iter:
             raise SolverError(f"conjugate gradients did not reach a relative residual of "
@@ -59,7 +70,7 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
         it += 1
         AP = sparse_times_dense(A, P)
         pap = np.einsum("ij,ij->j", P, AP)
-        live = rnorm > goal
+        live = ~done
         alpha = np.where(live & (pap > 0), rz / np.where(pap > 0, pap, 1.0), 0.0)
         X += P * alpha
         R -= AP * alpha
