@@ -79,10 +79,12 @@ MULTIGRID_MAX_SWEEPS = 100
 # equal to 2e-10 (measured at 312k DOFs, 1e-8 ... 1e-2)
 MULTIGRID_START_TOLERANCE = 1e-4
 # under method auto: the two-grid trial is given up for the factor path as soon as it
-# projects more sweeps than this (3.3 x the cantilever's 12). At 1M DOFs the two paths
-# break even near 22 sweeps; 40 lets a body that converges steadily but slowly (nu =
-# 0.49: 27 sweeps, half the factor path's memory) finish instead of wasting 16 sweeps,
-# and still gives up on the plateaus of thin strips after 7-8 (module doc)
+# projects more sweeps than this (5 x the cantilever's 8; 12 before LOBPCG's SVQB
+# scaling). At 1M DOFs the two paths broke even near 22 sweeps; 40 lets a body that
+# converges steadily but slowly (nu = 0.49: 24 sweeps, half the factor path's memory)
+# finish instead of wasting 16 sweeps, and still gives up on nu = 0.499 and the 0.5 mm
+# strip after 7-10 sweeps (projected 44-53); the 2 mm strip (10 sweeps) and the slender
+# beam (11) now converge (docs/performance.md, seventh session)
 MULTIGRID_AUTO_SWEEPS = 40
 
 
