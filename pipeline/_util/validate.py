@@ -70,10 +70,17 @@ def describe(value: Any) -> str:
 
 def key_text(key: Any) -> str:
     """A config key as it appears in a message: itself if short and printable, else
-    escaped (no quotes, no newlines) and shortened."""
+    escaped (no quotes, no newlines) and shortened. Spaces that a one-line message would
+    collapse or hide (leading, trailing, repeated) are written as \\x20.
+
+    >>> key_text("  "), key_text(" name"), key_text("a b")
+    ('\\\\x20\\\\x20', '\\\\x20name', 'a b')
+    """
     if isinstance(key, str):
         text = key if key.isprintable() else key.encode("unicode_escape").decode("ascii")
         text = text.replace("'", "\\x27")
+        if " ".join(text.split()) != text:
+            text = text.replace(" ", "\\x20")
     elif key is None or isinstance(key, (bool, int, float)):
         text = short_repr(key)
     else:
