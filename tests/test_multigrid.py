@@ -106,18 +106,22 @@ def test_two_grid_pcg_matches_a_direct_solve(beam):
         tg.release()
 
 
-def test_pcg_stops_at_the_round_off_floor(beam):
+@pytest.mark.parametrize("single", [False, True], ids=["double-cycle", "float32-cycle"])
+def test_pcg_stops_at_the_round_off_floor(beam, single):
     """With rtol = 0 (unreachable), PCG still ends: once the normwise backward error of
     its recursive residual is eps, the true one has stopped falling (pcg module doc). It
     ends there with a true backward error below iterative refinement's floor (16 eps, so
     no refinement solve follows) and in fewer iterations than rtol = 1e-12 takes. Without
-    the floor test it ran into max_iter."""
+    the floor test it ran into max_iter. The float32 cycle (what static solves use) only
+    chooses search directions: X and its residual stay in double, so it reaches the same
+    floor."""
     P = p1_prolongation(beam.space, beam.free)
     tg = multigrid.TwoGrid(beam.K, P)
+    cycle = tg.apply_single if single else tg.apply
     try:
         b = np.random.default_rng(8).standard_normal((beam.K.shape[0], 2))
-        x, its = pcg(beam.K, b, tg.apply, rtol=0.0)
-        _, its_rtol = pcg(beam.K, b, tg.apply, rtol=1e-12, max_iter=10_000)
+        x, its = pcg(beam.K, b, cycle, rtol=0.0)
+        _, its_rtol = pcg(beam.K, b, cycle, rtol=1e-12, max_iter=10_000)
     finally:
         tg.release()
     eta = backward_errors(beam.K, x, b)
@@ -125,6 +129,29 @@ def test_pcg_stops_at_the_round_off_floor(beam):
                      16 * np.finfo(float).eps)
     assert eta.max() <= 16 * np.finfo(float).eps
     assert its <= its_rtol
+
+
+def test_float32_cycle_is_scale_invariant(beam):
+    """The float32 cycle scales each column to unit max (in double) before the cast, so a
+    tiny or huge residual (PCG near its floor, any unit system) neither underflows, goes
+    subnormal nor overflows: for s = 2^-150 (below float32's smallest subnormal) and
+    2^120 (near its largest value), T32 (s r) / s matches the double cycle T r as T32 r
+    does. Bound: float32 rounding (6e-8) amplified by the cycle's cancellations, which
+    moves the result by 2e-7 to 1.4e-5 between inputs that differ by rounding only
+    (measured on this beam over scales and columns; MKL's kernels need not be bitwise
+    reproducible across allocations), so 1e-4. Without the scaling the first is all
+    zeros (error 1)."""
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        r = np.random.default_rng(9).standard_normal((beam.K.shape[0], 2))
+        z = tg.apply(r)
+        for s in (1.0, 2.0**-150, 2.0**120):
+            zs = tg.apply_single(r * s) / s
+            error = np.linalg.norm(zs - z, axis=0) / np.linalg.norm(z, axis=0)
+            assert error.max() <= 1e-4, (s, error)
+    finally:
+        tg.release()
 
 
 def test_multigrid_modes_match_the_factor_route(beam):

@@ -26,8 +26,10 @@ coarse solve, prolongation) stays in double. A preconditioner only chooses searc
 directions, and the eigenvalues and residuals stay in double, so this changes neither
 the accuracy nor (measured) the sweep count; it halves the memory traffic of the
 sparse products, which are most of a sweep (K times 25 vectors at 1M DOFs: 0.38 s
-against 0.99 s). PCG (static solves to 1e-12) keeps the double cycle: its short
-recurrences assume a fixed linear preconditioner.
+against 0.99 s). PCG (static solves) takes the float32 cycle too: its Polak-Ribiere beta
+(flexible CG, :mod:`pipeline.solve.pcg`) does not assume a fixed linear T, and X and its
+residual stay in double, so it reaches the same round-off floor; each column is scaled
+to unit max before the cast, so a residual near that floor does not underflow.
 
 Used by :mod:`pipeline.solve.eigen` as the preconditioner of :func:`pipeline.solve.lobpcg.lobpcg`
 (``modes.method: multigrid``) and, through :meth:`TwoGrid.factorization`, as the solver
@@ -209,17 +211,25 @@ class TwoGrid:
     def apply(self, R: np.ndarray, single: bool = False) -> np.ndarray:
         """T R (float64) for R (n,) or (n, k); ``single``: the float32 cycle of the
         module doc."""
-        R = np.asarray(R, dtype=np.float32 if single else np.float64)
+        R = np.asarray(R, dtype=np.float64)
         vector = R.ndim == 1
-        R = np.ascontiguousarray(R.reshape(R.shape[0], -1))
+        R = R.reshape(R.shape[0], -1)
         if single:
-            Rh = R * self._operator(True)[1][:, None]  # D^-1 R
+            # each column scaled to unit max before the float32 cast (T is linear), so a
+            # small residual (PCG near its floor) neither underflows nor goes subnormal;
+            # the scale stays in double (it may lie outside float32's range)
+            scale = np.abs(R).max(axis=0)
+            scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+            Rh = np.empty(R.shape, dtype=np.float32)
+            np.multiply(R, 1.0 / scale, out=Rh, casting="unsafe")
+            Rh *= self._operator(True)[1][:, None]  # D^-1 R / scale
             del R
             Z = self._smooth_single(Rh, None)
             res = Rh.copy()  # D^-1 (R - A Z); its restriction is (P^T D) res
             sparse_times_dense(self._operator(True)[0], Z, out=res, alpha=-1.0, beta=1.0)
             restrict = self._restriction_scaled()
         else:
+            R = np.ascontiguousarray(R)
             Z = self._smooth(R, None)
             res = self._residual(R, Z, self.A)
             restrict = self.PT
@@ -229,6 +239,8 @@ class TwoGrid:
         Z += sparse_times_dense(self.P, np.ascontiguousarray(zc)).astype(Z.dtype)
         Z = self._smooth_single(Rh, Z) if single else self._smooth(R, Z)
         Z = Z.astype(np.float64, copy=False)
+        if single:
+            Z *= scale
         return Z[:, 0] if vector else Z
 
     def apply_single(self, R: np.ndarray) -> np.ndarray:
@@ -241,7 +253,7 @@ class TwoGrid:
         all columns of B (n,) or (n, k) at once, each to ||B - A X|| <= rtol ||B||."""
         width = 1 if np.ndim(B) == 1 else np.shape(B)[1]
         with retained_heap(PCG_BLOCKS * 8.0 * self.A.shape[0] * width):
-            X, self.iterations = pcg(self.A, B, self.apply, rtol, max_iter)
+            X, self.iterations = pcg(self.A, B, self.apply_single, rtol, max_iter)
         log.debug("multigrid PCG: %d iterations", self.iterations)
         return X
 
