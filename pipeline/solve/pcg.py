@@ -18,8 +18,8 @@ beta is Polak-Ribiere's, z_new^T (r_new - r_old) / z_old^T r_old (flexible CG, G
 Ye 1999; Notay 2000): equal to Fletcher-Reeves' z_new^T r_new / z_old^T r_old for a
 fixed symmetric T, and it keeps the convergence when T varies slightly from one
 application to the next, as a float32 cycle or a float32 factor does (rounding at
-1e-7 makes T neither exactly linear nor exactly symmetric). It costs one more (n, k)
-block (r_old) and one more dot product an iteration.
+1e-7 makes T neither exactly linear nor exactly symmetric). Since r_new - r_old is
+-alpha K p, it costs one more dot product an iteration, and K p is kept until then.
 """
 
 from __future__ import annotations
@@ -80,13 +80,11 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
         live = ~done
         alpha = np.where(live & (pap > 0), rz / np.where(pap > 0, pap, 1.0), 0.0)
         X += P * alpha
-        R_old = R.copy()
         R -= AP * alpha
-        del AP
         Z = np.asarray(precondition(R), dtype=np.float64).reshape(R.shape)
         rz_new = np.einsum("ij,ij->j", R, Z)
-        z_dr = rz_new - np.einsum("ij,ij->j", R_old, Z)  # z_new^T (r_new - r_old)
-        del R_old
+        z_dr = -alpha * np.einsum("ij,ij->j", Z, AP)  # z_new^T (r_new - r_old)
+        del AP
         beta = np.where(rz != 0, z_dr / np.where(rz != 0, rz, 1.0), 0.0)
         P *= beta
         P += Z

@@ -87,7 +87,7 @@ def read_mesh(path: str | Path) -> BodyMesh:
                         "expected tetra or tetra10 volume cells")
     tets = np.concatenate([b.data[:, :4] for _, b in tet_blocks]).astype(np.int64)
     used = np.unique(tets)
-    used = used[z_order(mesh.points[used, :3])]  # locality: see the module doc
+    used = used[z_order(mesh.points[used, :3])]  # locality: see the docstring
     renumber = np.full(mesh.points.shape[0], -1, dtype=np.int64)
     renumber[used] = np.arange(used.size)
     vertices = np.ascontiguousarray(mesh.points[used, :3], dtype=np.float64)
