@@ -170,3 +170,19 @@ def test_retained_heap_keeps_freed_blocks_inside_and_gives_them_back_after():
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
     with resources.retained_heap(10.0 * resources.available_memory_bytes()) as kept:
         assert not kept
+
+
+def test_import_sets_openblas_thread_timeout_unless_given():
+    """``import pipeline`` (before numpy) shortens OpenBLAS's spin after each call to 2^4
+    cycles, so its threads leave the cores to MKL's; a value in the environment wins."""
+    import os
+
+    code = "import os, pipeline, numpy; print(os.environ['OPENBLAS_THREAD_TIMEOUT'])"
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out == "4"
+    env["OPENBLAS_THREAD_TIMEOUT"] = "12"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.strip()
+    assert out == "12"
