@@ -131,3 +131,17 @@ def test_override_errors():
         apply_overrides(BASE, ["mesh.size"])
     with pytest.raises(ConfigError, match="out of range"):
         apply_overrides(BASE, ["supports[3].region=tip"])
+
+
+def test_a_value_with_repeated_spaces_keeps_them_in_the_one_line_message():
+    """The one-line message collapses whitespace; a string value whose spaces matter
+    (two spaces where one was meant) shows them escaped, so the user sees what was read."""
+    raw = copy.deepcopy(BASE)
+    raw.setdefault("modes", {})["method"] = "multi  grid"
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(raw)
+    assert "multi\\x20\\x20grid" in str(err.value)
+    raw["modes"]["method"] = "multi grid"
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(raw)
+    assert "'multi grid'" in str(err.value)

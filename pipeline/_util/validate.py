@@ -30,7 +30,13 @@ NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")  # use with fullmatch 
 
 def short_repr(value: Any, depth: int = 0) -> str:
     """repr() bounded in depth, length and size: safe on hostile input (deep nesting,
-    shared sub-lists that would expand exponentially, ints of thousands of digits)."""
+    shared sub-lists that would expand exponentially, ints of thousands of digits).
+    Strings with repeated spaces, which a one-line message would collapse, have their
+    spaces written as \\x20.
+
+    >>> print(short_repr("a b"), short_repr("a  b"))
+    'a b' 'a\\x20\\x20b'
+    """
     if isinstance(value, bool) or value is None or isinstance(value, float):
         return repr(value)
     if isinstance(value, int):
@@ -39,6 +45,8 @@ def short_repr(value: Any, depth: int = 0) -> str:
         return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
     if isinstance(value, (str, bytes)):
         text = repr(value[:100])
+        if "  " in text:  # a one-line message collapses repeated spaces: keep them seen
+            text = text.replace(" ", "\\x20")
         return text if len(value) <= 100 else text[:-1] + "..." + text[-1]
     if depth >= 3:
         return "[...]" if isinstance(value, (list, tuple)) else "{...}" \
