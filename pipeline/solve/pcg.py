@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.factorize import scaled_inf_norm, sparse_times_dense
+from pipeline.solve.factorize import column_norms, scaled_inf_norm, sparse_times_dense
 
 RTOL = 1e-12
 MAX_ITER = 500
@@ -52,7 +52,7 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
     vector = B.ndim == 1
     B = np.ascontiguousarray(B.reshape(B.shape[0], -1))
     X = np.zeros_like(B)
-    bnorm = np.linalg.norm(B, axis=0)
+    bnorm = column_norms(B)
     goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
     norm_A = scaled_inf_norm(A)
     b_inf = np.abs(B).max(axis=0)
@@ -63,7 +63,7 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
     rz = np.einsum("ij,ij->j", R, Z)
     it = 0
     while True:
-        rnorm = np.linalg.norm(R, axis=0)
+        rnorm = column_norms(R)
         floor = np.abs(R).max(axis=0) <= eps * (norm_A * np.abs(X).max(axis=0) + b_inf)
         done = (rnorm <= goal) | floor
         if np.all(done):
