@@ -55,10 +55,20 @@ def register_pardiso_spd() -> str:
                 if np.abs(vals.imag).max(initial=0.0) > 0:
                     raise ValueError("pardiso_spd: the matrix is not real")
                 vals = vals.real
-            A = sp.csr_matrix((vals, np.asarray(indices), np.asarray(indptr)))
-            if sp.triu(A, 1).nnz == 0:  # symmetric storage: the lower triangle only
-                A = (A + sp.tril(A, -1).T).tocsr()
+            # (unsigned 64-bit from 1M DOFs: to the 32-bit indices PARDISO takes)
+            itype = np.int32 if max(len(indices), len(indptr)) < 2**31 else np.int64
+            indices = np.asarray(indices).astype(itype)
+            indptr = np.asarray(indptr).astype(itype)
+            n = indptr.size - 1
+            rows = np.repeat(np.arange(n, dtype=itype), np.diff(indptr))
+            lower = bool(np.all(indices <= rows))
+            del rows
+            A = sp.csr_matrix((vals, indices, indptr), shape=(n, n))
+            del vals, indices, indptr
+            if lower:  # symmetric storage: the factor needs its transpose, the upper
+                A = A.T.tocsr()  # triangle, only (no full matrix: 1.22M DOFs did not fit)
             self.factor = factorize(A, "pardiso", positive_definite=True, check=False)
+            del A
 
         def Solve(self, rhs, sol):
             b = rhs.FV().NumPy()
