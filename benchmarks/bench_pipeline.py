@@ -43,9 +43,9 @@ LARGE = ("600k", "1M", "3M")  # opt-in: --large, or named in --sizes; once unles
 # 614,802; 0.00222 -> 1,227,582; 0.0022 -> 1,224,567; 0.00209 -> 1,280,949; 0.00199 ->
 # 1,313,007; 0.00158 -> 2,323,056 DOFs). netgen's DOFs jump with the number of element
 # layers across the 20 mm thickness, so no maxh gives 1.0M: 1M is compared at 1.22M DOFs
-# (the nearest above; its PARDISO factor does not fit in 24 GB beside NGSolve's 6.7 GB of
-# complex matrices), 3M at 2.32M; 600k (621k DOFs here) at 615k, the largest NGSolve
-# case that fits on the 24 GB machine (9.3 GB).
+# (the nearest above; 21.5 GB, just inside the cap of run_watched on the 24 GB machine:
+# on a busier host it is stopped), 3M at 2.32M (its factor alone needs 29 GB); 600k
+# (621k DOFs here) at 615k, the largest below that jump (8.9-9.3 GB).
 NGSOLVE_MAXH = {"20k": 0.0079, "100k": 0.00497, "300k": 0.00339, "600k": 0.00224,
                 "1M": 0.0022, "3M": 0.00158}
 NGSOLVE_VARIANTS = ("pardiso_spd", "sparsecholesky", "pardiso")
