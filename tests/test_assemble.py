@@ -100,14 +100,33 @@ def test_rigid_motions_are_free_and_mass_is_exact(space, matrices):
     assert mass == pytest.approx(ALUMINIUM.rho * 0.1 * 0.02 * 0.03, rel=1e-12)
 
 
-def test_pattern_fallback_equals_fast_path(space, monkeypatch):
+def _pattern_by_unique(space):
+    """The node-pair pattern by ``np.unique`` of all element pair keys: an independent
+    construction of indptr, indices and every pair's block index."""
+    en = space.element_nodes.astype(np.int64)
+    n_t, nb = en.shape
+    n = space.n_nodes
+    keys = np.repeat(en, nb, axis=1).reshape(-1) * n + np.tile(en, (1, nb)).reshape(-1)
+    unique, slots = np.unique(keys, return_inverse=True)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(unique // n, minlength=n))])
+    return indptr, unique % n, slots.reshape(n_t, nb * nb)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_pattern_equals_unique_pairs(space, threads):
+    indptr, indices, slots = _pattern_by_unique(space)
+    pattern = asm.block_pattern(space, threads=threads)
+    assert np.array_equal(pattern.indptr, indptr)
+    assert np.array_equal(pattern.indices, indices)
+    assert np.array_equal(pattern.slots, slots)
+
+
+def test_pattern_public_fallback_equals_fast_path(space, monkeypatch):
     fast = asm.block_pattern(space)
     from scipy.sparse import _sparsetools
 
-    monkeypatch.delattr(_sparsetools, "coo_tocsr")
+    monkeypatch.delattr(_sparsetools, "csr_sample_values")
     slow = asm.block_pattern(space)
-    assert np.array_equal(fast.indptr, slow.indptr)
-    assert np.array_equal(fast.indices, slow.indices)
     assert np.array_equal(fast.slots, slow.slots)
 
 
@@ -216,6 +235,25 @@ def test_threads_do_not_change_a_bit(space, matrices, threads):
     assert _rel(one.K, K) < 1e-14 and _rel(one.M, M) < 1e-14
     # the node-level mass is M's: M = node_mass (x) I_3
     assert _rel(sp.kron(one.node_mass, sp.identity(3)).tocsr(), M) < 1e-15
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_chunked_index_steps_equal_one_pass(space, monkeypatch, threads):
+    """The pattern's slot look-up, K's layout and M's gather run by chunks on two
+    threads at scale; with chunks of a few blocks and elements on this small body (some
+    nodes dropped) they give bitwise the same K, M and node masses as one pass."""
+    x = space.node_points[:, 0]
+    nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
+    whole = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=1)
+    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
+    monkeypatch.setattr(asm, "SLOT_CHUNK_ELEMENTS", 3)
+    assert len(asm._row_chunks(asm.block_pattern(space).indptr)[1]) > 3
+    chunked = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=threads)
+    for name in ("K", "M", "node_mass"):
+        a, b = getattr(chunked, name), getattr(whole, name)
+        for field in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert whole.K.shape == (3 * nodes.size,) * 2
 
 
 def test_element_groups_split_the_rows_and_cover_every_element(space):

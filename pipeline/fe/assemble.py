@@ -12,8 +12,11 @@ element matrices are one matrix product for the whole mesh:
 - mass: one reference mass matrix (degree 2p rule) times each element's |det J|.
 
 Both matrices use one node-block sparsity pattern (every pair of nodes sharing an
-element), built once with a counting sort; element values are summed into it with
-``np.bincount``. K is returned in CSR with full 3x3 node blocks, M with only the
+element), built once as the pattern of E^T E (E: element-node incidence); element values
+are scatter-added straight into K's CSR values by 3-value rows. The index steps (every
+pair's block, K's and M's CSR structure) run by chunks on two cores: on this project's
+VMs their cost is mostly the first write of fresh memory, which two cores share
+(docs/performance.md). K is returned in CSR with full 3x3 node blocks, M with only the
 u_i.v_i entries (a third of the non-zeros: M couples equal components only); both
 have 32-bit indices where they fit. The result equals ``skfem.asm`` of the same forms
 to round-off (``tests/test_assemble.py``), without ever holding basis values for the
@@ -37,6 +40,11 @@ from pipeline.fe.space import FESpace
 log = logging.getLogger(__name__)
 
 INT32_MAX = 2**31 - 1
+# work sizes of the index steps run side by side (module constants so that the tests can
+# make a small body take the chunked, threaded paths): node-row chunks of about this many
+# blocks (:func:`_row_chunks`), and at least this many elements per slot look-up chunk
+LAYOUT_CHUNK_BLOCKS = 1 << 20
+SLOT_CHUNK_ELEMENTS = 1024
 
 
 def check_material(material: Material) -> None:
@@ -86,65 +94,74 @@ class BlockPattern:
         return int(self.indices.size)
 
 
-def block_pattern(space: FESpace) -> BlockPattern:
+def block_pattern(space: FESpace, threads: int | None = None) -> BlockPattern:
     """The node-pair pattern of ``space`` (every pair of nodes sharing an element).
 
-    A counting sort by row (scipy's linear-time COO to CSR conversion, which keeps
-    duplicates), small per-row sorts by column, then one pass marking the first of
-    every run of equal (row, column) pairs: about twice as fast as ``np.unique`` on
-    the 100 n_t pair keys, and in 32-bit integers.
+    The node graph is the pattern of E^T E, E the (n_t, n_nodes) boolean incidence of
+    elements and nodes: scipy's sparse product counts each row's distinct columns, so
+    only the result is ever held (no array of the 100 n_t pairs). Every pair's block
+    index is then looked up in the sorted rows by element chunks (:func:`_lookup_slots`),
+    on ``threads`` cores (default: the usable ones). At 1M DOFs on this project's VMs:
+    0.5-0.6 s and 0.15 GB written, against 1.7 s and 0.7 GB for a counting sort of all
+    pairs (most of it the first write of fresh memory, docs/performance.md).
     """
     en = np.ascontiguousarray(space.element_nodes)
     n_t, nb = en.shape
     n = space.n_nodes
-    count = n_t * nb * nb
-    itype = _index_dtype(max(count, n))
-    en = en.astype(itype, copy=False)
-    try:
-        from scipy.sparse import _sparsetools
+    # boolean data: the product's sums are logical ors, so no count can wrap to zero
+    # (scipy drops the zeros of a product)
+    E = sp.csr_matrix((np.ones(en.size, dtype=bool), en.reshape(-1),
+                       np.arange(0, en.size + 1, nb, dtype=np.int64)), shape=(n_t, n))
+    graph = (E.T.tocsr() @ E).tocsr()
+    del E
+    graph.sort_indices()
+    btype = _index_dtype(max(int(graph.nnz), n))
+    indptr = graph.indptr.astype(btype, copy=False)
+    indices = graph.indices.astype(btype, copy=False)
+    del graph
+    slots = _lookup_slots(indptr, indices, en.astype(btype, copy=False), n,
+                          usable_cores() if threads is None else threads)
+    return BlockPattern(indptr, indices, slots, n)
 
-        # element-major: pair p = a nb + b of element e at e nb^2 + p; repeat and tile are
-        # block copies (5x faster than the equivalent fancy index at 1M DOFs)
-        rows = np.repeat(en, nb, axis=1).reshape(-1)
-        cols = np.tile(en, (1, nb)).reshape(-1)
-        ids = np.arange(count, dtype=itype)
-        Bp = np.empty(n + 1, dtype=itype)
-        Bj = np.empty(count, dtype=itype)
-        Bx = np.empty(count, dtype=itype)
-        _sparsetools.coo_tocsr(n, n, count, rows, cols, ids, Bp, Bj, Bx)
-        del ids, rows, cols
-        _sparsetools.csr_sort_indices(n, Bp, Bj, Bx)
-        # first of every run of equal (row, column): the column changes, or a row starts
-        first = np.empty(count, dtype=bool)
-        first[0] = True
-        np.not_equal(Bj[1:], Bj[:-1], out=first[1:])
-        starts = Bp[1:-1]
-        first[starts[starts < count]] = True
-        # firsts[q] = number of blocks among the first q pairs (sorted order)
-        firsts = np.empty(count + 1, dtype=itype)
-        firsts[0] = 0
-        np.cumsum(first, out=firsts[1:])
-        per_row = firsts[Bp[1:]] - firsts[Bp[:-1]]
-        block_id = firsts[1:]
-        block_id -= 1
-        slots = np.empty(count, dtype=itype)
-        slots[Bx] = block_id
-        del Bx, firsts, block_id
-        indices = Bj[first]
-        del Bj, first
-    except (ImportError, AttributeError, TypeError):  # private scipy API changed: np.unique
-        keys = np.repeat(en, nb, axis=1).reshape(-1).astype(np.int64) * n
-        keys += np.tile(en, (1, nb)).reshape(-1)
-        unique, slots = np.unique(keys, return_inverse=True)
-        del keys
-        per_row = np.bincount(unique // n, minlength=n)
-        indices = (unique % n).astype(itype)
-        slots = slots.astype(itype)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(per_row, out=indptr[1:])
-    btype = _index_dtype(int(indptr[-1]))
-    return BlockPattern(indptr.astype(btype), indices.astype(btype, copy=False),
-                        slots.reshape(n_t, nb * nb), n)
+
+def _lookup_slots(indptr: np.ndarray, indices: np.ndarray, en: np.ndarray, n: int,
+                  threads: int) -> np.ndarray:
+    """(n_t, nb^2) block index of every element node pair (a, b), pair a nb + b of
+    element e in row e, found in the sorted CSR rows (``indptr``, ``indices``).
+
+    scipy's CSR sampling (``A[rows, cols]``) on the matrix of block numbers, by element
+    chunks so that the pair arrays stay small: chunks hold more than a tenth of the
+    pattern's blocks as samples, where scipy binary-searches each row (below, it scans
+    the whole row). The sampling releases the GIL: element halves run side by side.
+    """
+    n_t, nb = en.shape
+    positions = sp.csr_array((np.arange(indices.size, dtype=indices.dtype), indices, indptr),
+                             shape=(n, n))
+    positions.has_canonical_format = True
+    slots = np.empty((n_t, nb * nb), dtype=indices.dtype)
+    chunk = max(SLOT_CHUNK_ELEMENTS, indices.size // (8 * nb * nb) + 1)
+
+    try:
+        from scipy.sparse._sparsetools import csr_sample_values
+    except ImportError:  # private scipy API gone: the public indexing, a little slower
+        csr_sample_values = None
+
+    def run(lo: int, hi: int) -> None:
+        for s in range(lo, hi, chunk):
+            e = en[s:min(hi, s + chunk)]
+            rows = np.repeat(e, nb, axis=1).reshape(-1)
+            cols = np.tile(e, (1, nb)).reshape(-1)
+            out = slots[s:s + e.shape[0]].reshape(-1)
+            if csr_sample_values is not None:
+                csr_sample_values(n, n, indptr, indices, positions.data, rows.size, rows,
+                                  cols, out)
+            else:
+                out[:] = positions[rows, cols]
+
+    half = n_t // 2 if n_t >= 4 * chunk else n_t
+    side_by_side([lambda: run(0, half), (lambda: run(half, n_t)) if half < n_t else None],
+                 threads)
+    return slots
 
 
 @dataclass(frozen=True)
@@ -160,19 +177,17 @@ class StiffnessLayout:
     base, step (n_blocks,): for block s of the full pattern, its row i lands at
     r = base[s] + i step[s]; blocks touching a dropped node have base = nnz // 3 (one
     spare row, discarded) and step 0.
-    row_block (nnz // 3,): the kept block of every 3-value row (:func:`_row_blocks`).
+    block_indptr (n_kept + 1,): ip', the kept pattern's node rows (:func:`_row_blocks`).
     mass_indices (nnz // 3,): M's CSR column indices, 3 b' + i for 3-value row i of
-    block (a', b') (:func:`mass_csr`). Both come out of the gather that builds
-    ``indices``, so M's structure needs no second pass over the pattern (:func:`mass_csr`
-    at 1M DOFs inside the assembly: 1.6-2.0 s -> 1.1-1.5 s, most of it the first write
-    of fresh memory on this project's VMs, docs/performance.md).
+    block (a', b') (:func:`mass_csr`). They come out of the gather that builds
+    ``indices``, so M's structure needs no second pass over the pattern.
     """
 
     indptr: np.ndarray
     indices: np.ndarray
     base: np.ndarray
     step: np.ndarray
-    row_block: np.ndarray
+    block_indptr: np.ndarray
     mass_indices: np.ndarray
 
     @property
@@ -184,68 +199,142 @@ class StiffnessLayout:
         return int(self.indptr.size - 1)
 
 
-def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None) -> StiffnessLayout:
+def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
+                     threads: int | None = None) -> StiffnessLayout:
     """:class:`StiffnessLayout` of K on the sorted ``nodes`` (all three DOFs of each;
     None: every node). Dropping a clamped body's fixed nodes here means the full K is
-    never built: K is assembled straight onto the free DOFs."""
+    never built: K is assembled straight onto the free DOFs.
+
+    Every output is positional in the node rows, so it is written by chunks of node
+    rows (:func:`_layout_rows`) on ``threads`` cores (default: the usable ones): the
+    temporaries stay a chunk's size and the first write of K's 0.3 GB of indices is
+    shared by two cores (at 1M DOFs on this project's VMs: 0.7-1.0 s against 1.9 s in
+    one pass, most of it page faults on fresh memory, docs/performance.md).
+    """
     n_nodes = pattern.n_nodes
     # one integer type for every index below: K's nnz and the element rows must fit
     itype = _index_dtype(max(9 * pattern.n_blocks + 3, 3 * pattern.slots.size + 1))
     indptr = pattern.indptr.astype(itype)
     indices = pattern.indices.astype(itype, copy=False)
-    lens = np.diff(indptr)
     keep = None
     n_kept = n_nodes
     if nodes is not None and nodes.size != n_nodes:
         new_node = np.full(n_nodes, -1, dtype=itype)
         new_node[nodes] = np.arange(nodes.size, dtype=itype)
         keep = new_node[indices] >= 0
-        keep &= np.repeat(new_node >= 0, lens)
+        keep &= np.repeat(new_node >= 0, np.diff(indptr))
         kept = np.zeros(keep.size + 1, dtype=itype)
         np.cumsum(keep, out=kept[1:])
         indptr = np.append(kept[indptr[nodes]], kept[-1])
+        del kept
         indices = new_node[indices[keep]]
         del new_node
-        lens = np.diff(indptr)
         n_kept = nodes.size
     n_blocks_kept = int(indptr[-1])
     nnz = 9 * n_blocks_kept
     n = 3 * n_kept
+    lens = np.diff(indptr)
     # scalar rows: row 3 a' + i starts at 9 ip'[a'] + 3 i L'[a']
     k_indptr = np.empty(n + 1, dtype=itype)
     for i in range(3):
         k_indptr[i:n:3] = 9 * indptr[:-1] + 3 * i * lens
     k_indptr[n] = nnz
-    kbase = np.repeat(2 * indptr[:-1], lens)
-    kbase += np.arange(n_blocks_kept, dtype=itype)
-    kstep = np.repeat(lens, lens)
-    # 3-value row r = 3 ip' + i L' + k' holds columns 3 b + (0, 1, 2) of kept block ip' + k'
-    # = r - (2 ip' + i L'): one gather (twice as fast as scattering every block three times)
-    block = _row_blocks(indptr, nnz // 3)
-    col = indices.take(block)
-    col *= 3
-    k_indices = np.empty((nnz // 3, 3), dtype=itype)
-    np.add(col[:, None], np.arange(3, dtype=itype), out=k_indices)
-    # M's entry for 3-value row r (component i) is column 3 b' + i: col plus i, in place
-    col += np.repeat(np.tile(np.arange(3, dtype=np.int8), n_kept), np.repeat(lens, 3))
+    out = _LayoutArrays(
+        kbase=np.empty(n_blocks_kept, dtype=itype), kstep=np.empty(n_blocks_kept, dtype=itype),
+        mass_indices=np.empty(nnz // 3, dtype=itype),
+        k_indices=np.empty((nnz // 3, 3), dtype=itype))
+    side_by_side([lambda part=part: [_layout_rows(indptr, indices, a0, a1, out)
+                                     for a0, a1 in part]
+                  for part in _row_chunks(indptr)],
+                 usable_cores() if threads is None else threads)
     if keep is None:
-        base, step = kbase, kstep
+        base, step = out.kbase, out.kstep
     else:
         base = np.full(pattern.n_blocks, nnz // 3, dtype=itype)
         step = np.zeros(pattern.n_blocks, dtype=itype)
-        base[keep] = kbase
-        step[keep] = kstep
-    return StiffnessLayout(k_indptr, k_indices.reshape(-1), base, step, block, col)
+        base[keep] = out.kbase
+        step[keep] = out.kstep
+    return StiffnessLayout(k_indptr, out.k_indices.reshape(-1), base, step, indptr,
+                           out.mass_indices)
 
 
-def _row_blocks(indptr: np.ndarray, n_rows3: int) -> np.ndarray:
-    """(n_rows3,) the kept block of every 3-value row of K's data: r - (2 ip'[a'] + i L'[a'])
-    for row r of node row a', component i (:class:`StiffnessLayout`)."""
-    lens = np.diff(indptr)
-    offsets = (2 * indptr[:-1])[:, None] + np.arange(3, dtype=indptr.dtype) * lens[:, None]
-    block = np.arange(n_rows3, dtype=indptr.dtype)
+@dataclass(frozen=True)
+class _LayoutArrays:
+    """The outputs :func:`_layout_rows` fills, by ranges of node rows: kbase, kstep
+    (n_blocks_kept,), mass_indices (nnz // 3,), k_indices (nnz // 3, 3)."""
+
+    kbase: np.ndarray
+    kstep: np.ndarray
+    mass_indices: np.ndarray
+    k_indices: np.ndarray
+
+
+def _layout_rows(indptr: np.ndarray, indices: np.ndarray, a0: int, a1: int,
+                 out: _LayoutArrays) -> None:
+    """Fill node rows a0..a1-1 of ``out`` (:class:`StiffnessLayout`), from the kept
+    pattern (``indptr``, ``indices``): kept blocks b0 = ip'[a0] .. b1 = ip'[a1], 3-value
+    rows 3 b0 .. 3 b1."""
+    itype = indptr.dtype
+    ip = indptr[a0:a1 + 1]
+    b0, b1 = int(ip[0]), int(ip[-1])
+    lens = np.diff(ip)
+    ip = ip[:-1]
+    # block s of node row a' (position k' in the row): 3-value rows 3 ip' + k' + i L'
+    kbase = out.kbase[b0:b1]
+    np.add(np.repeat(2 * ip, lens), np.arange(b0, b1, dtype=itype), out=kbase)
+    out.kstep[b0:b1] = np.repeat(lens, lens)
+    # 3-value row r holds columns 3 b + (0, 1, 2) of its kept block: one gather (twice
+    # as fast as scattering every block three times)
+    r0, r1 = 3 * b0, 3 * b1
+    col = indices[_row_blocks(indptr, a0, a1)]  # (take: a 64-bit copy of the index first)
+    col *= 3
+    np.add(col[:, None], np.arange(3, dtype=itype), out=out.k_indices[r0:r1])
+    # M's entry for 3-value row r (component i) is column 3 b' + i
+    np.add(col, np.repeat(np.tile(np.arange(3, dtype=np.int8), a1 - a0), np.repeat(lens, 3)),
+           out=out.mass_indices[r0:r1])
+
+
+def _row_chunks(indptr: np.ndarray) -> list[list[tuple[int, int]]]:
+    """Ranges (a0, a1) of node rows of about LAYOUT_CHUNK_BLOCKS blocks each (CSR ``indptr``),
+    dealt alternately to two lists (the two threads of :func:`side_by_side`; a list
+    may be empty)."""
+    n_rows, n_blocks = indptr.size - 1, int(indptr[-1])
+    bounds = np.searchsorted(indptr, np.arange(0, n_blocks, LAYOUT_CHUNK_BLOCKS), side="right") - 1
+    bounds = np.unique(np.concatenate([[0], np.clip(bounds, 0, n_rows), [n_rows]]))
+    ranges = [(int(a0), int(a1)) for a0, a1 in zip(bounds[:-1], bounds[1:])]
+    return [ranges[0::2], ranges[1::2]]
+
+
+def _row_blocks(indptr: np.ndarray, a0: int, a1: int) -> np.ndarray:
+    """The kept block of every 3-value row of node rows a0..a1-1 (:class:`StiffnessLayout`,
+    3-value rows 3 ip'[a0] .. 3 ip'[a1]): r - (2 ip'[a'] + i L'[a']) for row r of node
+    row a', component i."""
+    ip = indptr[a0:a1 + 1]
+    lens = np.diff(ip)
+    offsets = (2 * ip[:-1])[:, None] + np.arange(3, dtype=ip.dtype) * lens[:, None]
+    block = np.arange(3 * ip[0], 3 * ip[-1], dtype=ip.dtype)
     block -= np.repeat(offsets.reshape(-1), np.repeat(lens, 3))
     return block
+
+
+def side_by_side(tasks: list, threads: int) -> None:
+    """Run the callables ``tasks`` (no arguments) on two threads when ``threads`` >= 2
+    and there is more than one, else one after the other; the first failure is raised
+    once both have ended. For numpy and scipy kernels that release the GIL: on this
+    project's VMs the first write of fresh memory costs about 2.3 s/GiB on one core and
+    1.2-1.5 s/GiB on two (docs/performance.md)."""
+    tasks = [t for t in tasks if t is not None]
+    if threads < 2 or len(tasks) < 2:
+        for task in tasks:
+            task()
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        futures = [pool.submit(task) for task in tasks]
+    for f in futures:
+        f.result()
+    release_free_heap()  # the worker's malloc arena keeps its temporaries' pages
 
 
 def _reference_data(order: int):
@@ -400,15 +489,15 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     K does not depend on the machine to the last bit.
     """
     lam, mu = lame_parameters(material)
+    if threads is None:
+        threads = usable_cores()
     if pattern is None:
-        pattern = block_pattern(space)
-    layout = stiffness_layout(pattern, nodes)
+        pattern = block_pattern(space, threads)
+    layout = stiffness_layout(pattern, nodes, threads)
     if on_layout is not None:
         on_layout(layout.indptr, layout.indices)
     R, mass_ref = _reference_data(space.order)
     chunk_size = max(1, int(chunk_size))
-    if threads is None:
-        threads = usable_cores()
     lower, upper, cut = element_groups(space)
     # three spare 3-value rows at the end take the dropped nodes' blocks, one per group
     held = [np.zeros(layout.nnz + 9)]
@@ -454,7 +543,7 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     K.has_sorted_indices = True
     node_mass = sp.csr_matrix((mblock, pattern.indices, pattern.indptr),
                               shape=(pattern.n_nodes, pattern.n_nodes))
-    return Assembled(K, mass_csr(layout, mblock), node_mass)
+    return Assembled(K, mass_csr(layout, mblock, threads), node_mass)
 
 
 def assemble_stiffness_mass(space: FESpace, material: Material, chunk_size: int = 2048,
@@ -482,7 +571,8 @@ def whole_nodes(free: np.ndarray, n_nodes: int) -> np.ndarray | None:
     return None
 
 
-def mass_csr(layout: StiffnessLayout, mblock: np.ndarray) -> sp.csr_matrix:
+def mass_csr(layout: StiffnessLayout, mblock: np.ndarray, threads: int | None = None
+             ) -> sp.csr_matrix:
     """M (kg) on ``layout``'s kept nodes from the mass of every block of the pattern
     (n_blocks,): the CSR of m_ab I_3, rows 3 a' + c holding columns 3 b' + c only.
 
@@ -490,14 +580,22 @@ def mass_csr(layout: StiffnessLayout, mblock: np.ndarray) -> sp.csr_matrix:
     k' + 2 ip'[a'] + c L'[a']: the place of K's 3-value row i = c. So M has K's
     structure divided by three (indptr / 3; the column of entry r is K's 3-value row r's
     first column 3 b' plus c: ``layout.mass_indices``), and its values are one gather
-    by ``layout.row_block``, without another pass over the pattern.
+    of the block masses by :func:`_row_blocks`, without another pass over the pattern.
     """
     spare = layout.nnz // 3
     if layout.base.size == spare // 3:  # no node dropped: every block is kept
         masses = mblock
     else:  # kept blocks, in the pattern's order
         masses = mblock[layout.base < spare]
-    data = masses.take(layout.row_block)
+    data = np.empty(spare)
+    ip = layout.block_indptr
+
+    def gather(part: list[tuple[int, int]]) -> None:
+        for a0, a1 in part:
+            data[3 * ip[a0]:3 * ip[a1]] = masses[_row_blocks(ip, a0, a1)]
+
+    side_by_side([lambda part=part: gather(part) for part in _row_chunks(ip)],
+                 usable_cores() if threads is None else threads)
     M = sp.csr_matrix((data, layout.mass_indices, layout.indptr // 3),
                       shape=(layout.n, layout.n))
     M.has_sorted_indices = True
