@@ -256,6 +256,25 @@ def test_chunked_index_steps_equal_one_pass(space, monkeypatch, threads):
     assert whole.K.shape == (3 * nodes.size,) * 2
 
 
+def test_64_bit_indices_give_the_same_matrices(space, monkeypatch):
+    """Above 2^31 entries every index array is 64-bit (a body of tens of millions of
+    DOFs): with the limit lowered, this small body takes that path (scipy narrows the
+    final matrices' indices again where they fit) and gives the same K and M."""
+    x = space.node_points[:, 0]
+    nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
+    narrow = asm.assemble_on_nodes(space, ALUMINIUM, nodes)
+    monkeypatch.setattr(asm, "INT32_MAX", 1000)
+    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
+    pattern = asm.block_pattern(space, threads=2)
+    assert pattern.indices.dtype == pattern.slots.dtype == np.int64
+    assert asm.stiffness_layout(pattern, nodes, threads=2).indices.dtype == np.int64
+    wide = asm.assemble_on_nodes(space, ALUMINIUM, nodes, pattern, threads=2)
+    for name in ("K", "M", "node_mass"):
+        a, b = getattr(wide, name), getattr(narrow, name)
+        for field in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+
+
 def test_element_groups_split_the_rows_and_cover_every_element(space):
     """The two halves summed side by side must never write the same node row: no node
     of the lower group's elements is a node of the upper group's; with the cut layer the
