@@ -205,92 +205,142 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
     never built: K is assembled straight onto the free DOFs.
 
     Every output is positional in the node rows, so it is written by chunks of node
-    rows (:func:`_layout_rows`) on ``threads`` cores (default: the usable ones): the
+    rows on ``threads`` cores (default: the usable ones): the kept blocks and where
+    each block's values go (:func:`_kept_blocks`, by rows of the full pattern), then K's
+    and M's column indices (:func:`_layout_rows`, by rows of the kept one). The
     temporaries stay a chunk's size and the first write of K's 0.3 GB of indices is
-    shared by two cores (at 1M DOFs on this project's VMs: 1.0 s against 1.7-2.2 s in
-    one pass, most of it page faults on fresh memory, docs/performance.md).
+    shared by two cores (at 1M DOFs on this project's VMs: 0.8-1.0 s against 1.7-2.2 s
+    in one pass, most of it page faults on fresh memory, docs/performance.md).
     """
+    threads = usable_cores() if threads is None else threads
     n_nodes = pattern.n_nodes
     # one integer type for every index below: K's nnz and the element rows must fit
     itype = _index_dtype(max(9 * pattern.n_blocks + 3, 3 * pattern.slots.size + 1))
-    indptr = pattern.indptr.astype(itype)
+    indptr = pattern.indptr.astype(itype, copy=False)
     indices = pattern.indices.astype(itype, copy=False)
-    keep = None
-    n_kept = n_nodes
+    new_node = None
     if nodes is not None and nodes.size != n_nodes:
         new_node = np.full(n_nodes, -1, dtype=itype)
         new_node[nodes] = np.arange(nodes.size, dtype=itype)
-        keep = new_node[indices] >= 0
-        keep &= np.repeat(new_node >= 0, np.diff(indptr))
-        kept = np.zeros(keep.size + 1, dtype=itype)
-        np.cumsum(keep, out=kept[1:])
-        indptr = np.append(kept[indptr[nodes]], kept[-1])
-        del kept
-        indices = new_node[indices[keep]]
-        del new_node
-        n_kept = nodes.size
-    n_blocks_kept = int(indptr[-1])
-    nnz = 9 * n_blocks_kept
+    blocks = _kept_blocks(indptr, indices, new_node, threads)
+    n_kept = n_nodes if new_node is None else nodes.size
+    kept_indptr = blocks.indptr if new_node is None else np.append(blocks.start[nodes],
+                                                                   blocks.start[-1])
+    nnz = 9 * int(kept_indptr[-1])
     n = 3 * n_kept
-    lens = np.diff(indptr)
+    lens = np.diff(kept_indptr)
     # scalar rows: row 3 a' + i starts at 9 ip'[a'] + 3 i L'[a']
     k_indptr = np.empty(n + 1, dtype=itype)
     for i in range(3):
-        k_indptr[i:n:3] = 9 * indptr[:-1] + 3 * i * lens
+        k_indptr[i:n:3] = 9 * kept_indptr[:-1] + 3 * i * lens
     k_indptr[n] = nnz
-    out = _LayoutArrays(
-        kbase=np.empty(n_blocks_kept, dtype=itype), kstep=np.empty(n_blocks_kept, dtype=itype),
-        mass_indices=np.empty(nnz // 3, dtype=itype),
-        k_indices=np.empty((nnz // 3, 3), dtype=itype))
-    side_by_side([lambda part=part: [_layout_rows(indptr, indices, a0, a1, out)
+    k_indices = np.empty((nnz // 3, 3), dtype=itype)
+    mass_indices = np.empty(nnz // 3, dtype=itype)
+    side_by_side([lambda part=part: [_layout_rows(kept_indptr, blocks.indices, a0, a1,
+                                                  k_indices, mass_indices)
                                      for a0, a1 in part]
-                  for part in _row_chunks(indptr)],
-                 usable_cores() if threads is None else threads)
-    if keep is None:
-        base, step = out.kbase, out.kstep
-    else:
-        base = np.full(pattern.n_blocks, nnz // 3, dtype=itype)
-        step = np.zeros(pattern.n_blocks, dtype=itype)
-        base[keep] = out.kbase
-        step[keep] = out.kstep
-    return StiffnessLayout(k_indptr, out.k_indices.reshape(-1), base, step, indptr,
-                           out.mass_indices)
+                  for part in _row_chunks(kept_indptr)], threads)
+    return StiffnessLayout(k_indptr, k_indices.reshape(-1), blocks.base, blocks.step,
+                           kept_indptr, mass_indices)
 
 
 @dataclass(frozen=True)
-class _LayoutArrays:
-    """The outputs :func:`_layout_rows` fills, by ranges of node rows: kbase, kstep
-    (n_blocks_kept,), mass_indices (nnz // 3,), k_indices (nnz // 3, 3)."""
+class _KeptBlocks:
+    """The blocks of the pattern on the kept nodes (:func:`_kept_blocks`).
 
-    kbase: np.ndarray
-    kstep: np.ndarray
-    mass_indices: np.ndarray
-    k_indices: np.ndarray
+    indptr (n_nodes + 1,), indices: the full pattern (all nodes kept), or None.
+    start (n_nodes + 1,): kept blocks in the node rows before each full node row (a
+    dropped row keeps none), so that a kept node a has ip' = start[a]; indices
+    (n_blocks_kept,): the kept blocks' columns in the kept nodes' numbering.
+    base, step (n_blocks,): :class:`StiffnessLayout`'s.
+    """
+
+    indptr: np.ndarray | None
+    start: np.ndarray
+    indices: np.ndarray
+    base: np.ndarray
+    step: np.ndarray
+
+
+def _kept_blocks(indptr: np.ndarray, indices: np.ndarray, new_node: np.ndarray | None,
+                 threads: int) -> _KeptBlocks:
+    """Which blocks of the pattern (``indptr``, ``indices``) touch only kept nodes
+    (``new_node``: each node's new number, -1 dropped; None: every node kept), their
+    columns renumbered, and where each block's 3-value rows go (:class:`StiffnessLayout`):
+    two passes by chunks of node rows (count the kept blocks per row; write), side by side.
+    """
+    itype = indices.dtype
+    n_nodes = indptr.size - 1
+    chunks = _row_chunks(indptr)
+    keep = None
+    start = indptr
+    if new_node is not None:
+        keep = np.empty(indices.size, dtype=bool)
+        counts = np.zeros(n_nodes + 1, dtype=itype)
+
+        def count(part: list[tuple[int, int]]) -> None:
+            for a0, a1 in part:
+                b0, b1 = int(indptr[a0]), int(indptr[a1])
+                k = keep[b0:b1]
+                np.greater_equal(new_node[indices[b0:b1]], 0, out=k)
+                k &= np.repeat(new_node[a0:a1] >= 0, np.diff(indptr[a0:a1 + 1]))
+                before = np.zeros(b1 - b0 + 1, dtype=itype)
+                np.cumsum(k, out=before[1:])
+                local = indptr[a0:a1 + 1] - b0
+                counts[a0 + 1:a1 + 1] = np.diff(before[local])
+
+        side_by_side([lambda part=part: count(part) for part in chunks], threads)
+        start = np.cumsum(counts, out=counts)
+    n_blocks_kept = int(start[-1])
+    spare = 3 * n_blocks_kept  # K's 3-value row count: the dropped blocks' row
+    kept_indices = indices if keep is None else np.empty(n_blocks_kept, dtype=itype)
+    base = np.empty(indices.size, dtype=itype)
+    step = np.empty(indices.size, dtype=itype)
+
+    def write(part: list[tuple[int, int]]) -> None:
+        for a0, a1 in part:
+            b0, b1 = int(indptr[a0]), int(indptr[a1])
+            lens = np.diff(indptr[a0:a1 + 1])
+            # kept block at kept position p of node row a (kept start s = start[a],
+            # length L' = start[a + 1] - s): 3-value rows 3 s + p + i L' = 2 s + (s + p)
+            # + i L', (s + p) its number among all kept blocks
+            s = start[a0:a1]
+            length = np.diff(start[a0:a1 + 1])
+            b, t = base[b0:b1], step[b0:b1]
+            b[:] = np.repeat(2 * s, lens)
+            t[:] = np.repeat(length, lens)
+            if keep is None:
+                b += np.arange(b0, b1, dtype=itype)
+                continue
+            k = keep[b0:b1]
+            number = np.cumsum(k, dtype=itype)
+            number += int(start[a0]) - 1
+            b += number
+            drop = ~k
+            b[drop] = spare
+            t[drop] = 0
+            kept_indices[int(start[a0]):int(start[a1])] = new_node[indices[b0:b1][k]]
+
+    side_by_side([lambda part=part: write(part) for part in chunks], threads)
+    return _KeptBlocks(indptr if keep is None else None, start, kept_indices, base, step)
 
 
 def _layout_rows(indptr: np.ndarray, indices: np.ndarray, a0: int, a1: int,
-                 out: _LayoutArrays) -> None:
-    """Fill node rows a0..a1-1 of ``out`` (:class:`StiffnessLayout`), from the kept
-    pattern (``indptr``, ``indices``): kept blocks b0 = ip'[a0] .. b1 = ip'[a1], 3-value
-    rows 3 b0 .. 3 b1."""
+                 k_indices: np.ndarray, mass_indices: np.ndarray) -> None:
+    """K's and M's column indices (:class:`StiffnessLayout`) for kept node rows a0..a1-1
+    of the kept pattern (``indptr``, ``indices``): 3-value rows 3 ip'[a0] .. 3 ip'[a1]
+    of ``k_indices`` (nnz // 3, 3) and ``mass_indices`` (nnz // 3,)."""
     itype = indptr.dtype
-    ip = indptr[a0:a1 + 1]
-    b0, b1 = int(ip[0]), int(ip[-1])
-    lens = np.diff(ip)
-    ip = ip[:-1]
-    # block s of node row a' (position k' in the row): 3-value rows 3 ip' + k' + i L'
-    kbase = out.kbase[b0:b1]
-    np.add(np.repeat(2 * ip, lens), np.arange(b0, b1, dtype=itype), out=kbase)
-    out.kstep[b0:b1] = np.repeat(lens, lens)
+    r0, r1 = 3 * int(indptr[a0]), 3 * int(indptr[a1])
+    lens = np.diff(indptr[a0:a1 + 1])
     # 3-value row r holds columns 3 b + (0, 1, 2) of its kept block: one gather (twice
     # as fast as scattering every block three times)
-    r0, r1 = 3 * b0, 3 * b1
     col = indices[_row_blocks(indptr, a0, a1)]  # (take: a 64-bit copy of the index first)
     col *= 3
-    np.add(col[:, None], np.arange(3, dtype=itype), out=out.k_indices[r0:r1])
+    np.add(col[:, None], np.arange(3, dtype=itype), out=k_indices[r0:r1])
     # M's entry for 3-value row r (component i) is column 3 b' + i
     np.add(col, np.repeat(np.tile(np.arange(3, dtype=np.int8), a1 - a0), np.repeat(lens, 3)),
-           out=out.mass_indices[r0:r1])
+           out=mass_indices[r0:r1])
 
 
 def _row_chunks(indptr: np.ndarray) -> list[list[tuple[int, int]]]:
