@@ -103,8 +103,8 @@ def block_pattern(space: FESpace, threads: int | None = None) -> BlockPattern:
     only the result is ever held (no array of the 100 n_t pairs). Every pair's block
     index is then looked up in the sorted rows by element chunks (:func:`_lookup_slots`),
     on ``threads`` cores (default: the usable ones). At 1M DOFs on this project's VMs:
-    0.5-0.6 s and 0.15 GB written, against 1.7 s and 0.7 GB for a counting sort of all
-    pairs (most of it the first write of fresh memory, docs/performance.md).
+    0.7-0.9 s and 0.15 GB written, against 1.6-1.8 s and 0.7 GB for a counting sort of
+    all pairs (most of it the first write of fresh memory, docs/performance.md).
     """
     en = np.ascontiguousarray(space.element_nodes)
     n_t, nb = en.shape
