@@ -224,8 +224,8 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
         new_node[nodes] = np.arange(nodes.size, dtype=itype)
     blocks = _kept_blocks(indptr, indices, new_node, threads)
     n_kept = n_nodes if new_node is None else nodes.size
-    kept_indptr = blocks.indptr if new_node is None else np.append(blocks.start[nodes],
-                                                                   blocks.start[-1])
+    kept_indptr = blocks.start if new_node is None else np.append(blocks.start[nodes],
+                                                                  blocks.start[-1])
     nnz = 9 * int(kept_indptr[-1])
     n = 3 * n_kept
     lens = np.diff(kept_indptr)
@@ -248,14 +248,12 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
 class _KeptBlocks:
     """The blocks of the pattern on the kept nodes (:func:`_kept_blocks`).
 
-    indptr (n_nodes + 1,), indices: the full pattern (all nodes kept), or None.
     start (n_nodes + 1,): kept blocks in the node rows before each full node row (a
     dropped row keeps none), so that a kept node a has ip' = start[a]; indices
     (n_blocks_kept,): the kept blocks' columns in the kept nodes' numbering.
     base, step (n_blocks,): :class:`StiffnessLayout`'s.
     """
 
-    indptr: np.ndarray | None
     start: np.ndarray
     indices: np.ndarray
     base: np.ndarray
@@ -322,7 +320,7 @@ def _kept_blocks(indptr: np.ndarray, indices: np.ndarray, new_node: np.ndarray |
             kept_indices[int(start[a0]):int(start[a1])] = new_node[indices[b0:b1][k]]
 
     side_by_side([lambda part=part: write(part) for part in chunks], threads)
-    return _KeptBlocks(indptr if keep is None else None, start, kept_indices, base, step)
+    return _KeptBlocks(start, kept_indices, base, step)
 
 
 def _layout_rows(indptr: np.ndarray, indices: np.ndarray, a0: int, a1: int,
