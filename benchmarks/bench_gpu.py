@@ -1,4 +1,4 @@
-"""A GPU eigensolve measured beside the CPU pipeline (issue 18): cuDSS Cholesky on the GPU.
+"""A GPU eigensolve measured beside the CPU pipeline: cuDSS Cholesky on the GPU.
 
 Not part of the pipeline or its tests: it runs where CuPy and nvmath-python (cuDSS) are
 installed, on a machine with an NVIDIA GPU, and prints one JSON record per mesh.

@@ -5,7 +5,7 @@ the case's own peak), or by hand:
 
     python benchmarks/bench_ngsolve.py --maxh 0.005 [--inverse pardiso] [--vectors 30]
 
-The variant the issue names as NGSolve's best correct one: P2 ``VectorH1`` on an OCC box
+NGSolve's fastest correct variant on the bench machine: P2 ``VectorH1`` on an OCC box
 (0.5 x 0.02 x 0.05 m, clamped at x = 0, the aluminium of ``configs/cantilever.yaml``),
 stiffness and mass assembled with ``symmetric=True, symmetric_storage=True``, and
 ``ArnoldiSolver`` at shift 0 with 30 vectors (with 20 it returned a wrong 20th mode at
@@ -13,7 +13,7 @@ stiffness and mass assembled with ``symmetric=True, symmetric_storage=True``, an
 
 - ``sparsecholesky``: NGSolve's own supernodal Cholesky;
 - ``pardiso``: NGSolve's built-in MKL PARDISO inverse with its default settings;
-- ``pardiso_spd``: the variant the issue measured as NGSolve's best, an MKL PARDISO SPD
+- ``pardiso_spd``: NGSolve's fastest variant on the bench machine, an MKL PARDISO SPD
   factor (mtype 2, METIS ordering, no iterative refinement) registered through
   ``ngsolve.la.RegisterInverseType``. Its factor and solves are this project's own
   PARDISO wrapper (:func:`pipeline.solve.factorize.factorize`, the settings our

@@ -404,7 +404,7 @@ def first_touch_seconds_per_gb(gib: float = 1.0) -> tuple[float, float] | None:
     """(s/GiB the first time, s/GiB again at once) to write fresh memory, in a child process.
 
     On the VMs this bench runs on, memory the guest has not touched lately is backed by the
-    host on first touch: 2.7-3.1 s/GiB measured (0.17 s/GiB when written again at once),
+    host on first touch, at seconds per GiB (more than ten times the cost of writing it again),
     and memory freed for more than a few seconds is handed back and costs that again. Every
     case pays it for its peak memory, so the bench prints it beside the machine."""
     code = ("import numpy as np, time\n"

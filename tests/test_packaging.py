@@ -1,9 +1,13 @@
 """Packaging: ``python -m build`` makes a wheel that holds every module, the licence and
 the console script, with the extras users install (``pip install 'fe-reduced-body[fast]'``),
-and no packaging deprecation warnings (slow: the build runs in an isolated environment)."""
+and no packaging deprecation warnings (slow: the build runs in an isolated environment).
+The wheel carries the docs (``pipeline/docs/``), so that what the README and ``--help``
+point at resolves in an installed package."""
 
 from __future__ import annotations
 
+import posixpath
+import re
 import subprocess
 import sys
 import zipfile
@@ -34,9 +38,35 @@ def test_wheel_holds_every_module_the_entry_point_and_the_extras(tmp_path):
     assert "fe-reduced-body = pipeline.cli:main" in entry
     meta = zf.read(f"{info}/METADATA").decode()
     assert "License-Expression: MIT" in meta and f"{info}/licenses/LICENSE" in names
-    for extra in ("fast", "plots", "batch", "test"):
+    for extra in ("fast", "plots", "batch", "fmu", "gpu", "bench", "test"):
         assert f"Provides-Extra: {extra}" in meta
     assert not any(n.startswith(("tests/", "configs/")) for n in names)
+    _check_shipped_docs(zf, names, meta)
+
+
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s#]+)[^)]*\)")
+
+
+def _check_shipped_docs(zf: zipfile.ZipFile, names: set[str], meta: str) -> None:
+    """Every page of docs/ is in the wheel as pipeline/docs/..., the shipped pages' relative
+    links resolve inside the wheel, and so do the README's (the wheel's long description)
+    and --help's docs/*.md pointers."""
+    pages = {"pipeline/docs/" + p.relative_to(ROOT / "docs").as_posix()
+             for p in (ROOT / "docs").rglob("*") if p.is_file()}
+    assert pages <= names, sorted(pages - names)[:5]
+    assert "pipeline/docs/CHANGELOG.md" in names
+    broken = []
+    for page in sorted(n for n in names if n.startswith("pipeline/docs/") and n.endswith(".md")):
+        for target in LINK.findall(zf.read(page).decode()):
+            if ":" not in target:
+                path = posixpath.normpath(posixpath.join(posixpath.dirname(page), target))
+                broken += [] if path in names else [f"{page} -> {target}"]
+    assert not broken, broken
+    cli_text = "".join(p.read_text() for p in (ROOT / "pipeline" / "cli").rglob("*.py"))
+    pointers = set(re.findall(r"\bdocs/([\w.-]+\.md)\b", meta + cli_text))
+    assert pointers, "the README names no docs/*.md page"
+    missing = sorted(p for p in pointers if f"pipeline/docs/{p}" not in names)
+    assert not missing, missing
 
 
 def test_console_script_target_runs_every_command():

@@ -62,7 +62,7 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
         "Order Flexible Solid parameters (.mat + .m); vtu/xdmf: mesh with every mode shape for ParaView; json: "
         "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file; fmu: "
         "FMI 2.0 FMU (Model Exchange + Co-Simulation) of the plant or filtered model. "
-        "See docs/exports.md.")
+        "See docs/exports.md (installed: pipeline/docs/exports.md).")
     p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
     p.add_argument("--to", required=True, choices=names, help="output format")
     p.add_argument("-o", "--output", help="output file (default: beside FILE, named after it)")

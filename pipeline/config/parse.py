@@ -249,9 +249,9 @@ def _filter(raw: Any) -> Filter:
     return Filter(kind=kind, cutoff_hz=cutoff)
 
 
-#: Most lumped-chain elements: the chain's dense eigen-decomposition costs O(n^3) (measured,
-#: AMD EPYC, 2 cores: 1.8 s at 100 elements, 19 s at 300, 465 s and 2.3 GB at 1000), and
-#: the refined chain has converged to 0.1 % of beam theory by 20 elements.
+#: Most lumped-chain elements: the chain's dense eigen-decomposition costs O(n^3) (on two
+#: cores: seconds at 100 elements, minutes and gigabytes at 1000), and the refined chain
+#: has converged to 0.1 % of beam theory by 20 elements.
 MAX_LUMPED_ELEMENTS = 200
 
 

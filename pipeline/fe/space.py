@@ -86,8 +86,9 @@ def edge_numbering(tetrahedra: np.ndarray, n_vertices: int) -> tuple[np.ndarray,
     tetrahedra (n_t, 4) vertex indices. Returns (edges (n_e, 2), t2e (n_t, 6)): the
     vertex pairs, smaller first, in lexicographic order, and each element's edge numbers
     in the local order ``TET_EDGES``; the same arrays as ``MeshTet.edges.T`` and
-    ``MeshTet.t2e.T``, whose ``np.unique(..., axis=1)`` on vertex pairs takes 1.2 s at
-    1M DOFs against 0.1 s for one ``np.unique`` of the int64 keys v0 * n_v + v1.
+    ``MeshTet.t2e.T``. One ``np.unique`` of the int64 keys v0 * n_v + v1 is about ten
+    times faster than skfem's ``np.unique(..., axis=1)``, which sorts the vertex pairs as
+    rows (a test compares the two edge for edge).
     """
     t = np.asarray(tetrahedra, dtype=np.int64)
     a, b = t[:, TET_EDGES[:, 0]], t[:, TET_EDGES[:, 1]]  # (n_t, 6)

@@ -76,8 +76,8 @@ def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path, threads: int
         gmsh.option.setNumber("Mesh.Binary", 1)
         # the file holds the linear tetrahedra only: second-order elements are straight-
         # sided and pipeline.fe.space creates their edge midpoints (vectorised), which
-        # read_mesh would drop from a gmsh setOrder mesh anyway (setOrder took 2.1 s of
-        # the 4.5 s mesh stage at 1M DOFs, and doubled the file)
+        # read_mesh would drop from a gmsh setOrder mesh anyway (setOrder would take about
+        # half of the mesh stage and double the file)
         gmsh.model.mesh.generate(3)
         _, elem_tags, _ = gmsh.model.mesh.getElements(3)
         if not elem_tags or sum(len(t) for t in elem_tags) == 0:

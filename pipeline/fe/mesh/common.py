@@ -212,10 +212,9 @@ def gmsh_threads() -> int:
 
     On one thread gmsh is deterministic: the same config gives the same mesh, bit for bit
     (so a kept mesh's SHA-256 and cached results stay valid). On two threads its parallel
-    surface and volume meshing of CAD geometry is not: the bracket STEP gave 12,026,
-    12,058 and 12,066 tetrahedra in three runs, one thread 12,006 three times. The price
-    is small beside the solve: the bracket at 491k tetrahedra (about 2M DOFs) meshes in
-    4.6-6.1 s on one thread against 3.6-3.7 s on two."""
+    surface and volume meshing of CAD geometry is not: the bracket STEP gives a different
+    tetrahedron count from run to run. The price is small beside the solve: one thread
+    meshes a 2M-DOF body about 1.5 times slower than two."""
     return max(1, int(os.environ.get("PIPELINE_GMSH_THREADS", "1")))
 
 

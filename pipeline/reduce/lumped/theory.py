@@ -31,8 +31,8 @@ def cantilever_beta_l(count: int) -> np.ndarray:
 
     Each root lies within a bracket around (2k - 1) pi / 2 where g = cos x + 1 / cosh x
     (1 + cos cosh scaled to stay O(1)) changes sign once; Newton steps that leave the
-    bracket are replaced by bisection (``scipy.optimize.brentq`` did the same job, but
-    importing scipy.optimize costs 0.1 s of every run for three numbers).
+    bracket are replaced by bisection (``scipy.optimize.brentq`` would do the same job,
+    but importing scipy.optimize would add about 0.1 s to every run for three numbers).
 
     >>> np.round(cantilever_beta_l(3), 6)
     array([1.875104, 4.694091, 7.854757])
