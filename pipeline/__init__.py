@@ -12,18 +12,6 @@ exports, summary) uses a result file through :mod:`pipeline.store.read` only; th
 
 __version__ = "0.1.0"
 
-import os as _os  # noqa: E402
-
-# OpenBLAS (numpy's and scipy's BLAS) keeps its worker threads spinning for 2^28 cycles
-# (about 0.1 s) after every call; on two cores they take the CPU from MKL's threads
-# (PARDISO's solves, the sparse products) that run next. Measured on the AMD machine:
-# a 4-right-hand-side PARDISO solve pair after a numpy product 149-163 ms, 91-99 ms with
-# 2^4 cycles; whole runs, alternated: 100k DOFs 5.4-7.1 -> 4.7-6.0 s, 1M 65-70 ->
-# 61-65 s, 3M 215 -> 204 s (docs/performance.md). OpenBLAS reads this when it loads, so it is set here, before
-# anything imports numpy; a value in the environment wins, and where numpy was imported
-# first it has no effect (like KMP_BLOCKTIME for MKL in pipeline.solve.factorize).
-_os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
-
 from pipeline.errors import (  # noqa: E402
     ConfigError,
     FileFormatError,
