@@ -87,15 +87,11 @@ def add_force_flags(subparsers) -> None:
 
 
 def _run(args) -> None:
-    from pipeline.config import load_config
+    from pipeline.api import check_run_destinations, resolve_config
 
-    cfg = load_config(args.config, args.set or [])
-    output = Path(args.output) if args.output else Path("outputs") / f"{cfg.name}.h5"
-    inputs = [args.config] + ([cfg.geometry.path] if getattr(cfg.geometry, "path", None) else [])
-    check_output(output, inputs=inputs, force=args.force, kind="h5",
-                 create_parent=not args.output)
-    if getattr(args, "mesh_dir", None):
-        check_output_dir(args.mesh_dir, marker=lambda p: True, what="mesh folder")
+    check_run_destinations(resolve_config(args.config, args.set or []), args.output or None,
+                           config_path=args.config, mesh_dir=getattr(args, "mesh_dir", None),
+                           force=args.force)
 
 
 def _simulate(args) -> None:
