@@ -123,8 +123,9 @@ def retained_heap(new_bytes: float):
     sweep pays that again and again: glibc serves such large blocks with mmap and
     returns them to the kernel on free. Inside this block they come from the heap and
     stay there (``M_MMAP_MAX`` = 0, no trimming below 2 GB); on exit the defaults are
-    restored and ``malloc_trim`` gives the free pages back. Measured at 1M DOFs, factor-
-    free: LOBPCG 98 -> 67 s, system time 57 -> 18 s, peak 5.9 -> 6.8 GB.
+    restored and ``malloc_trim`` gives the free pages back. On the factor-free
+    eigensolve at 1M DOFs this removes most of the system time, about a third of the
+    LOBPCG stage, for about 15 % more peak memory (docs/performance.md, ``make bench``).
 
     ``new_bytes``: what the block will allocate beyond the current resident memory. The
     heap is kept only when RETAINED_HEAP_GROWTH times the resulting peak still fits
