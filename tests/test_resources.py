@@ -210,3 +210,18 @@ def test_cli_tunes_its_process_before_numpy_and_import_does_not():
     out = subprocess.run([sys.executable, "-c", _TUNING_CHECK], env=env, capture_output=True,
                          text=True, check=True).stdout.split()
     assert out == ["12", "0", "1"]
+
+
+def test_console_script_entry_point_tunes_before_running(monkeypatch):
+    """``pipeline.cli:main`` (the console script and ``python -m pipeline``) tunes the
+    process first (conftest undoes it after the test)."""
+    import pipeline.cli
+    from pipeline.cli.process import PROCESS_SETTINGS
+
+    for name in PROCESS_SETTINGS:
+        monkeypatch.delenv(name, raising=False)
+    with pytest.raises(SystemExit):
+        pipeline.cli.main(["--help"])
+    assert {name: os.environ.get(name) for name in PROCESS_SETTINGS} == PROCESS_SETTINGS
+    assert "from pipeline.cli import main" in (Path(pipeline.cli.__file__).parents[1]
+                                               / "__main__.py").read_text()
