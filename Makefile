@@ -1,6 +1,7 @@
 # Two commands do all the set-up on a fresh machine:
 #   make modes   -> venv, install, run configs/cantilever.yaml -> outputs/cantilever.h5
 #   make test    -> venv, install, pytest (the default, fast suite)
+#   make api     -> the API reference from the docstrings (pdoc) -> build/api/index.html
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -8,7 +9,7 @@ STAMP  := $(VENV)/.installed
 EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 
-.PHONY: modes test test-all test-reliability bench batch env clean
+.PHONY: modes test test-all test-reliability bench batch env clean api
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,6 +38,10 @@ test-reliability: $(STAMP)
 BATCH ?= configs/batch_convergence.yaml
 batch: $(STAMP)
 	$(PY) -m pipeline batch $(BATCH) $(BATCH_ARGS)
+
+API_DIR ?= build/api
+api: $(STAMP)
+	$(PY) tools/api_docs.py $(API_DIR)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)

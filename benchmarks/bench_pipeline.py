@@ -62,6 +62,9 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
                       method: str = "auto") -> dict:
     """One pipeline run; returns stage times, peak memory and the frequencies."""
     sys.path.insert(0, str(ROOT))
+    from pipeline.cli import tune_process
+
+    tune_process()  # as the CLI's process: before numpy loads
     import pipeline.solve.stage as modes_module  # the name run_pipeline calls
     from pipeline.config import load_config
     from pipeline.run import run_pipeline

@@ -8,32 +8,75 @@ Data flow, one subpackage per stage::
 :mod:`pipeline.run` chains the stages; :mod:`pipeline.apps` (simulate, batch, plots,
 exports, summary) uses a result file through :mod:`pipeline.store.read` only; the CLI
 (``python -m pipeline``, :mod:`pipeline.cli`) calls the same functions.
+
+The public API
+--------------
+
+- :func:`run_config`: run a config (a YAML path, a mapping or a :class:`Config`) as
+  ``python -m pipeline run`` does; returns a :class:`RunResult` and writes the HDF5 file.
+- :func:`load_model`: read every reduced model of a result file.
+- :class:`Config`: the validated configuration (:mod:`pipeline.config`).
+- :class:`RunResult`: what one run produced (:mod:`pipeline.run`).
+- The errors, one per kind of failure, each with the command line's exit code:
+  :class:`PipelineError` and its subclasses :class:`ConfigError`, :class:`MeshError`,
+  :class:`RegionError`, :class:`SolverError`, :class:`ResourceError`,
+  :class:`FileFormatError`, :class:`OutputError`.
+
+``import pipeline`` is light (no numpy) and changes nothing in the calling process:
+no environment variable, thread pool, allocator setting or matplotlib backend. The
+command line tunes its own process (:mod:`pipeline.cli.process`).
+
+A config is validated before any work; a bad key is refused with the key, the value
+and what was expected:
+
+>>> import pipeline
+>>> pipeline.run_config({"name": "beam", "geometry": {"kind": "box", "length": 0.5,
+...     "height": 0.02, "depth": 0.05}, "mesh": {"size": 0.01},
+...     "material": {"E": -1, "nu": 0.3, "rho": 2700}})
+Traceback (most recent call last):
+...
+pipeline.errors.ConfigError: config key 'material.E': got -1.0, expected a number in (0, 1e+13]
+
+Running it, and reading the result back::
+
+    result = pipeline.run_config("configs/cantilever.yaml", output="out.h5",
+                                 overrides=["mesh.size=0.01"])
+    print(result.frequencies_hz)
+    model = pipeline.load_model(result.output)
 """
+
+from __future__ import annotations
 
 __version__ = "0.1.0"
 
-import os as _os  # noqa: E402
-
-# OpenBLAS (numpy's and scipy's BLAS) keeps its worker threads spinning for 2^28 cycles
-# (about 0.1 s) after every call; on two cores they take the CPU from MKL's threads
-# (PARDISO's solves, the sparse products) that run next. Measured on the AMD machine:
-# a 4-right-hand-side PARDISO solve pair after a numpy product 149-163 ms, 91-99 ms with
-# 2^4 cycles; whole runs, alternated: 100k DOFs 5.4-7.1 -> 4.7-6.0 s, 1M 65-70 ->
-# 61-65 s, 3M 215 -> 204 s (docs/performance.md). OpenBLAS reads this when it loads, so it is set here, before
-# anything imports numpy; a value in the environment wins, and where numpy was imported
-# first it has no effect (like KMP_BLOCKTIME for MKL in pipeline.solve.factorize).
-_os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
-
-from pipeline.errors import (  # noqa: E402
+from pipeline.errors import (
     ConfigError,
     FileFormatError,
     MeshError,
+    OutputError,
     PipelineError,
     RegionError,
     ResourceError,
     SolverError,
 )
 
+#: public names imported on first use (module, name), so ``import pipeline`` stays light
+_LAZY = {"run_config": "pipeline.api", "Config": "pipeline.config",
+         "RunResult": "pipeline.run"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'pipeline' has no attribute '{name}'")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
 
 
 def load_model(path, require_plant: bool = False):
@@ -46,11 +89,15 @@ def load_model(path, require_plant: bool = False):
 
 
 __all__ = [
+    "run_config",
     "load_model",
+    "Config",
+    "RunResult",
     "__version__",
     "ConfigError",
     "FileFormatError",
     "MeshError",
+    "OutputError",
     "PipelineError",
     "RegionError",
     "ResourceError",

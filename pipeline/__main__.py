@@ -4,7 +4,7 @@ from pipeline._util.interrupts import handle_signals, received
 
 handle_signals()  # before the CLI's imports: an interrupt while they load is one line too
 try:
-    from pipeline.cli.main import main
+    from pipeline.cli import main  # the console script's entry point: tunes the process
 except BaseException:
     if not received():
         raise

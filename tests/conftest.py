@@ -176,3 +176,21 @@ def eigenvalue_rtol(K, M=None, tolerance: float | None = None, n_zero: int = 0,
     return routes * (tau + cond_eps(K, M, n_zero))
 
 
+
+
+@pytest.fixture(autouse=True)
+def _cli_process_settings_undone():
+    """A test that calls the console script's ``pipeline.cli.main`` in this process gets
+    the CLI's process settings (pipeline.cli.process); they are undone after it, so that
+    no later test runs in a tuned process by the order the tests ran in."""
+    import os
+
+    from pipeline.cli.process import PROCESS_SETTINGS
+
+    saved = {name: os.environ.get(name) for name in PROCESS_SETTINGS}
+    yield
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value

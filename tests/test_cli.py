@@ -350,3 +350,49 @@ def test_stdout_holds_only_what_the_command_prints(model_file, tmp_path):
     _, err = reader_gone.communicate(timeout=120)
     assert b"Traceback" not in err, err.decode()[-2000:]
     assert reader_gone.returncode in (0, 141), err.decode()[-2000:]
+
+
+_UNHANDLED_MARK = """
+import ctypes, sys
+from pipeline.cli import guard
+# what an extension module does when an interrupt leaves code it runs by PyRun_String
+ctypes.pythonapi.PyRun_SimpleString(b"raise KeyboardInterrupt")
+if sys.argv[1] == "clear":
+    assert guard._forget_unhandled_interrupt()
+"""
+
+
+@pytest.mark.skipif(sys.implementation.name != "cpython", reason="a CPython mark")
+def test_handled_interrupt_does_not_end_the_process_by_sigint():
+    """An interrupt that left PyRun_String code marks CPython's exit as by SIGINT (status
+    -2); the guard clears the mark, so the CLI's own exit status stands."""
+    def status(mode):
+        return subprocess.run([sys.executable, "-c", _UNHANDLED_MARK, mode], cwd=ROOT,
+                              capture_output=True, text=True, timeout=60).returncode
+
+    assert status("clear") == 0
+    assert status("keep") == -signal.SIGINT  # the mark the guard exists for
+
+
+def test_interrupt_exit_code_without_the_c_function(monkeypatch):
+    """The fallback where PyRun_SimpleString cannot be reached: nothing is done, and the
+    exit code is still 128 + the signal."""
+    import ctypes
+
+    from pipeline.cli import guard
+
+    class NoSymbol:
+        def __getattr__(self, name):
+            raise AttributeError(name)
+
+        def __getitem__(self, name):
+            raise AttributeError(name)
+
+    monkeypatch.setattr(ctypes, "pythonapi", NoSymbol())
+    assert guard._forget_unhandled_interrupt() is False
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        assert guard.exit_code(KeyboardInterrupt("SIGINT")) == 130
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)

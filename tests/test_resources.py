@@ -3,6 +3,7 @@ does not fit is refused with both figures and a mesh size that would fit."""
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -165,24 +166,62 @@ def test_retained_heap_keeps_freed_blocks_inside_and_gives_them_back_after():
     the process, and free chunks that earlier tests left in it (a retained block's holes
     below live objects) can serve a later large array from the heap instead of mmap, which
     made this check depend on test order (it failed once in CI that way)."""
+    env = {**os.environ, resources.RETAIN_HEAP_VARIABLE: "1"}  # the opt-in the CLI sets
     proc = subprocess.run([sys.executable, "-c", _RETAINED_HEAP_CHECK], capture_output=True,
-                          text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+                          text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
+                          env=env)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
     with resources.retained_heap(10.0 * resources.available_memory_bytes()) as kept:
         assert not kept
 
 
-def test_import_sets_openblas_thread_timeout_unless_given():
-    """``import pipeline`` (before numpy) shortens OpenBLAS's spin after each call to 2^4
-    cycles, so its threads leave the cores to MKL's; a value in the environment wins."""
-    import os
+def test_retained_heap_is_an_opt_in(monkeypatch):
+    """Without ``PIPELINE_RETAIN_HEAP=1`` a library call leaves glibc's thresholds alone."""
+    monkeypatch.delenv(resources.RETAIN_HEAP_VARIABLE, raising=False)
+    assert not resources.heap_tuning_allowed()
+    with resources.retained_heap(1.0) as kept:
+        assert not kept
 
-    code = "import os, pipeline, numpy; print(os.environ['OPENBLAS_THREAD_TIMEOUT'])"
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                         text=True, check=True).stdout.strip()
-    assert out == "4"
+
+_TUNING_CHECK = """
+import os, sys
+before = dict(os.environ)
+import pipeline, pipeline.cli
+assert dict(os.environ) == before, "import changed the environment"
+assert "numpy" not in sys.modules, "numpy loaded before the CLI's tuning"
+pipeline.cli.tune_process()
+import numpy
+print(os.environ["OPENBLAS_THREAD_TIMEOUT"], os.environ["KMP_BLOCKTIME"],
+      os.environ["PIPELINE_RETAIN_HEAP"])
+"""
+
+
+def test_cli_tunes_its_process_before_numpy_and_import_does_not():
+    """``import pipeline`` and ``import pipeline.cli`` change nothing and load no numpy; the
+    CLI's entry point sets OpenBLAS's and MKL's spin times and the heap opt-in, and a value
+    already in the environment wins."""
+    from pipeline.cli.process import PROCESS_SETTINGS
+
+    env = {k: v for k, v in os.environ.items() if k not in PROCESS_SETTINGS}
+    out = subprocess.run([sys.executable, "-c", _TUNING_CHECK], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == ["4", "0", "1"]
     env["OPENBLAS_THREAD_TIMEOUT"] = "12"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                         text=True, check=True).stdout.strip()
-    assert out == "12"
+    out = subprocess.run([sys.executable, "-c", _TUNING_CHECK], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == ["12", "0", "1"]
+
+
+def test_console_script_entry_point_tunes_before_running(monkeypatch):
+    """``pipeline.cli:main`` (the console script and ``python -m pipeline``) tunes the
+    process first (conftest undoes it after the test)."""
+    import pipeline.cli
+    from pipeline.cli.process import PROCESS_SETTINGS
+
+    for name in PROCESS_SETTINGS:
+        monkeypatch.delenv(name, raising=False)
+    with pytest.raises(SystemExit):
+        pipeline.cli.main(["--help"])
+    assert {name: os.environ.get(name) for name in PROCESS_SETTINGS} == PROCESS_SETTINGS
+    assert "from pipeline.cli import main" in (Path(pipeline.cli.__file__).parents[1]
+                                               / "__main__.py").read_text()

@@ -97,11 +97,25 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
 #: for the factor-free eigensolve at 1M DOFs, 13.6 -> 14.0 GB for the whole factor path
 RETAINED_HEAP_GROWTH = 1.25
 _retaining = [False]
+#: the opt-in: glibc's thresholds are process-wide, so a library call changes them only
+#: where the process asked for it (the CLI sets it: pipeline.cli.process)
+RETAIN_HEAP_VARIABLE = "PIPELINE_RETAIN_HEAP"
+
+
+def heap_tuning_allowed() -> bool:
+    """True when this process opted in to :func:`retained_heap` (the environment variable
+    :data:`RETAIN_HEAP_VARIABLE` is ``1``)."""
+    return os.environ.get(RETAIN_HEAP_VARIABLE, "") == "1"
 
 
 @contextlib.contextmanager
 def retained_heap(new_bytes: float):
     """Keep memory freed inside the block in this process (glibc), then give it back.
+
+    An opt-in (:func:`heap_tuning_allowed`: ``PIPELINE_RETAIN_HEAP=1``, which the CLI
+    sets for its own process): glibc's ``mallopt`` thresholds belong to the whole
+    process, and the defaults restored on exit need not be what the host had set, so
+    without the opt-in the block runs unchanged and yields False.
 
     On the VMs this project runs on, memory the guest has not written for a few seconds
     is handed back to the host, and writing it again costs 2.7-3.1 s/GB (docs/
@@ -109,8 +123,9 @@ def retained_heap(new_bytes: float):
     sweep pays that again and again: glibc serves such large blocks with mmap and
     returns them to the kernel on free. Inside this block they come from the heap and
     stay there (``M_MMAP_MAX`` = 0, no trimming below 2 GB); on exit the defaults are
-    restored and ``malloc_trim`` gives the free pages back. Measured at 1M DOFs, factor-
-    free: LOBPCG 98 -> 67 s, system time 57 -> 18 s, peak 5.9 -> 6.8 GB.
+    restored and ``malloc_trim`` gives the free pages back. On the factor-free
+    eigensolve at 1M DOFs this removes most of the system time, about a third of the
+    LOBPCG stage, for about 15 % more peak memory (docs/performance.md, ``make bench``).
 
     ``new_bytes``: what the block will allocate beyond the current resident memory. The
     heap is kept only when RETAINED_HEAP_GROWTH times the resulting peak still fits
@@ -120,7 +135,8 @@ def retained_heap(new_bytes: float):
     lib = _libc()
     usable = HEADROOM * available_memory_bytes()
     peak = resident_bytes() + float(new_bytes)
-    keep = (lib is not None and hasattr(lib, "mallopt") and not _retaining[0]
+    keep = (heap_tuning_allowed() and lib is not None and hasattr(lib, "mallopt")
+            and not _retaining[0]
             and float(new_bytes) + (RETAINED_HEAP_GROWTH - 1.0) * peak <= usable)
     def restore() -> None:
         lib.mallopt(_M_MMAP_MAX, 65536)  # glibc's default

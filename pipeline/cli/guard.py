@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import signal
+import sys
 from pathlib import Path
 
 from pipeline._util.interrupts import Terminated, handle_signals, received
@@ -44,18 +45,27 @@ def interruption() -> KeyboardInterrupt:
     return KeyboardInterrupt("SIGINT") if signum == signal.SIGINT else Terminated(signum)
 
 
-def _forget_unhandled_interrupt() -> None:
+def _forget_unhandled_interrupt() -> bool:
     """CPython marks a KeyboardInterrupt that left code run by ``PyRun_String`` (some
     extension modules run Python code that way while they are imported) as unhandled, and
     then kills itself with SIGINT at exit although the interrupt was handled here (exit
     status -2 instead of ours). Running an empty string through the same path clears the
-    mark."""
+    mark; there is no Python-level call for it, so CPython's documented C function
+    ``PyRun_SimpleString`` is called through ctypes. Returns whether it ran.
+
+    Fallback, where the interpreter is not CPython or the function cannot be found: do
+    nothing (no such mark elsewhere; at worst the exit is by SIGINT, which a shell reports
+    as status 130 too)."""
     import ctypes
 
+    if sys.implementation.name != "cpython":
+        return False
     try:
-        ctypes.pythonapi.PyRun_SimpleString(b"")
-    except (AttributeError, OSError):  # not CPython
-        pass
+        run = ctypes.PYFUNCTYPE(ctypes.c_int, ctypes.c_char_p)(
+            ("PyRun_SimpleString", ctypes.pythonapi))
+    except (AttributeError, OSError):
+        return False
+    return run(b"") == 0
 
 
 def exit_code(exc: KeyboardInterrupt) -> int:
@@ -77,15 +87,11 @@ def add_force_flags(subparsers) -> None:
 
 
 def _run(args) -> None:
-    from pipeline.config import load_config
+    from pipeline.api import check_run_destinations, resolve_config
 
-    cfg = load_config(args.config, args.set or [])
-    output = Path(args.output) if args.output else Path("outputs") / f"{cfg.name}.h5"
-    inputs = [args.config] + ([cfg.geometry.path] if getattr(cfg.geometry, "path", None) else [])
-    check_output(output, inputs=inputs, force=args.force, kind="h5",
-                 create_parent=not args.output)
-    if getattr(args, "mesh_dir", None):
-        check_output_dir(args.mesh_dir, marker=lambda p: True, what="mesh folder")
+    check_run_destinations(resolve_config(args.config, args.set or []), args.output or None,
+                           config_path=args.config, mesh_dir=getattr(args, "mesh_dir", None),
+                           force=args.force)
 
 
 def _simulate(args) -> None:

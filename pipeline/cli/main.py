@@ -98,11 +98,13 @@ def run_summary(result, verbose: bool = False) -> list[str]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from pipeline.config import load_config
+    from pipeline.api import default_output, resolve_config
     from pipeline.run import run_pipeline
 
-    cfg = load_config(args.config, args.set or [])
-    output = Path(args.output) if args.output else Path("outputs") / f"{cfg.name}.h5"
+    # the destinations were checked before (pipeline.cli.guard): pipeline.api.run_config
+    # without its second check
+    cfg = resolve_config(args.config, args.set or [])
+    output = Path(args.output) if args.output else default_output(cfg)
     result = run_pipeline(cfg, output, mesh_dir=args.mesh_dir, progress=tqdm_progress)
     print("\n".join(run_summary(result, verbose=args.verbose > 0)))
     return 0

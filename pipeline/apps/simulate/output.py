@@ -109,15 +109,15 @@ def write_csv(path: Path, s: ScenarioResult) -> Path:
 
 
 def plot(path: Path, s: ScenarioResult, port: str) -> Path:
-    import matplotlib  # deferred: heavy, only needed when plots are asked for
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # deferred: heavy, only needed when plots are asked for; a Figure of its own (no
+    # pyplot), so the host's matplotlib backend and open figures are left alone
+    from matplotlib.figure import Figure
 
     sc = s.scenario
     style = {"fe": dict(color="C0", lw=1.4), "lumped": dict(color="C3", lw=1.0, ls="--")}
     if sc.kind == "mass_sweep":
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+        fig = Figure(figsize=(11, 4.2))
+        ax1, ax2 = fig.subplots(1, 2)
         for key, fit in s.fits.items():
             st = style[key]
             m = fit["masses"]
@@ -146,8 +146,8 @@ def plot(path: Path, s: ScenarioResult, port: str) -> Path:
             ax.legend(fontsize=8)
     else:
         n = 3 if sc.kind == "spring_mount" else 2
-        fig, axes = plt.subplots(n, 1, figsize=(10, 2.8 * n + 0.6),
-                                 sharex=sc.kind != "spring_mount")
+        fig = Figure(figsize=(10, 2.8 * n + 0.6))
+        axes = fig.subplots(n, 1, sharex=sc.kind != "spring_mount")
         sig = f"{port}/position" if sc.kind == "step_load" else "mass_displacement"
         force = sc.input if sc.input else None
         for run in s.runs:
@@ -202,11 +202,8 @@ def plot(path: Path, s: ScenarioResult, port: str) -> Path:
     fig.suptitle(f"{sc.name} ({sc.kind})" + ("\n" + "; ".join(lines) if lines else ""),
                  fontsize=10)
     fig.tight_layout()
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-    finally:
-        plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     return path
 
 

@@ -201,16 +201,16 @@ def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> 
             if "stress_peak" in r.info or any(u in ("1", "Pa") for u in r.units.values())]
     if not runs:
         return []
-    import matplotlib  # deferred: heavy, only needed when plots are asked for
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # deferred: heavy, only needed when plots are asked for; a Figure of its own (no
+    # pyplot), so the host's matplotlib backend and open figures are left alone
+    from matplotlib.figure import Figure
 
     from pipeline._util.atomic import atomic_path
 
     run = runs[0]
     gauges = [n for n, u in run.units.items() if u in ("1", "Pa") and n != "von_mises_at_hot_spot"]
-    fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), sharex=True)
+    fig = Figure(figsize=(10, 6.2))
+    axes = fig.subplots(2, 1, sharex=True)
     strains = [n for n in gauges if run.units[n] == "1"]
     stresses = [n for n in gauges if run.units[n] == "Pa"]
     ax_strain = axes[0]
@@ -242,7 +242,6 @@ def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> 
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
     written = [path]
     if peak is not None and model_path is not None:
         from pipeline.apps.stress_plots import plot_von_mises  # deferred: matplotlib

@@ -88,7 +88,7 @@ class BodyMesh:
 
 
 #: A mesh source: (geometry, mesh spec, path for the mesh file) -> (mesh, its file).
-MeshSource = Callable[[Geometry, MeshSpec, Path], "tuple[BodyMesh, Path]"]
+MeshSource = Callable[[Geometry, MeshSpec, Path], tuple[BodyMesh, Path]]
 
 #: Largest plausible body dimension (m) after scaling; above it we suspect a unit mistake.
 MAX_EXTENT_M = 50.0
