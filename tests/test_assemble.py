@@ -10,6 +10,7 @@ import pytest
 import scipy.sparse as sp
 
 from pipeline.fe import assemble as asm
+from pipeline.fe import pattern as pat
 from pipeline.config import Geometry, Material, MeshSpec
 from pipeline.fe.space import build_space
 from pipeline.fe.mesh import generate_mesh, read_mesh
@@ -81,7 +82,7 @@ def test_storage_symmetric_32bit_and_mass_without_zeros(space, matrices):
         assert A.has_sorted_indices
         assert abs(A - A.T).max() <= 1e-12 * abs(A).max()
     # K: full 3x3 node blocks; M: only equal components couple (a third of K's entries)
-    assert K.nnz == 9 * asm.block_pattern(space).n_blocks
+    assert K.nnz == 9 * pat.block_pattern(space).n_blocks
     assert M.nnz * 3 == K.nnz
     rows = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
     assert np.all(rows % 3 == M.indices % 3)
@@ -115,18 +116,18 @@ def _pattern_by_unique(space):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_pattern_equals_unique_pairs(space, threads):
     indptr, indices, slots = _pattern_by_unique(space)
-    pattern = asm.block_pattern(space, threads=threads)
+    pattern = pat.block_pattern(space, threads=threads)
     assert np.array_equal(pattern.indptr, indptr)
     assert np.array_equal(pattern.indices, indices)
     assert np.array_equal(pattern.slots, slots)
 
 
 def test_pattern_public_fallback_equals_fast_path(space, monkeypatch):
-    fast = asm.block_pattern(space)
+    fast = pat.block_pattern(space)
     from scipy.sparse import _sparsetools
 
     monkeypatch.delattr(_sparsetools, "csr_sample_values")
-    slow = asm.block_pattern(space)
+    slow = pat.block_pattern(space)
     assert np.array_equal(fast.slots, slow.slots)
 
 
@@ -225,7 +226,7 @@ def test_threads_do_not_change_a_bit(space, matrices, threads):
     lower, upper, _ = asm.element_groups(space)
     chunk = min(lower.size, upper.size) // 8  # small enough for the threaded branch
     assert chunk >= 4
-    pattern = asm.block_pattern(space)
+    pattern = pat.block_pattern(space)
     one = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=chunk,
                                 threads=threads)
     other = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=chunk,
@@ -245,9 +246,9 @@ def test_chunked_index_steps_equal_one_pass(space, monkeypatch, threads):
     x = space.node_points[:, 0]
     nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
     whole = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=1)
-    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
-    monkeypatch.setattr(asm, "SLOT_CHUNK_ELEMENTS", 3)
-    assert len(asm._row_chunks(asm.block_pattern(space).indptr)[1]) > 3
+    monkeypatch.setattr(pat, "LAYOUT_CHUNK_BLOCKS", 97)
+    monkeypatch.setattr(pat, "SLOT_CHUNK_ELEMENTS", 3)
+    assert len(pat._row_chunks(pat.block_pattern(space).indptr)[1]) > 3
     chunked = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=threads)
     for name in ("K", "M", "node_mass"):
         a, b = getattr(chunked, name), getattr(whole, name)
@@ -263,11 +264,11 @@ def test_64_bit_indices_give_the_same_matrices(space, monkeypatch):
     x = space.node_points[:, 0]
     nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
     narrow = asm.assemble_on_nodes(space, ALUMINIUM, nodes)
-    monkeypatch.setattr(asm, "INT32_MAX", 1000)
-    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
-    pattern = asm.block_pattern(space, threads=2)
+    monkeypatch.setattr(pat, "INT32_MAX", 1000)
+    monkeypatch.setattr(pat, "LAYOUT_CHUNK_BLOCKS", 97)
+    pattern = pat.block_pattern(space, threads=2)
     assert pattern.indices.dtype == pattern.slots.dtype == np.int64
-    assert asm.stiffness_layout(pattern, nodes, threads=2).indices.dtype == np.int64
+    assert pat.stiffness_layout(pattern, nodes, threads=2).indices.dtype == np.int64
     wide = asm.assemble_on_nodes(space, ALUMINIUM, nodes, pattern, threads=2)
     for name in ("K", "M", "node_mass"):
         a, b = getattr(wide, name), getattr(narrow, name)

@@ -52,7 +52,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.errors import RegionError
-from pipeline.fe.assemble import inverse_jacobians, lame_parameters, scatter_add
+from pipeline.fe.kernels import inverse_jacobians, lame_parameters, scatter_add
 from pipeline.fe.space import FESpace
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
