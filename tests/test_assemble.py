@@ -3,8 +3,6 @@ storage formats behave as documented."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -302,10 +300,22 @@ def test_body_properties_from_the_node_level_mass_equal_the_full_mass(space, mat
                                atol=1e-13 * np.abs(full.rigid_mass).max())
 
 
-def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
+def test_a_failing_half_stops_the_other_at_its_next_chunk(space, monkeypatch):
     """An exception in one thread (here from the progress callback; an interrupt takes the
     same path in the main thread) propagates, and the other half stops at its next chunk
-    instead of summing the rest of the body."""
+    instead of summing the rest of the body. The other half's progress call waits until
+    the stop is set, so the check does not depend on how fast either thread runs."""
+    import threading
+    import types
+
+    stops = []
+
+    def event() -> threading.Event:
+        stops.append(threading.Event())
+        return stops[-1]
+
+    monkeypatch.setattr(asm, "threading", types.SimpleNamespace(Event=event,
+                                                                Lock=threading.Lock))
     lower, upper, _ = asm.element_groups(space)
     chunk = min(lower.size, upper.size) // 8
     calls = []
@@ -314,13 +324,14 @@ def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
         calls.append(n)
         if len(calls) == 1:
             raise RuntimeError("stop here")
-        time.sleep(0.02)  # each further chunk takes a while: time for the stop to land
+        assert stops[0].wait(timeout=60), "the failure never set the stop"
 
     with pytest.raises(RuntimeError, match="stop here"):
         asm.assemble_on_nodes(space, ALUMINIUM, chunk_size=chunk, progress=progress,
                               threads=2)
-    # without the stop the other half would report all of its >= 8 chunks
-    assert len(calls) <= 4, len(calls)
+    # the failing chunk and at most one of the other half: without the stop the other
+    # half would report all of its >= 8 chunks
+    assert len(stops) == 1 and stops[0].is_set() and len(calls) <= 2, len(calls)
 
 
 def test_the_stiffness_pattern_hook_gets_the_final_structure_of_k(tmp_path):
