@@ -148,8 +148,8 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
         _assemble_elements(*args, elements, layout.nnz // 3 + group, chunk_size, kdata,
                            mblock, progress, stop)
 
-    # threads pay off from a few chunks per half; below that (about 150k DOFs at the
-    # default chunk) the worker's malloc arena would only add to the peak (~45 MB kept)
+    # threads pay off from a few chunks per half; below that the worker's malloc arena
+    # (its pages kept after the run) would only add to the peak memory
     if threads < 2 or min(lower.size, upper.size) < 8 * chunk_size:
         run(0, lower)
         run(1, upper)
@@ -241,11 +241,12 @@ def restrict(A: sp.spmatrix, keep: np.ndarray, overwrite: bool = False) -> sp.cs
     them, so a second copy of A never exists: A is emptied and must not be used
     afterwards (``K = restrict(K, free, overwrite=True)``).
     """
-    A = A if sp.isspmatrix_csr(A) else sp.csr_matrix(A)
+    # csr_matrix and csr_array alike (sp.isspmatrix_csr is False for a csr_array)
+    A = A if sp.issparse(A) and A.format == "csr" else sp.csr_matrix(A)
     n = A.shape[0]
     keep = np.asarray(keep)
     if keep.size == n:
-        return A
+        return A if isinstance(A, sp.csr_matrix) else sp.csr_matrix(A)  # shares the arrays
     m = keep.size
     itype = A.indices.dtype if m <= INT32_MAX else np.int64
     new_index = np.full(n, -1, dtype=itype)
