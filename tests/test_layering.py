@@ -43,6 +43,12 @@ def _copy(tmp_path: Path) -> Path:
     return tree
 
 
+def _append(tree: Path, module: str, line: str) -> None:
+    """Add ``line`` at the end of ``module`` (a path under the copy's package folder)."""
+    path = tree / "pipeline" / module
+    path.write_text(path.read_text() + f"\n{line}  # noqa\n")
+
+
 def test_the_package_keeps_its_layers():
     result = _lint(ROOT)
     assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
@@ -52,11 +58,9 @@ def test_the_package_keeps_its_layers():
 def test_a_forbidden_import_breaks_the_contract(tmp_path):
     tree = _copy(tmp_path)
     # a lower layer (the FE stack) importing a higher one (an app)
-    space = tree / "pipeline" / "fe" / "space.py"
-    space.write_text(space.read_text() + "\nimport pipeline.apps.summary  # noqa\n")
+    _append(tree, "fe/space.py", "import pipeline.apps.summary")
     # the file reader importing the FE stack
-    reader = tree / "pipeline" / "store" / "read.py"
-    reader.write_text(reader.read_text() + "\nimport meshio  # noqa\n")
+    _append(tree, "store/read.py", "import meshio")
     result = _lint(tree)
     assert result.returncode != 0
     assert "pipeline.fe.space -> pipeline.apps.summary" in result.stdout
@@ -66,8 +70,7 @@ def test_a_forbidden_import_breaks_the_contract(tmp_path):
 def test_an_import_cycle_breaks_the_acyclic_contract(tmp_path):
     tree = _copy(tmp_path)
     # the shared drawing code importing the pictures that use it
-    drawing = tree / "pipeline" / "apps" / "mode_drawing.py"
-    drawing.write_text(drawing.read_text() + "\nimport pipeline.apps.plots  # noqa\n")
+    _append(tree, "apps/mode_drawing.py", "import pipeline.apps.plots")
     result = _lint(tree)
     assert result.returncode != 0
     assert "No cycles are allowed in pipeline.apps" in result.stdout
@@ -167,8 +170,6 @@ def test_no_module_imports_itself_through_others():
 def test_a_package_and_its_module_importing_each_other_is_a_cycle(tmp_path):
     tree = _copy(tmp_path)
     # the FE package's __init__ importing a module that imports the package back
-    init = tree / "pipeline" / "fe" / "__init__.py"
-    init.write_text(init.read_text() + "\nfrom pipeline.fe import kernels  # noqa\n")
-    kernels = tree / "pipeline" / "fe" / "kernels.py"
-    kernels.write_text(kernels.read_text() + "\nimport pipeline.fe  # noqa\n")
+    _append(tree, "fe/__init__.py", "from pipeline.fe import kernels")
+    _append(tree, "fe/kernels.py", "import pipeline.fe")
     assert _module_cycles(tree)["cycles"] == [["pipeline.fe", "pipeline.fe.kernels"]]
