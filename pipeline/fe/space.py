@@ -108,7 +108,7 @@ def edge_numbering(tetrahedra: np.ndarray, n_vertices: int) -> tuple[np.ndarray,
 def edge_numbering_matches_skfem() -> bool:
     """Whether :func:`edge_numbering` gives the installed scikit-fem's ``MeshTet.edges``
     and ``MeshTet.t2e`` (its public arrays) on a small mesh whose tetrahedra list their
-    vertices in every order; checked once per process. :func:`build_space` uses
+    vertices in shuffled orders; checked once per process. :func:`build_space` uses
     scikit-fem's arrays where it does not, so that a release that numbers edges another way
     costs time, not a wrong numbering."""
     from skfem import MeshTet
