@@ -13,7 +13,9 @@ rather than on message text:
 ``expected``
     what would have been accepted, in words, or None.
 
-``str(exc)`` is always one line. The CLI turns these into that line on stderr and the
+``str(exc)`` is always one line; :func:`short_repr` and :func:`describe` show a value in
+it, bounded and safe on hostile input. This module imports nothing from the package
+(the lowest layer), so every layer, :mod:`pipeline._util.validate` included, raises these. The CLI turns these into that line on stderr and the
 class's ``exit_code``; anything else is a bug and keeps its traceback.
 
 >>> e = ConfigError.field("mesh.size", -1.0, "a number > 0")
@@ -23,7 +25,8 @@ class's ``exit_code``; anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
-from typing import Any
+import itertools
+from typing import Any, Mapping
 
 
 class PipelineError(Exception):
@@ -42,8 +45,6 @@ class PipelineError(Exception):
     def __init__(self, message: str | None = None, *, key: str | None = None,
                  value: Any = None, expected: str | None = None):
         if message is None:
-            from pipeline._util.validate import describe
-
             parts = [f"{self.subject} '{key}'" if key is not None else self.subject]
             if value is not None:
                 parts.append(f"got {describe(value)}")
@@ -113,3 +114,53 @@ class OutputError(PipelineError):
 
     exit_code = 8
     subject = "output"
+
+
+# ----------------------------------------------------------------- values in messages
+def short_repr(value: Any, depth: int = 0) -> str:
+    """repr() bounded in depth, length and size: safe on hostile input (deep nesting,
+    shared sub-lists that would expand exponentially, ints of thousands of digits).
+    Strings with repeated spaces, which a one-line message would collapse, have their
+    spaces written as \\x20.
+
+    >>> print(short_repr("a b"), short_repr("a  b"))
+    'a b' 'a\\x20\\x20b'
+    """
+    if isinstance(value, bool) or value is None or isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        if value.bit_length() <= 128:
+            return repr(value)
+        return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
+    if isinstance(value, (str, bytes)):
+        text = repr(value[:100])
+        if "  " in text:  # a one-line message collapses repeated spaces: keep them seen
+            text = text.replace(" ", "\\x20")
+        return text if len(value) <= 100 else text[:-1] + "..." + text[-1]
+    if depth >= 3:
+        return "[...]" if isinstance(value, (list, tuple)) else "{...}" \
+            if isinstance(value, Mapping) else f"<{type(value).__name__}>"
+    if isinstance(value, (list, tuple)):
+        items = [short_repr(v, depth + 1) for v in value[:6]]
+        if len(value) > 6:
+            items.append("...")
+        body = ", ".join(items)
+        if isinstance(value, list):
+            return f"[{body}]"
+        return f"({body},)" if len(value) == 1 else f"({body})"
+    if isinstance(value, Mapping):
+        items = [f"{short_repr(k, depth + 1)}: {short_repr(v, depth + 1)}"
+                 for k, v in itertools.islice(value.items(), 6)]
+        if len(value) > 6:
+            items.append("...")
+        return "{" + ", ".join(items) + "}"
+    try:
+        return repr(value)[:100]
+    except Exception:  # a hostile __repr__ must not hide the config error
+        return f"<{type(value).__name__}>"
+
+
+def describe(value: Any) -> str:
+    """:func:`short_repr` of ``value``, at most 80 characters."""
+    text = short_repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

@@ -3,13 +3,12 @@ storage formats behave as documented."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from pipeline.fe import assemble as asm
+from pipeline.fe import pattern as pat
 from pipeline.config import Geometry, Material, MeshSpec
 from pipeline.fe.space import build_space
 from pipeline.fe.mesh import generate_mesh, read_mesh
@@ -81,7 +80,7 @@ def test_storage_symmetric_32bit_and_mass_without_zeros(space, matrices):
         assert A.has_sorted_indices
         assert abs(A - A.T).max() <= 1e-12 * abs(A).max()
     # K: full 3x3 node blocks; M: only equal components couple (a third of K's entries)
-    assert K.nnz == 9 * asm.block_pattern(space).n_blocks
+    assert K.nnz == 9 * pat.block_pattern(space).n_blocks
     assert M.nnz * 3 == K.nnz
     rows = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
     assert np.all(rows % 3 == M.indices % 3)
@@ -115,18 +114,18 @@ def _pattern_by_unique(space):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_pattern_equals_unique_pairs(space, threads):
     indptr, indices, slots = _pattern_by_unique(space)
-    pattern = asm.block_pattern(space, threads=threads)
+    pattern = pat.block_pattern(space, threads=threads)
     assert np.array_equal(pattern.indptr, indptr)
     assert np.array_equal(pattern.indices, indices)
     assert np.array_equal(pattern.slots, slots)
 
 
 def test_pattern_public_fallback_equals_fast_path(space, monkeypatch):
-    fast = asm.block_pattern(space)
+    fast = pat.block_pattern(space)
     from scipy.sparse import _sparsetools
 
     monkeypatch.delattr(_sparsetools, "csr_sample_values")
-    slow = asm.block_pattern(space)
+    slow = pat.block_pattern(space)
     assert np.array_equal(fast.slots, slow.slots)
 
 
@@ -225,7 +224,7 @@ def test_threads_do_not_change_a_bit(space, matrices, threads):
     lower, upper, _ = asm.element_groups(space)
     chunk = min(lower.size, upper.size) // 8  # small enough for the threaded branch
     assert chunk >= 4
-    pattern = asm.block_pattern(space)
+    pattern = pat.block_pattern(space)
     one = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=chunk,
                                 threads=threads)
     other = asm.assemble_on_nodes(space, ALUMINIUM, None, pattern, chunk_size=chunk,
@@ -245,9 +244,9 @@ def test_chunked_index_steps_equal_one_pass(space, monkeypatch, threads):
     x = space.node_points[:, 0]
     nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
     whole = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=1)
-    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
-    monkeypatch.setattr(asm, "SLOT_CHUNK_ELEMENTS", 3)
-    assert len(asm._row_chunks(asm.block_pattern(space).indptr)[1]) > 3
+    monkeypatch.setattr(pat, "LAYOUT_CHUNK_BLOCKS", 97)
+    monkeypatch.setattr(pat, "SLOT_CHUNK_ELEMENTS", 3)
+    assert len(pat._row_chunks(pat.block_pattern(space).indptr)[1]) > 3
     chunked = asm.assemble_on_nodes(space, ALUMINIUM, nodes, threads=threads)
     for name in ("K", "M", "node_mass"):
         a, b = getattr(chunked, name), getattr(whole, name)
@@ -263,11 +262,11 @@ def test_64_bit_indices_give_the_same_matrices(space, monkeypatch):
     x = space.node_points[:, 0]
     nodes = np.flatnonzero(x >= x.min() + 0.2 * np.ptp(x))
     narrow = asm.assemble_on_nodes(space, ALUMINIUM, nodes)
-    monkeypatch.setattr(asm, "INT32_MAX", 1000)
-    monkeypatch.setattr(asm, "LAYOUT_CHUNK_BLOCKS", 97)
-    pattern = asm.block_pattern(space, threads=2)
+    monkeypatch.setattr(pat, "INT32_MAX", 1000)
+    monkeypatch.setattr(pat, "LAYOUT_CHUNK_BLOCKS", 97)
+    pattern = pat.block_pattern(space, threads=2)
     assert pattern.indices.dtype == pattern.slots.dtype == np.int64
-    assert asm.stiffness_layout(pattern, nodes, threads=2).indices.dtype == np.int64
+    assert pat.stiffness_layout(pattern, nodes, threads=2).indices.dtype == np.int64
     wide = asm.assemble_on_nodes(space, ALUMINIUM, nodes, pattern, threads=2)
     for name in ("K", "M", "node_mass"):
         a, b = getattr(wide, name), getattr(narrow, name)
@@ -301,10 +300,22 @@ def test_body_properties_from_the_node_level_mass_equal_the_full_mass(space, mat
                                atol=1e-13 * np.abs(full.rigid_mass).max())
 
 
-def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
+def test_a_failing_half_stops_the_other_at_its_next_chunk(space, monkeypatch):
     """An exception in one thread (here from the progress callback; an interrupt takes the
     same path in the main thread) propagates, and the other half stops at its next chunk
-    instead of summing the rest of the body."""
+    instead of summing the rest of the body. The other half's progress call waits until
+    the stop is set, so the check does not depend on how fast either thread runs."""
+    import threading
+    import types
+
+    stops = []
+
+    def event() -> threading.Event:
+        stops.append(threading.Event())
+        return stops[-1]
+
+    monkeypatch.setattr(asm, "threading", types.SimpleNamespace(Event=event,
+                                                                Lock=threading.Lock))
     lower, upper, _ = asm.element_groups(space)
     chunk = min(lower.size, upper.size) // 8
     calls = []
@@ -313,13 +324,14 @@ def test_a_failing_half_stops_the_other_at_its_next_chunk(space):
         calls.append(n)
         if len(calls) == 1:
             raise RuntimeError("stop here")
-        time.sleep(0.02)  # each further chunk takes a while: time for the stop to land
+        assert stops[0].wait(timeout=60), "the failure never set the stop"
 
     with pytest.raises(RuntimeError, match="stop here"):
         asm.assemble_on_nodes(space, ALUMINIUM, chunk_size=chunk, progress=progress,
                               threads=2)
-    # without the stop the other half would report all of its >= 8 chunks
-    assert len(calls) <= 4, len(calls)
+    # the failing chunk and at most one of the other half: without the stop the other
+    # half would report all of its >= 8 chunks
+    assert len(stops) == 1 and stops[0].is_set() and len(calls) <= 2, len(calls)
 
 
 def test_the_stiffness_pattern_hook_gets_the_final_structure_of_k(tmp_path):

@@ -250,18 +250,17 @@ def model_file(tmp_path_factory):
 def test_extreme_scenario_numbers_give_one_line_refusals(tmp_path, model_file, scenario,
                                                          key, value, message):
     """Each of these hung for minutes (LSODA stepping forever), wrote inf/NaN energies with
-    exit 0, or failed inside LSODA; now a one-line error, quickly."""
+    exit 0, or failed inside LSODA; now a one-line error from the checks made before any
+    integration starts (the message names the check; the CLI's timeout catches a hang)."""
     import re
-    import time
 
     text = (ROOT / "configs" / "scenarios" / f"{scenario}.yaml").read_text()
     text = re.sub(rf"(?m)^{key}:.*$", f"{key}: {value}", text)
     path = tmp_path / "s.yaml"
     path.write_text(text)
-    t0 = time.perf_counter()
     proc = run_cli("simulate", str(model_file), str(path), "-o", str(tmp_path / "r.h5"),
                    "--no-plots", timeout=100)
     assert proc.returncode != 0, proc.stdout[-2000:]
     assert "Traceback" not in proc.stderr
     assert message in proc.stderr.strip().splitlines()[-1], proc.stderr[-1000:]
-    assert time.perf_counter() - t0 < 60
+    assert not (tmp_path / "r.h5").exists()  # refused: no result written

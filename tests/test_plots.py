@@ -144,7 +144,7 @@ def test_boundary_surface_of_a_tetrahedron_and_of_a_meshed_box(tmp_path):
 import re  # noqa: E402
 
 from pipeline.apps import plots as plots_module  # noqa: E402
-from pipeline.apps import response_plots  # noqa: E402
+from pipeline.apps import response_plots, views  # noqa: E402
 
 #: the package's one way of writing a unit on an axis: "quantity [unit]"
 UNIT_LABEL = re.compile(r"^.+ \[[^\[\]]+\]$")
@@ -210,10 +210,10 @@ def test_bode_shows_magnitude_and_phase_of_a_known_system(bracket_h5, monkeypatc
 def test_viewpoint_looks_across_the_motion():
     g = np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     twist_z = np.cross([0.0, 0.0, 1.0], g)
-    elev, _ = plots_module.view_for_mode(twist_z)
+    elev, _ = views.view_for_mode(twist_z)
     assert elev > 45  # a rotation about z is seen from above (along its axis)
     heave_z = np.tile([0.0, 0.0, 1.0], (len(g), 1))
-    elev, _ = plots_module.view_for_mode(heave_z)
+    elev, _ = views.view_for_mode(heave_z)
     assert abs(elev) < 30  # a motion along z is seen from the side
 
 
@@ -224,8 +224,8 @@ def test_a_twist_of_a_slender_body_is_drawn_end_on():
     twist = np.cross([1.0, 0.0, 0.0], x - c) * x[:, :1]
     bend = np.zeros_like(x)
     bend[:, 1] = x[:, 0] ** 2
-    assert plots_module.is_twist(x, twist) and not plots_module.is_twist(x, bend)
-    assert plots_module.is_twist(x, bend, "torsion_1")  # the file's label decides
+    assert views.is_twist(x, twist) and not views.is_twist(x, bend)
+    assert views.is_twist(x, bend, "torsion_1")  # the file's label decides
 
 
 def test_animation_is_a_looping_gif_of_the_moving_shape(beam_h5, tmp_path):

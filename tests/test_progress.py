@@ -7,37 +7,75 @@ import logging
 import time
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from pipeline._util import progress
 
 
-def test_log_reporter_says_when_a_stage_starts_ends_and_how_long_it_should_take(caplog):
+class FakeClock:
+    """A clock that moves only when told (seconds); stands in for progress.clock, so that
+    the durations these tests check do not depend on how busy the machine is."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+
+@pytest.fixture
+def clock(monkeypatch) -> FakeClock:
+    fake = FakeClock()
+    monkeypatch.setattr(progress, "clock", fake)
+    return fake
+
+
+def _wait_for_record(caplog, predicate, what: str, timeout: float = 30.0) -> None:
+    """Wait for the reporter's timer thread to log a line that ``predicate`` accepts
+    (a bounded wait for a thread, not a measure of speed)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if any(predicate(r.getMessage()) for r in caplog.records):
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"no log line {what} within {timeout:g} s")
+
+
+def test_log_reporter_says_when_a_stage_starts_ends_and_how_long_it_should_take(caplog,
+                                                                                clock):
     caplog.set_level(logging.INFO, logger="pipeline.progress")
-    with progress.using(progress.LogReporter(every_s=0.05)):
+    fmt = progress.fmt_seconds
+    with progress.using(progress.LogReporter(every_s=0.01)):
         with progress.stage("first") as st:
             st.expect_work(1e9, "widget")  # no rate measured yet: no expectation
-            time.sleep(0.2)
+            clock.advance(2.0)
         measured = progress.rate("widget")
-        assert 1e9 / measured >= 0.2  # the rate the first stage took
+        assert measured == 1e9 / 2.0  # the rate the first stage took
         with progress.stage("second") as st:
-            st.expect_work(2e9, "widget")
-            time.sleep(0.3)
+            st.expect_work(2e9, "widget")  # 4 s at the first stage's rate
+            clock.advance(1.0)
+            # the reporter's timer thread speaks every every_s (real) seconds
+            _wait_for_record(caplog, lambda m: m == f"second: {fmt(1.0)} elapsed, about "
+                             f"{fmt(3.0)} left", "with the time elapsed and left")
+            clock.advance(2.0)
     lines = [r.getMessage() for r in caplog.records]
-    second = lines[[i for i, line in enumerate(lines) if line == "second started"][0]:]
-    expected = 2e9 / measured
-    assert second[1] == f"second: expected {progress.fmt_seconds(expected)} (2 Gwidget at " \
-        f"~{progress.fmt_amount(measured, 'widget/s')} (rate of the last one))", second[1]
-    assert any("elapsed" in line and "left" in line for line in second[2:-1]), second
-    assert second[-1].startswith("second done in") and "expected" in second[-1]
-    assert "widget/s measured" in second[-1]
+    # the timer's lines may fall anywhere between a stage's start and end
+    second = lines[lines.index("second started"):]
+    assert f"second: expected {fmt(4.0)} (2 Gwidget at " \
+        f"~{progress.fmt_amount(measured, 'widget/s')} (rate of the last one))" in second
+    assert f"second done in {fmt(3.0)} (expected {fmt(4.0)}); " \
+        f"{progress.fmt_amount(2e9 / 3.0, 'widget/s')} measured" in second
 
 
-def test_counted_stage_extrapolates_its_remaining_time():
+def test_counted_stage_extrapolates_its_remaining_time(clock):
     st = progress.Stage("Lanczos", total=10, unit="step")
-    st.t0 -= 4.0  # 4 s ago
+    clock.advance(4.0)
     st.update(4)
-    assert abs(st.remaining() - 6.0) < 0.1  # 4 of 10 steps in 4 s: 6 s left
+    assert st.remaining() == 6.0  # 4 of 10 steps in 4 s: 6 s left
     st.update(8)  # a restart: more steps than estimated -> the total follows
     assert st.total == 12 and st.remaining() == 0.0
 
@@ -87,7 +125,7 @@ def test_the_cli_leaves_no_reporter_behind(tmp_path):
         progress.use(before)
 
 
-def test_first_flop_estimate_measures_the_machine_only_for_long_work(monkeypatch):
+def test_first_flop_estimate_measures_the_machine_only_for_long_work(monkeypatch, clock):
     """Before any flop stage has finished, the estimate comes from the dense rate, which
     costs 0.2 s to measure: not for work under QUICK_WORK_FLOP (seconds anywhere)."""
     monkeypatch.setattr(progress, "_rates", {})
@@ -102,7 +140,7 @@ def test_first_flop_estimate_measures_the_machine_only_for_long_work(monkeypatch
     st.expect_work(0.5 * progress.QUICK_WORK_FLOP)
     assert st.expected_s is None and not calls
     st.expect_work(2.0 * progress.QUICK_WORK_FLOP)
-    assert calls and abs(st.expected_s - st.elapsed - 2.0 * progress.QUICK_WORK_FLOP / 2e10) < 0.5
+    assert calls and st.expected_s == st.elapsed + 2.0 * progress.QUICK_WORK_FLOP / 2e10
 
 
 def test_dense_rate_is_a_positive_definite_cholesky(monkeypatch):

@@ -51,6 +51,10 @@ SPARSE_EFFICIENCY = 1.0
 #: measurement itself costs 0.2 s (3 % of a 100k-DOF run; its factorisation is 34 Gflop)
 QUICK_WORK_FLOP = 1e11
 
+#: the clock of every stage's times (s): read through this module attribute, so that a
+#: test can drive it (``monkeypatch.setattr(progress, "clock", fake)``)
+clock = time.perf_counter
+
 #: measured rates (unit -> units per second) of finished stages in this process
 _rates: dict[str, float] = {}
 _reporter: "Reporter | None" = None
@@ -128,14 +132,14 @@ class Stage:
         self.work_unit = ""
         self.expected_s: float | None = None
         self.note = ""
-        self.t0 = time.perf_counter()
+        self.t0 = clock()
         self.finished_s: float | None = None
         self._reporter = reporter
 
     @property
     def elapsed(self) -> float:
         return (self.finished_s if self.finished_s is not None
-                else time.perf_counter() - self.t0)
+                else clock() - self.t0)
 
     def remaining(self) -> float | None:
         """Seconds left (None when unknown)."""
@@ -182,7 +186,7 @@ class Stage:
             self._reporter.expected(self)
 
     def _finish(self) -> None:
-        self.finished_s = time.perf_counter() - self.t0
+        self.finished_s = clock() - self.t0
         if self.work and self.finished_s > 0:
             _rates[self.work_unit] = self.work / self.finished_s
 
@@ -222,7 +226,7 @@ class LogReporter(Reporter):
             self._line(st)
 
     def _line(self, st: Stage) -> None:
-        self._last[id(st)] = time.perf_counter()
+        self._last[id(st)] = clock()
         left = st.remaining()
         count = (f"{st.done:.0f}/{st.total:.0f} {st.unit}, " if st.total else "")
         end = f", about {fmt_seconds(left)} left" if left is not None else ""

@@ -18,63 +18,14 @@ scenarios[0].force a finite number
 
 from __future__ import annotations
 
-import itertools
 import math
 import re
 from typing import Any, Mapping, Sequence
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, describe, short_repr
 
 MISSING = object()
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")  # use with fullmatch (no "\n")
-
-def short_repr(value: Any, depth: int = 0) -> str:
-    """repr() bounded in depth, length and size: safe on hostile input (deep nesting,
-    shared sub-lists that would expand exponentially, ints of thousands of digits).
-    Strings with repeated spaces, which a one-line message would collapse, have their
-    spaces written as \\x20.
-
-    >>> print(short_repr("a b"), short_repr("a  b"))
-    'a b' 'a\\x20\\x20b'
-    """
-    if isinstance(value, bool) or value is None or isinstance(value, float):
-        return repr(value)
-    if isinstance(value, int):
-        if value.bit_length() <= 128:
-            return repr(value)
-        return f"<an integer of about {int(value.bit_length() * 0.30103) + 1} digits>"
-    if isinstance(value, (str, bytes)):
-        text = repr(value[:100])
-        if "  " in text:  # a one-line message collapses repeated spaces: keep them seen
-            text = text.replace(" ", "\\x20")
-        return text if len(value) <= 100 else text[:-1] + "..." + text[-1]
-    if depth >= 3:
-        return "[...]" if isinstance(value, (list, tuple)) else "{...}" \
-            if isinstance(value, Mapping) else f"<{type(value).__name__}>"
-    if isinstance(value, (list, tuple)):
-        items = [short_repr(v, depth + 1) for v in value[:6]]
-        if len(value) > 6:
-            items.append("...")
-        body = ", ".join(items)
-        if isinstance(value, list):
-            return f"[{body}]"
-        return f"({body},)" if len(value) == 1 else f"({body})"
-    if isinstance(value, Mapping):
-        items = [f"{short_repr(k, depth + 1)}: {short_repr(v, depth + 1)}"
-                 for k, v in itertools.islice(value.items(), 6)]
-        if len(value) > 6:
-            items.append("...")
-        return "{" + ", ".join(items) + "}"
-    try:
-        return repr(value)[:100]
-    except Exception:  # a hostile __repr__ must not hide the config error
-        return f"<{type(value).__name__}>"
-
-
-def describe(value: Any) -> str:
-    text = short_repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
 
 def key_text(key: Any) -> str:
     """A config key as it appears in a message: itself if short and printable, else

@@ -1,10 +1,10 @@
 """Mode shapes moving: ``python -m pipeline plot FILE.h5 --animate``.
 
-One animation per mode, the body drawn as in :mod:`pipeline.apps.plots` (3D
-perspective, or for a slender body the side / end-on view) with the deformation
-``sin(2 pi k / frames) * scale * phi`` in frame k (one period, ``frames`` frames, looped),
-``scale`` making the largest displacement :data:`pipeline.apps.plots.DEFORMATION_FRACTION`
-of the body's size. Written as GIF (matplotlib's PillowWriter) and, where ffmpeg is
+One animation per mode, the body drawn as in :mod:`pipeline.apps.plots` (by
+:mod:`pipeline.apps.mode_drawing`: 3D perspective, or for a slender body the side /
+end-on view) with the deformation ``sin(2 pi k / frames) * scale * phi`` in frame k (one
+period, ``frames`` frames, looped), ``scale`` making the largest displacement
+:data:`~pipeline.apps.mode_drawing.DEFORMATION_FRACTION` of the body's size. Written as GIF (matplotlib's PillowWriter) and, where ffmpeg is
 installed, also as MP4; every file through the atomic writer.
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.apps import plots
+from pipeline.apps import mode_drawing as drawing
 
 log = logging.getLogger(__name__)
 
@@ -33,18 +33,18 @@ def ffmpeg_available() -> bool:
 
 def _frames(fig, data, surface, mode: int, frames: int):
     """Yield once per frame after drawing it into ``fig``."""
-    slender = plots.is_slender(data.points)
+    slender = drawing.is_slender(data.points)
     for k in range(frames):
         amplitude = float(np.sin(2 * np.pi * k / frames))
         fig.clear()
         if slender:
             ax = fig.add_subplot()
             fig.subplots_adjust(left=0.12, right=0.97, top=0.86, bottom=0.16)
-            plots.draw_mode_2d(ax, data, surface, mode, amplitude=amplitude)
+            drawing.draw_mode_2d(ax, data, surface, mode, amplitude=amplitude)
         else:
             ax = fig.add_subplot(projection="3d", computed_zorder=False)
-            plots.draw_mode(ax, data, surface, mode, amplitude=amplitude)
-        fig.suptitle(plots.mode_title(data, mode), fontsize=12, fontweight="bold")
+            drawing.draw_mode(ax, data, surface, mode, amplitude=amplitude)
+        fig.suptitle(drawing.mode_title(data, mode), fontsize=12, fontweight="bold")
         yield k
 
 
@@ -56,8 +56,8 @@ def animate_mode(data, mode: int, out: str | Path, surface=None, frames: int = F
     from matplotlib.figure import Figure
 
     out = Path(out)
-    surface = surface or plots.boundary_surface(data.points, data.cells, subdivide_below=0)
-    slender = plots.is_slender(data.points)
+    surface = surface or drawing.boundary_surface(data.points, data.cells, subdivide_below=0)
+    slender = drawing.is_slender(data.points)
     fig = Figure(figsize=(7.0, 3.8) if slender else (6.0, 5.0), dpi=DPI, facecolor="white")
     written = []
     targets = [(out.with_suffix(".gif"), PillowWriter(fps=fps))]

@@ -1,11 +1,9 @@
 """Von Mises stress drawn on the body: ``static_von_mises_<input>.png`` (``plot``) and the
 per-point peak of a simulation (``simulate``).
 
-The static field per unit input j is rebuilt from the file's ``stress_modes`` group
-(docs/stress.md): sigma = sum_k S_k eta_k + R_j with eta = -(A^-1 B)[:n_b, j] the static
-modal coordinates of the plant (eta = Omega^-2 Sigma e_j) and R_j the residual shape of
-input j; von Mises as in :func:`pipeline.apps.simulate.stress.von_mises`. The boundary
-surface is coloured by the mean of its nodes' values, undeformed, with the hot spot marked.
+The static field per unit input is :func:`pipeline.apps.stress_fields.static_von_mises`.
+The boundary surface is coloured by the mean of its nodes' values, undeformed, with the hot
+spot marked.
 Only matplotlib's object API is used (no pyplot).
 """
 
@@ -17,31 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.apps.plots import boundary_surface
-from pipeline.apps.simulate.stress import von_mises
-from pipeline.store.read import ModeSet, load_model, read_modes, read_stress_modes
+from pipeline.apps.mode_drawing import boundary_surface
+from pipeline.apps.stress_fields import static_von_mises
+from pipeline.store.read import ModeSet, read_modes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["static_von_mises", "plot_von_mises", "plot_static_von_mises"]
-
-
-def static_von_mises(path: str | Path) -> dict[str, np.ndarray]:
-    """input name -> (n_points,) von Mises stress (Pa per unit input) of the static response;
-    empty for a file without stress modes."""
-    sm = read_stress_modes(path)
-    if sm is None:
-        return {}
-    mats = load_model(path).matrices
-    Z = -np.linalg.solve(mats["A"], mats["B"])  # (n_x, n_u) static states per unit input
-    out = {}
-    for j, name in enumerate(sm.input_names):
-        q = np.zeros(sm.stress.shape[2])
-        q[:sm.n_basis] = Z[:sm.n_basis, j]
-        if sm.n_correction:
-            q[sm.n_basis + j] = 1.0
-        out[name] = von_mises(np.einsum("pks,s->pk", sm.stress, q))
-    return out
+__all__ = ["plot_von_mises", "plot_static_von_mises"]
 
 
 def plot_von_mises(mesh: ModeSet, values: np.ndarray, title: str, out: str | Path,

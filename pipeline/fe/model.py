@@ -23,7 +23,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.fe.assemble import assemble_on_nodes, block_pattern, restrict, whole_nodes
+from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
+from pipeline.fe.pattern import block_pattern
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions

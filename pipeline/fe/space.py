@@ -13,6 +13,7 @@ would hold every basis function at every quadrature point):
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -73,7 +74,13 @@ def build_space(body: BodyMesh, order: int) -> FESpace:
                    sort_t=False)
     if order == 1:
         return FESpace(mesh, 1, body.vertices, body.tetrahedra, np.zeros((0, 2), np.int64), body)
-    edges, t2e = edge_numbering(body.tetrahedra, body.n_vertices)
+    if edge_numbering_matches_skfem():
+        edges, t2e = edge_numbering(body.tetrahedra, body.n_vertices)
+    else:  # the nodes must be numbered as scikit-fem's basis numbers its DOFs
+        log.warning("scikit-fem numbers edges differently from pipeline.fe.space."
+                    "edge_numbering: using its own (slower) numbering")
+        edges = mesh.edges.T.astype(np.int64)
+        t2e = mesh.t2e.T.astype(np.int64)
     midpoints = 0.5 * (body.vertices[edges[:, 0]] + body.vertices[edges[:, 1]])
     nodes = np.vstack([body.vertices, midpoints])
     element_nodes = np.hstack([body.tetrahedra, body.n_vertices + t2e])
@@ -96,6 +103,25 @@ def edge_numbering(tetrahedra: np.ndarray, n_vertices: int) -> tuple[np.ndarray,
     unique, t2e = np.unique(key.ravel(), return_inverse=True)
     edges = np.stack([unique // n_vertices, unique % n_vertices], axis=1)
     return edges, t2e.reshape(t.shape[0], 6).astype(np.int64, copy=False)
+
+
+@functools.lru_cache(maxsize=1)
+def edge_numbering_matches_skfem() -> bool:
+    """Whether :func:`edge_numbering` gives the installed scikit-fem's ``MeshTet.edges``
+    and ``MeshTet.t2e`` (its public arrays) on a small mesh whose tetrahedra list their
+    vertices in shuffled orders; checked once per process. :func:`build_space` uses
+    scikit-fem's arrays where it does not, so that a release that numbers edges another way
+    costs time, not a wrong numbering."""
+    from skfem import MeshTet
+
+    base = MeshTet().refined(1)
+    t = base.t.T.copy()
+    rng = np.random.default_rng(0)
+    for row in t:
+        rng.shuffle(row)  # unsorted vertex order, as a mesh file gives them
+    mesh = MeshTet(base.p, t.T.copy(), validate=False, sort_t=False)
+    edges, t2e = edge_numbering(t, base.p.shape[1])
+    return bool(np.array_equal(edges, mesh.edges.T) and np.array_equal(t2e, mesh.t2e.T))
 
 
 def _edge_ids(space: FESpace, pairs: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ intact are served from the cache (:mod:`pipeline.apps.batch.cache`).
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -196,10 +197,20 @@ def close_unfinished_clusters() -> None:
     from distributed.deploy.spec import SpecCluster
 
     logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
-    for cluster in list(SpecCluster._instances):
+    # distributed has no public list of live clusters: its private registry (the one its
+    # exit hook walks) where there is one, else every SpecCluster the garbage collector holds
+    registry = getattr(SpecCluster, "_instances", None)
+    if registry is not None and hasattr(registry, "discard"):
+        clusters = list(registry)
+    else:
+        registry = None
+        clusters = [o for o in gc.get_objects() if isinstance(o, SpecCluster)]
+    for cluster in clusters:
         with contextlib.suppress(BaseException):
             cluster.close(timeout=5)
-        SpecCluster._instances.discard(cluster)
+        if registry is not None:
+            with contextlib.suppress(Exception):  # one cut short early may not compare
+                registry.discard(cluster)
 
 
 #: the worker processes' stderr (see :func:`start_forkserver_ignoring_sigint`) and how

@@ -6,7 +6,7 @@ From the ``stress_modes`` group (docs/stress.md), per mesh point:
   ``eta_NN`` or of the residual shape ``residual_<input>``, in ParaView's symmetric-tensor
   order [xx, yy, zz, xy, yz, xz] (the file's Voigt order is [xx, yy, zz, yz, xz, xy]);
 - ``von_mises_static_<input>`` (n_points,), Pa per unit input: the static response's von
-  Mises stress (:func:`pipeline.apps.stress_plots.static_von_mises`).
+  Mises stress (:func:`pipeline.apps.stress_fields.static_von_mises`).
 
 A file without stress modes gives no arrays.
 """
@@ -32,7 +32,7 @@ def _safe(name: str) -> str:
 
 def stress_point_data(h5_path: str | Path) -> dict[str, np.ndarray]:
     """Point-data arrays of the stress modes of ``h5_path`` (module docstring)."""
-    from pipeline.apps.stress_plots import static_von_mises  # matplotlib-free function
+    from pipeline.apps.stress_fields import static_von_mises
 
     sm = read_stress_modes(h5_path)
     if sm is None:

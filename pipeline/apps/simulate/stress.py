@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.apps.stress_fields import von_mises
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store.read import ModelFile, StressModes, read_stress_modes
 
@@ -39,13 +40,6 @@ __all__ = ["GAUGE_UNITS", "von_mises", "gauge_ports", "gauge_histories", "stress
 GAUGE_UNITS = {"strain": "1", "stress": "Pa"}
 #: mesh points per block of the peak search (block * 6 * n_t floats in memory)
 CHUNK = 256
-
-
-def von_mises(s: np.ndarray) -> np.ndarray:
-    """Von Mises stress (Pa) of Voigt stresses ``s`` (..., 6) -> (...)."""
-    xx, yy, zz, yz, xz, xy = (s[..., k] for k in range(6))
-    return np.sqrt(0.5 * ((xx - yy) ** 2 + (yy - zz) ** 2 + (zz - xx) ** 2)
-                   + 3.0 * (yz ** 2 + xz ** 2 + xy ** 2))
 
 
 def gauge_ports(mf: ModelFile) -> dict[str, str]:
