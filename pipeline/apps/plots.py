@@ -40,13 +40,11 @@ import numpy as np
 from pipeline._util.atomic import atomic_path
 from pipeline.apps.response_plots import plot_bode, plot_step, save_figure
 from pipeline.apps.views import is_twist, view_for_mode
-from pipeline.store.read import ModeSet, read_modes
-
-ModeData = ModeSet  # what the pictures need: the mesh and modes of one file
+from pipeline.store.read import StoredMesh, read_stored_mesh
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ModeData", "read_modes", "boundary_surface", "plot_mode", "plot_modes_overview",
+__all__ = ["boundary_surface", "plot_mode", "plot_modes_overview",
            "plot_frequency_table", "plot_bode", "plot_step", "plot_file", "add_plot_parser"]
 
 #: Largest deformation drawn, as a fraction of the body's largest dimension.
@@ -203,7 +201,7 @@ def _face_colours(mag: np.ndarray, drawn: np.ndarray):
     return matplotlib.colormaps[CMAP](mag[drawn].mean(axis=1) / peak)
 
 
-def _draw_mode_2d(ax, data: ModeData, surface: Surface, mode: int, *, colorbar_fig=None,
+def _draw_mode_2d(ax, data: StoredMesh, surface: Surface, mode: int, *, colorbar_fig=None,
                   small=False, amplitude: float = 1.0) -> bool:
     """Side view of a slender body: long axis across, the mode's main transverse axis up;
     a twist (:func:`is_twist`) end-on instead, the cross-section axes across and up,
@@ -257,7 +255,7 @@ def _draw_mode_2d(ax, data: ModeData, surface: Surface, mode: int, *, colorbar_f
     return end_on
 
 
-def _draw_mode(ax, data: ModeData, surface: Surface, mode: int, *, light=True, outline=True,
+def _draw_mode(ax, data: StoredMesh, surface: Surface, mode: int, *, light=True, outline=True,
                colorbar_fig=None, amplitude: float = 1.0, triad: bool = True) -> None:
     """3D perspective view of mode ``mode`` from :func:`view_for_mode`, with an axis
     triad; ``amplitude`` multiplies the drawn deformation (an animation frame)."""
@@ -323,7 +321,7 @@ def _fmt_hz(f: float) -> str:
     return f"{f:.1f}" if abs(f) >= 100 else f"{f:.4g}"
 
 
-def _title(data: ModeData, mode: int) -> str:
+def _title(data: StoredMesh, mode: int) -> str:
     label = data.labels[mode] if mode < len(data.labels) else ""
     return f"mode {mode + 1}: {_fmt_hz(data.frequencies_hz[mode])} Hz" + (
         f"  ({label})" if label else "")
@@ -332,7 +330,7 @@ def _title(data: ModeData, mode: int) -> str:
 mode_title = _title
 
 
-def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
+def plot_mode(data: StoredMesh, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
     """One mode (0-based index) as a PNG."""
     from matplotlib.figure import Figure
 
@@ -362,7 +360,7 @@ def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | Non
     return out
 
 
-def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None = None,
+def plot_modes_overview(data: StoredMesh, out: str | Path, surface: Surface | None = None,
                         max_modes: int = 12) -> Path:
     """Small multiples of the first ``max_modes`` modes."""
     from matplotlib.figure import Figure
@@ -396,7 +394,7 @@ def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None
 
 
 # --------------------------------------------------------------------------- table
-def frequency_rows(data: ModeData) -> list[dict]:
+def frequency_rows(data: StoredMesh) -> list[dict]:
     rows = []
     for i, f in enumerate(data.frequencies_hz):
         damping = data.retained_damping[i] if i < data.retained_damping.size else None
@@ -407,7 +405,7 @@ def frequency_rows(data: ModeData) -> list[dict]:
     return rows
 
 
-def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
+def write_frequency_csv(data: StoredMesh, out: str | Path) -> Path:
     out = Path(out)
     with atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
@@ -419,7 +417,7 @@ def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
     return out
 
 
-def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
+def plot_frequency_table(data: StoredMesh, out: str | Path) -> Path:
     """The frequencies as a chart (left) and a table (right)."""
     from matplotlib.figure import Figure
 
@@ -477,7 +475,7 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     path = Path(path)
     out_dir = Path(out_dir) if out_dir else path.with_name(f"{path.stem}_plots")
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = read_modes(path)
+    data = read_stored_mesh(path)
     n = data.frequencies_hz.size if modes is None else min(modes, data.frequencies_hz.size)
     surface = boundary_surface(data.points, data.cells)
     written = []

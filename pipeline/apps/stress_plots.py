@@ -19,7 +19,7 @@ import numpy as np
 from pipeline._util.atomic import atomic_path
 from pipeline.apps.plots import boundary_surface
 from pipeline.apps.simulate.stress import von_mises
-from pipeline.store.read import ModeSet, load_model, read_modes, read_stress_modes
+from pipeline.store.read import StoredMesh, load_model, read_stored_mesh, read_stress_modes
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ def static_von_mises(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
-def plot_von_mises(mesh: ModeSet, values: np.ndarray, title: str, out: str | Path,
+def plot_von_mises(mesh: StoredMesh, values: np.ndarray, title: str, out: str | Path,
                    unit_note: str = "Pa") -> Path:
     """The boundary surface of ``mesh`` coloured by ``values`` (n_points,), hot spot marked."""
     import matplotlib
@@ -86,7 +86,7 @@ def plot_static_von_mises(path: str | Path, out_dir: str | Path) -> list[Path]:
     fields = static_von_mises(path)
     if not fields:
         return []
-    mesh = read_modes(path)
+    mesh = read_stored_mesh(path)
     written = []
     for name, vm in fields.items():
         written.append(plot_von_mises(mesh, vm, f"{mesh.name}: static von Mises stress, "

@@ -246,10 +246,10 @@ def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> 
     written = [path]
     if peak is not None and model_path is not None:
         from pipeline.apps.stress_plots import plot_von_mises  # deferred: matplotlib
-        from pipeline.store.read import read_modes
+        from pipeline.store.read import read_stored_mesh
 
         written.append(plot_von_mises(
-            read_modes(model_path), peak.peak, f"{scenario_result.scenario.name}: peak von Mises "
+            read_stored_mesh(model_path), peak.peak, f"{scenario_result.scenario.name}: peak von Mises "
             f"over the run (hot spot at t = {peak.time:.4g} s)",
             path.with_name(path.name.replace(".stress.png", ".peak_von_mises.png"))))
     return written
