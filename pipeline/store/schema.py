@@ -1,5 +1,6 @@
-"""The one writer of the HDF5 layout of the reduced models (docs/hdf5-format.md,
-docs/hdf5-connection.md): every ``<group>/<name>`` dataset, its units and attributes.
+"""The one writer of the HDF5 layout of the reduced models (docs/hdf5-format.md; the paths
+are named in :mod:`pipeline.store.layout`): every ``<group>/<name>`` dataset, its units
+and attributes.
 
 :func:`models_tree` turns the reduce stage's :class:`~pipeline.reduce.build.Models`
 record into ``(datasets, group attributes)``: ``{"<group>/<name>": Dataset}`` and
@@ -18,7 +19,7 @@ that write a partial file:
 ``stress_modes``           :func:`stress_modes_datasets` (stress and strain of every basis
                            vector and static correction shape at the mesh points)
 ``fe/{mass,stiffness}_matrix``  :func:`exudyn_datasets` (CSR, :func:`csr_datasets`;
-                           read back by :func:`pipeline.apps.exports.read_csr`)
+                           read back by :func:`pipeline.store.read.read_csr`)
 =========================  ==============================================================
 
 Units are SI strings per dataset (``"mixed"`` with a ``units_note`` / ``units_rule`` /
@@ -43,6 +44,8 @@ from pipeline.reduce.lumped import DOF_AXIS, DOF_KIND, ComparisonRow, LumpedMode
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel
 from pipeline.reduce.models import Models
 from pipeline.reduce.statespace import StateSpace
+from pipeline.store.layout import (CRAIG_BAMPTON, FE, FFRF, LUMPED, STATESPACE,
+                                   STATESPACE_FILTERED, STRESS_MODES, connection)
 from pipeline.store.tree import Dataset
 
 __all__ = [
@@ -74,8 +77,8 @@ def models_tree(models: Models) -> tuple[dict[str, Dataset], dict[str, dict[str,
     attrs: dict[str, dict[str, Any]] = {}
     reduced = models.reduced
     if reduced is not None:
-        tree.update(statespace_datasets(reduced, "statespace", models.compliance_units))
-        attrs["statespace"] = {"static_correction": reduced.static_correction,
+        tree.update(statespace_datasets(reduced, STATESPACE.path, models.compliance_units))
+        attrs[STATESPACE.path] = {"static_correction": reduced.static_correction,
                                "n_modes": reduced.n_modes, "n_basis": reduced.n_basis,
                                "input_units": list(models.input_units),
                                "output_units": list(models.output_units)}
@@ -128,7 +131,7 @@ def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | Non
     return tree
 
 
-def statespace_datasets(model: ReducedModel, group: str = "statespace",
+def statespace_datasets(model: ReducedModel, group: str = STATESPACE.path,
                         compliance_units: str = "m/N") -> dict[str, Dataset]:
     """HDF5 datasets of the (unfiltered) reduced model, keyed ``"<group>/<name>"``.
 
@@ -159,7 +162,7 @@ def statespace_datasets(model: ReducedModel, group: str = "statespace",
 
 # --------------------------------------------------------------------------- stress modes
 def stress_modes_datasets(stress: np.ndarray, strain: np.ndarray, model: ReducedModel,
-                          input_units: Sequence[str], group: str = "stress_modes"
+                          input_units: Sequence[str], group: str = STRESS_MODES.path
                           ) -> dict[str, Dataset]:
     """The ``stress_modes`` group (docs/hdf5-format.md): ``stress`` (Pa per unit coordinate)
     and ``strain`` (1 per unit coordinate), each (n_points, 6, n_b + n_c), of the n_b basis
@@ -195,14 +198,14 @@ def stress_modes_datasets(stress: np.ndarray, strain: np.ndarray, model: Reduced
 
 # --------------------------------------------------------------------------- filtered model
 def filter_group_attrs(kind: str, cutoff_hz: float | None,
-                       group: str = "statespace_filtered") -> dict[str, dict]:
+                       group: str = STATESPACE_FILTERED.path) -> dict[str, dict]:
     """Group attributes ``{group: {"filter_kind": kind, "cutoff_hz": Hz}}`` (NaN: none)."""
     f_c = check_filter(kind, cutoff_hz)
     return {group: {"filter_kind": kind, "cutoff_hz": float("nan") if f_c is None else f_c}}
 
 
 def filter_datasets(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None,
-                    group: str = "statespace_filtered") -> dict[str, Dataset]:
+                    group: str = STATESPACE_FILTERED.path) -> dict[str, Dataset]:
     """HDF5 datasets of the filtered model, keyed ``"<group>/<name>"``.
 
     ``model`` is the plant (a :class:`ReducedModel` or its ``statespace``; it is
@@ -233,7 +236,7 @@ def _q_units(model: LumpedModel) -> list[str]:
 
 
 def lumped_datasets(model: LumpedModel, comparison: Sequence[ComparisonRow] | None = None,
-                    prefix: str = "lumped") -> dict[str, Dataset]:
+                    prefix: str = LUMPED.path) -> dict[str, Dataset]:
     """The HDF5 contents of the chain under ``prefix/`` (every dataset with units).
 
     Joint coordinates q are listed in ``stiffness.attrs['dof_names']`` (``j<joint>.<dof>``,
@@ -342,7 +345,7 @@ def lumped_datasets(model: LumpedModel, comparison: Sequence[ComparisonRow] | No
     return {f"{p}/{k}": v for k, v in out.items()}
 
 
-def lumped_group_attrs(model: LumpedModel, prefix: str = "lumped") -> dict[str, dict[str, Any]]:
+def lumped_group_attrs(model: LumpedModel, prefix: str = LUMPED.path) -> dict[str, dict[str, Any]]:
     """Attributes of the ``prefix`` group: kind, n, element length, section source, damping rule."""
     return {prefix.rstrip("/"): {
         "constants": model.kind, "elements": model.n,
@@ -358,9 +361,9 @@ def connection_datasets(model: ConnectionModel, ss: StateSpace | None = None,
                         group: str | None = None, include_shapes: bool = False
                         ) -> dict[str, Dataset]:
     """HDF5 datasets of one connection model, keyed ``"<group>/<name>"`` with group
-    ``connections/<parent name>`` by default (see docs/hdf5-connection.md)."""
+    ``connections/<parent name>`` by default (see docs/hdf5-format.md)."""
     p = model.parent
-    g = group or f"connections/{p.name}"
+    g = group or connection(p.name).path
     blocks = {"units_blocks": TWIST_UNITS_BLOCKS, "order": list(DIRECTIONS)}
     tree = {
         f"{g}/point": Dataset(p.point, "m", "connection point P",
@@ -429,9 +432,9 @@ def connection_datasets(model: ConnectionModel, ss: StateSpace | None = None,
 
 
 # --------------------------------------------------------------------------- Craig-Bampton
-def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",
+def craig_bampton_datasets(cb: CraigBamptonModel, group: str = CRAIG_BAMPTON.path,
                            include_shapes: bool = True) -> dict[str, Dataset]:
-    """HDF5 datasets of the reduced model (see docs/hdf5-connection.md)."""
+    """HDF5 datasets of the reduced model (see docs/hdf5-format.md)."""
     note = {"coordinates": list(cb.coordinate_names), "coordinate_units": list(cb.coordinate_units)}
     w_free = cb.frequencies_hz()
     tree = {
@@ -478,9 +481,9 @@ _FFRF_UNITS = {
 }
 
 
-def ffrf_datasets(inv: FFRFInvariants, group: str = "ffrf", include_basis: bool = False
+def ffrf_datasets(inv: FFRFInvariants, group: str = FFRF.path, include_basis: bool = False
                   ) -> dict[str, Dataset]:
-    """HDF5 datasets of the invariants (see docs/hdf5-connection.md, section ffrf).
+    """HDF5 datasets of the invariants (see docs/hdf5-format.md, section ffrf).
 
     Units: for modal coordinates (every u_k = m kg^1/2) the simplified unit; otherwise
     ``mixed`` with the attribute ``units_rule`` in terms of ``coordinate_units``.
@@ -539,9 +542,8 @@ def csr_datasets(A: sp.spmatrix, group: str, units: str, description: str,
     """A sparse matrix as CSR arrays ``<group>/{data, indices, indptr, shape}``.
 
     Explicit zeros are dropped. ``symmetric``: store only the upper triangle (diagonal
-    included); the ``data``
-    dataset then carries ``storage = "upper"`` (else ``"full"``). :func:`read_csr`
-    restores the full matrix.
+    included); the ``data`` dataset then carries ``storage = "upper"`` (else ``"full"``).
+    :func:`pipeline.store.read.read_csr` restores the full matrix.
     """
     A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
     A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
@@ -561,8 +563,8 @@ def exudyn_datasets(K_full: sp.spmatrix, M_full: sp.spmatrix) -> dict[str, Datas
     """What the export needs beyond the core file: the assembled M and K of the
     unsupported body (before support condensation), as upper-triangle CSR arrays
     ``fe/mass_matrix/*`` (kg) and ``fe/stiffness_matrix/*`` (N/m)."""
-    tree = csr_datasets(M_full, "fe/mass_matrix", "kg",
+    tree = csr_datasets(M_full, FE.mass_matrix, "kg",
                         "consistent mass matrix of the unsupported body, DOF 3*node+c")
-    tree.update(csr_datasets(K_full, "fe/stiffness_matrix", "N/m",
+    tree.update(csr_datasets(K_full, FE.stiffness_matrix, "N/m",
                              "stiffness matrix of the unsupported body, DOF 3*node+c"))
     return tree
