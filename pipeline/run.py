@@ -28,9 +28,10 @@ from pipeline.solve.eigen import factor_expected
 from pipeline.solve.factorize import PatternAnalysis, resolve_backend
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
-from pipeline.store.layout import BODY, MESH, MODES, ROOT, RUN, cells, region
+from pipeline.store.layout import ROOT
 from pipeline.fe.strain import modal_stress_fields
-from pipeline.store.schema import models_tree, stress_modes_datasets
+from pipeline.store.schema import (core_datasets, core_group_attrs, models_tree,
+                                   run_group_attrs, stress_modes_datasets)
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -190,23 +191,13 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         del full
 
     modes.release_factorization()  # idempotent: freed when K was dropped
-    tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
-    a = MODES.attr
-    group_attrs[MODES.path] = {a.count: int(modes.omega2.size), a.n_rigid: modes.n_rigid,
-                               a.solver: modes.backend, a.shift_rad2_s2: modes.shift}
-    if modes.stats and modes.stats.get("method") == "multigrid-lobpcg":
-        group_attrs[MODES.path][a.preconditioned_residual] = float(min(modes.stats["history"]))
-    a = MESH.attr
-    group_attrs[MESH.path] = {a.cell_type: space.cell_type, a.element_order: cfg.mesh.order,
-                              a.source: "" if mesh_path is None else str(mesh_path),
-                              a.source_sha256: mesh_sha256, a.n_dofs: space.n_dofs,
-                              a.n_free_dofs: int(free.size)}
+    tree.update(core_datasets(space, regions, fixed, props, modes, shapes, labels))
+    multigrid = modes.stats and modes.stats.get("method") == "multigrid-lobpcg"
+    group_attrs.update(core_group_attrs(
+        space, cfg.mesh.order, free.size, "" if mesh_path is None else str(mesh_path),
+        mesh_sha256, modes, min(modes.stats["history"]) if multigrid else None))
     with _stage("write", times):
-        run_attrs = {f"{k}_s": v for k, v in times.items()}  # RUN.attr: <stage>_s
-        run_attrs[RUN.attr.peak_memory_mb] = peak_memory_mb()
-        run_attrs[RUN.attr.solver] = modes.backend
-        group_attrs[RUN.path] = run_attrs
-
+        group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend))
         write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
                                                ROOT.config_yaml: config_to_yaml(cfg)})
     extras: dict[str, Any] = {}
@@ -227,35 +218,6 @@ def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:
                                  reduced.correction_shapes)
     log.info("stress modes: %d shapes at %d mesh points", fields.stress.shape[2], space.n_nodes)
     return stress_modes_datasets(fields.stress, fields.strain, reduced, models.input_units)
-
-
-def _core_tree(space, regions, fixed, props, modes, shapes, labels) -> dict[str, Dataset]:
-    tree = {
-        MESH.points: Dataset(space.node_points, "m", "node coordinates (vertices, then edge "
-                             "midpoints for quadratic elements)"),
-        cells(space.cell_type): Dataset(space.element_nodes.astype(np.int64), "1",
-                                        "node indices per element, meshio order"),
-        MESH.fixed_dofs: Dataset(fixed.astype(np.int64), "1",
-                                 "constrained DOFs; DOF 3*node+c is component c of node"),
-        BODY.mass: Dataset(np.float64(props.mass), "kg", "total mass from the FE mass matrix"),
-        BODY.center_of_mass: Dataset(props.center_of_mass, "m", "centre of mass"),
-        BODY.inertia: Dataset(props.inertia, "kg m^2", "inertia tensor about the centre of mass"),
-        BODY.rigid_mass_matrix: Dataset(props.rigid_mass, "mixed",
-                                        "R^T M R at the origin, twist order [v; omega]",
-                                        {"units_blocks": "kg | kg m ; kg m | kg m^2"}),
-        MODES.frequencies_hz: Dataset(modes.frequencies_hz, "Hz", "natural frequencies"),
-        MODES.omega2: Dataset(modes.omega2, "rad^2/s^2", "eigenvalues omega^2"),
-        MODES.labels: Dataset(list(labels), "1", "dominant motion of each mode"),
-        MODES.shapes: Dataset(shapes, "kg^-1/2", "M-orthonormal mode shapes, "
-                              "(n_points, 3, n_modes): displacement of every mesh point"),
-        MODES.residuals: Dataset(modes.residuals, "1",
-                                 "||K phi - omega^2 M phi|| / ||K phi|| per mode"),
-    }
-    for name, tris in regions.items():
-        tree[region(name)] = Dataset(tris.astype(np.int64), "1",
-                                     "boundary triangles (vertex node indices)")
-    return tree
-
 
 
 def stored_fe_data(path: str | Path, assemble: bool = True):
