@@ -212,3 +212,18 @@ def test_a_written_file_holds_what_the_layout_promises(written):
                     assert key in h5.attrs, f"{path.name}: root attribute {key} missing"
     expected = {g.path for g in L.GROUPS} - {L.FFRF.path, L.RUN.path}
     assert expected <= seen_groups, f"no test file has {sorted(expected - seen_groups)}"
+
+
+def test_the_glossary_names_records_that_exist():
+    """Every **Name** (`module.py`) of docs/glossary.md is a class of that module."""
+    import importlib
+
+    text = (ROOT / "docs" / "glossary.md").read_text(encoding="utf-8")
+    entries = re.findall(r"^- ((?:\*\*\w+\*\*(?:, )?)+) \(`([\w/]+)\.py`\)", text, flags=re.M)
+    assert len(entries) > 20
+    for names, path in entries:
+        path = path.removeprefix("pipeline/")
+        module = importlib.import_module("pipeline." + path.replace("/", "."))
+        for name in re.findall(r"\*\*(\w+)\*\*", names):
+            if name != "layout":
+                assert hasattr(module, name), f"glossary: {name} is not in pipeline/{path}.py"
