@@ -249,7 +249,7 @@ def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> 
         from pipeline.store.read import read_stored_mesh
 
         written.append(plot_von_mises(
-            read_stored_mesh(model_path), peak.peak, f"{scenario_result.scenario.name}: peak von Mises "
-            f"over the run (hot spot at t = {peak.time:.4g} s)",
+            read_stored_mesh(model_path), peak.peak, f"{scenario_result.scenario.name}: peak "
+            f"von Mises over the run (hot spot at t = {peak.time:.4g} s)",
             path.with_name(path.name.replace(".stress.png", ".peak_von_mises.png"))))
     return written
