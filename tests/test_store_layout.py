@@ -26,8 +26,8 @@ DOC = ROOT / "docs" / "hdf5-format.md"
 
 #: group names that mean nothing else in the code, so a bare literal of one is a path
 UNAMBIGUOUS = (L.STATESPACE.path, L.STATESPACE_FILTERED.path, L.STRESS_MODES.path)
-#: the first component of every path of the layout
-TOP = sorted({g.path.split("/")[0] for g in L.GROUPS})
+#: the first component of every path of the layout (model files and simulation results)
+TOP = sorted({g.path.split("/")[0] for g in L.GROUPS} | {L.RESULT_SUMMARY.path})
 
 
 def _docstrings(tree: ast.AST) -> set[int]:

@@ -32,7 +32,7 @@ import numpy as np
 from pipeline._util.atomic import atomic_path, signals_held
 from pipeline._util.paths import check_name
 from pipeline.errors import FileFormatError, OutputError
-from pipeline.store.layout import ROOT
+from pipeline.store.layout import ROOT, SIMULATION_CONTENT
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -430,7 +430,7 @@ def _finite_check(h5, path: Path):
     content = h5.attrs.get(ROOT.content)
     if isinstance(content, bytes):
         content = content.decode("utf-8", "replace")
-    if content == "simulation results":
+    if content == SIMULATION_CONTENT:
         return None
 
     def check(name: str, data: np.ndarray) -> None:

@@ -19,7 +19,8 @@ __all__ = ["Group", "Names", "ROOT", "MESH", "BODY", "MODES", "STATESPACE",
            "STATESPACE_FILTERED", "STRESS_MODES", "LUMPED", "RUN", "CONNECTIONS",
            "CRAIG_BAMPTON", "FFRF", "FE", "GROUPS", "connection", "csr_group",
            "STATESPACE_DATASETS", "CELL_TYPES", "cells", "region",
-           "connection_statespace", "LUMPED_STATESPACE", "CSR_DATASETS"]
+           "connection_statespace", "LUMPED_STATESPACE", "CSR_DATASETS", "SIMULATION_CONTENT",
+           "RESULT_ROOT", "RESULT_SUMMARY", "result_run", "result_stress", "result_fit"]
 
 
 class Names:
@@ -200,6 +201,40 @@ FE = Group("fe", ("mass_matrix", "stiffness_matrix"))
 def csr_group(path: str) -> Group:
     """The CSR arrays of the sparse matrix stored under ``path`` (e.g. ``FE.mass_matrix``)."""
     return Group(path, CSR_DATASETS, attrs=("storage", "format"))
+
+
+# --------------------------------------------------------------------------- simulation results
+# A simulation's RESULT.h5 (docs/simulate.md, "RESULT.h5 layout"), written through the same
+# atomic, signed writer; its groups are named after the scenarios and models it ran.
+#: the root attribute ``content`` of a simulation result
+SIMULATION_CONTENT = "simulation results"
+#: root attributes of a simulation result
+RESULT_ROOT = Names("", ("content", "model_file", "model_content_sha256", "scenarios_yaml"))
+#: one row per compared quantity
+RESULT_SUMMARY = Group("summary", ("scenario", "model", "quantity", "units", "measured",
+                                   "predicted"))
+
+
+def result_run(scenario: str, key: str, run: int | None = None) -> Group:
+    """The group of one run, ``<scenario>/<key>[/run_NN]`` (``run``: the index of a mass
+    sweep's run): ``time`` (s), ``signals/<name>`` (SI), ``stress/...``."""
+    path = f"{scenario}/{key}" + ("" if run is None else f"/run_{run:02d}")
+    return Group(path, ("time", "signals", "stress"), attrs=("model", "mass_kg"),
+                 optional=("stress",))
+
+
+def result_stress(run_path: str) -> Group:
+    """The stress peak of a run (``<run>/stress``), for a model file with stress modes."""
+    return Group(f"{run_path}/stress", ("peak_von_mises", "peak_time", "field_at_hot_spot_peak",
+                                        "instants", "fields"),
+                 attrs=("hot_spot_index", "hot_spot_point_m", "peak_von_mises_pa",
+                        "peak_time_s", "voigt_order"), optional=("instants", "fields"))
+
+
+def result_fit(scenario: str, key: str) -> Group:
+    """The fit of a mass sweep, ``<scenario>/<key>/fit``."""
+    return Group(f"{scenario}/{key}/fit", ("masses", "measured_frequency",
+                                           "predicted_frequency", "period_squared"))
 
 
 # --------------------------------------------------------------------------- every group
