@@ -227,3 +227,18 @@ def test_the_glossary_names_records_that_exist():
         for name in re.findall(r"\*\*(\w+)\*\*", names):
             if name != "layout":
                 assert hasattr(module, name), f"glossary: {name} is not in pipeline/{path}.py"
+
+
+def test_a_group_names_its_paths_and_refuses_a_typo():
+    import pickle
+
+    assert L.MODES.frequencies_hz == "modes/frequencies_hz"
+    assert L.MODES.attr.solver == "solver"
+    assert L.LUMPED.section__I_y == "lumped/section/I_y" == L.LUMPED.dataset("section/I_y")
+    assert L.connection("root").D_P == "connections/root/D_P"
+    assert L.cells("tetra10") == "mesh/cells/tetra10"
+    with pytest.raises(AttributeError, match="frequencies_hz"):
+        L.MODES.frequency_hz  # noqa: B018 - the typo names what the layout has
+    with pytest.raises(AttributeError):
+        L.MODES.path = "other"
+    assert pickle.loads(pickle.dumps(L.STATESPACE)).required() == L.STATESPACE.required()

@@ -33,6 +33,8 @@ class Names:
         object.__setattr__(self, "_names", tuple(names))
 
     def __getattr__(self, name: str) -> str:
+        if name.startswith("_"):  # dunder and slot look-ups (copy, pickle): not a name
+            raise AttributeError(name)
         if name in self._names:
             return self._prefix + name
         raise AttributeError(f"'{name}' is not in the layout under '{self._prefix or '/'}' "
@@ -40,6 +42,15 @@ class Names:
 
     def __setattr__(self, name: str, value) -> None:
         raise AttributeError("the layout is read-only")
+
+    def __reduce__(self):
+        return Names, (self._prefix, self._names)
+
+    def __copy__(self):
+        return self  # immutable
+
+    def __deepcopy__(self, memo):
+        return self
 
     def __iter__(self) -> Iterator[str]:
         return (self._prefix + n for n in self._names)
@@ -70,6 +81,9 @@ class Group(Names):
 
     def __getattr__(self, name: str) -> str:
         return super().__getattr__(name.replace("__", "/"))
+
+    def __reduce__(self):
+        return Group, (self.path, self._names, self.attr.names, self.optional)
 
     def dataset(self, name: str) -> str:
         """The full path of the listed dataset ``name`` (which may contain ``/``)."""
