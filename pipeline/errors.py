@@ -7,7 +7,7 @@ rather than on message text:
 
 ``key``
     the dotted config key, the file or the object concerned (``"mesh.size"``,
-    ``"outputs/run.h5"``, ``"statespace/A"``), or None;
+    ``"outputs/run.h5"``, a dataset path of :mod:`pipeline.store.layout`), or None;
 ``value``
     the value received (any object; shown shortened), or None;
 ``expected``

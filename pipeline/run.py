@@ -28,8 +28,10 @@ from pipeline.solve.eigen import factor_expected
 from pipeline.solve.factorize import PatternAnalysis, resolve_backend
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
+from pipeline.store.layout import ROOT
 from pipeline.fe.strain import modal_stress_fields
-from pipeline.store.schema import models_tree, stress_modes_datasets
+from pipeline.store.schema import (core_datasets, core_group_attrs, models_tree,
+                                   run_group_attrs, stress_modes_datasets)
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -189,22 +191,15 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         del full
 
     modes.release_factorization()  # idempotent: freed when K was dropped
-    tree.update(_core_tree(space, regions, fixed, props, modes, shapes, labels))
-    group_attrs["modes"] = {"count": int(modes.omega2.size), "n_rigid": modes.n_rigid,
-                            "solver": modes.backend, "shift_rad2_s2": modes.shift}
-    if modes.stats and modes.stats.get("method") == "multigrid-lobpcg":
-        group_attrs["modes"]["preconditioned_residual"] = float(min(modes.stats["history"]))
-    group_attrs["mesh"] = {"cell_type": space.cell_type, "element_order": cfg.mesh.order,
-                           "source": "" if mesh_path is None else str(mesh_path),
-                           "source_sha256": mesh_sha256, "n_dofs": space.n_dofs,
-                           "n_free_dofs": int(free.size)}
+    tree.update(core_datasets(space, regions, fixed, props, modes, shapes, labels))
+    multigrid = modes.stats and modes.stats.get("method") == "multigrid-lobpcg"
+    group_attrs.update(core_group_attrs(
+        space, cfg.mesh.order, free.size, "" if mesh_path is None else str(mesh_path),
+        mesh_sha256, modes, min(modes.stats["history"]) if multigrid else None))
     with _stage("write", times):
-        group_attrs["run"] = {f"{k}_s": v for k, v in times.items()}
-        group_attrs["run"]["peak_memory_mb"] = peak_memory_mb()
-        group_attrs["run"]["solver"] = modes.backend
-
-        write_file(output, tree, group_attrs, {"name": cfg.name,
-                                               "config_yaml": config_to_yaml(cfg)})
+        group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend))
+        write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
+                                               ROOT.config_yaml: config_to_yaml(cfg)})
     extras: dict[str, Any] = {}
     if models is not None:
         extras["summary"] = list(models.summary)
@@ -225,35 +220,6 @@ def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:
     return stress_modes_datasets(fields.stress, fields.strain, reduced, models.input_units)
 
 
-def _core_tree(space, regions, fixed, props, modes, shapes, labels) -> dict[str, Dataset]:
-    tree = {
-        "mesh/points": Dataset(space.node_points, "m", "node coordinates (vertices, then edge "
-                               "midpoints for quadratic elements)"),
-        f"mesh/cells/{space.cell_type}": Dataset(space.element_nodes.astype(np.int64), "1",
-                                                 "node indices per element, meshio order"),
-        "mesh/fixed_dofs": Dataset(fixed.astype(np.int64), "1",
-                                   "constrained DOFs; DOF 3*node+c is component c of node"),
-        "body/mass": Dataset(np.float64(props.mass), "kg", "total mass from the FE mass matrix"),
-        "body/center_of_mass": Dataset(props.center_of_mass, "m", "centre of mass"),
-        "body/inertia": Dataset(props.inertia, "kg m^2", "inertia tensor about the centre of mass"),
-        "body/rigid_mass_matrix": Dataset(props.rigid_mass, "mixed",
-                                          "R^T M R at the origin, twist order [v; omega]",
-                                          {"units_blocks": "kg | kg m ; kg m | kg m^2"}),
-        "modes/frequencies_hz": Dataset(modes.frequencies_hz, "Hz", "natural frequencies"),
-        "modes/omega2": Dataset(modes.omega2, "rad^2/s^2", "eigenvalues omega^2"),
-        "modes/labels": Dataset(list(labels), "1", "dominant motion of each mode"),
-        "modes/shapes": Dataset(shapes, "kg^-1/2", "M-orthonormal mode shapes, "
-                                "(n_points, 3, n_modes): displacement of every mesh point"),
-        "modes/residuals": Dataset(modes.residuals, "1",
-                                   "||K phi - omega^2 M phi|| / ||K phi|| per mode"),
-    }
-    for name, tris in regions.items():
-        tree[f"mesh/regions/{name}"] = Dataset(tris.astype(np.int64), "1",
-                                               "boundary triangles (vertex node indices)")
-    return tree
-
-
-
 def stored_fe_data(path: str | Path, assemble: bool = True):
     """What ``export --to exudyn`` needs beyond a result file, rebuilt on its stored mesh
     with its stored config (never re-meshing): :class:`pipeline.fe.stored.StoredFE` with
@@ -264,12 +230,10 @@ def stored_fe_data(path: str | Path, assemble: bool = True):
     from pipeline.config.parse import config_from_dict
     from pipeline.config import BOX_FACES
     from pipeline.fe.stored import matrices_of_stored_mesh
-    from pipeline.store.read import open_verified, read_modes
+    from pipeline.store.read import read_stored_mesh
 
-    mesh = read_modes(path)
-    with open_verified(path, verify_checksum=False) as h5:
-        text = str(h5.attrs.get("config_yaml", ""))
-    raw = yaml.safe_load(text) or {}
+    mesh = read_stored_mesh(path)
+    raw = yaml.safe_load(mesh.config_yaml) or {}
     if not isinstance(raw, dict):
         raw = {}
     # only the material and the ports matter here: the stored mesh replaces the geometry (a

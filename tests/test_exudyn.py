@@ -33,7 +33,8 @@ import pytest
 
 from conftest import build_model, cond_eps, eigenvalue_rtol, record_tolerance
 from pipeline.errors import ConfigError, FileFormatError
-from pipeline.apps.exports import EXPORTERS, default_output, export, read_csr
+from pipeline.apps.exports import EXPORTERS, default_output, export
+from pipeline.store.read import read_csr
 from pipeline.apps.exports.exudyn import boundary_faces, export_exudyn, region_node_weights
 from pipeline.store.schema import craig_bampton_datasets, csr_datasets, exudyn_datasets
 from pipeline.store.tree import Dataset

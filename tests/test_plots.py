@@ -15,7 +15,8 @@ import pytest
 from pipeline.config import load_config
 from pipeline.errors import FileFormatError
 from pipeline.store.read import load_model
-from pipeline.apps.plots import add_plot_parser, boundary_surface, is_slender, plot_file, read_modes
+from pipeline.apps.plots import add_plot_parser, boundary_surface, is_slender, plot_file
+from pipeline.store.read import read_stored_mesh
 from pipeline.run import run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,14 +67,14 @@ def test_every_picture_of_a_reduced_model_is_written_and_non_trivial(bracket_h5,
         if p.suffix == ".png":
             assert_picture(p)
     rows = list(csv.DictReader(open(tmp_path / "pics" / "frequencies.csv")))
-    data = read_modes(bracket_h5)
+    data = read_stored_mesh(bracket_h5)
     assert [float(r["frequency_hz"]) for r in rows] == pytest.approx(list(data.frequencies_hz))
     assert [r["in_reduced_model"] for r in rows] == ["1", "1", "1", "1"]
     assert not is_slender(data.points)
 
 
 def test_slender_body_is_drawn_as_a_side_view_and_modes_only_file_has_no_bode(beam_h5, tmp_path):
-    data = read_modes(beam_h5)
+    data = read_stored_mesh(beam_h5)
     assert is_slender(data.points)
     files = plot_file(beam_h5, tmp_path, modes=2)
     assert sorted(p.name for p in files) == ["frequencies.csv", "frequencies.png",
@@ -173,7 +174,7 @@ def test_every_axis_carries_its_unit_in_brackets(bracket_h5, beam_h5, monkeypatc
     figs = _captured_figures(monkeypatch)
     response_plots.plot_bode(bracket_h5, tmp_path / "bode.png")
     response_plots.plot_step(bracket_h5, tmp_path / "step.png")
-    data = read_modes(beam_h5)
+    data = read_stored_mesh(beam_h5)
     plots_module.plot_mode(data, 0, tmp_path / "m.png")
     plots_module.plot_frequency_table(data, tmp_path / "f.png")
     labels = [label for fig in figs for label in _axis_labels(fig)]
@@ -233,7 +234,7 @@ def test_animation_is_a_looping_gif_of_the_moving_shape(beam_h5, tmp_path):
 
     from pipeline.apps.animate import animate_mode
 
-    data = read_modes(beam_h5)
+    data = read_stored_mesh(beam_h5)
     written = animate_mode(data, 0, tmp_path / "mode_01.gif", frames=8, mp4=False)
     assert written == [tmp_path / "mode_01.gif"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mode_01.gif"]  # no temporaries
@@ -247,12 +248,12 @@ def test_animation_is_a_looping_gif_of_the_moving_shape(beam_h5, tmp_path):
 
 
 def test_batch_report_axes_carry_units(bracket_h5):
-    from pipeline.apps.batch.models import read_statespace
+    from pipeline.apps.batch.gains import case_models, ratio_unit
     from pipeline.apps.batch.plots import key_label
 
     assert key_label("geometry.height") == "geometry.height [m]"
     assert key_label("material.E") == "material.E [Pa]"
     assert key_label("filter.cutoff_hz") == "filter.cutoff_hz [Hz]"
-    ss = read_statespace(bracket_h5)
+    ss = case_models(bracket_h5)
     pos = [n for n in ss.output_names if n.endswith("/position")]
-    assert ss.ratio_unit(ss.input_names[0], pos[0]) == "m/N"
+    assert ratio_unit(ss, ss.input_names[0], pos[0]) == "m/N"

@@ -85,6 +85,20 @@ def test_loader_gives_back_the_model_bit_for_bit(result):
     assert model.filter_kind == "third_order" and model.cutoff_hz == 5000.0
 
 
+def test_loaded_model_holds_the_plant_once(result):
+    """The README's attributes are views of one StateSpace: the raw matrices are the plant's
+    own arrays and the python-control system is built from them on first use."""
+    model = load_model(result.output)
+    for k in "ABCD":
+        assert model.matrices[k] is getattr(model.plant, k)
+        assert model.matrices_filtered[k] is getattr(model.filtered, k)
+    assert model.ss is model.ss  # built once
+    assert model.frequencies_hz.size == len(model.labels) == result.frequencies_hz.size
+    assert model.static_compliance.shape == (1, 1) and model.compliance_rows == ("tip_y",)
+    assert model.damping_ratios.shape == model.retained_frequencies_hz.shape
+    assert model.input_units == ("N",) and model.name == "cantilever"
+
+
 def test_interrupted_write_leaves_nothing_under_the_final_name(tmp_path, monkeypatch):
     import pipeline.store.h5file as store
 

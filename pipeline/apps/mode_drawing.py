@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.apps.views import is_twist, view_for_mode
-from pipeline.store.read import ModeSet
+from pipeline.store.read import StoredMesh
 
 __all__ = ["DEFORMATION_FRACTION", "FEATURE_ANGLE_DEG", "SUBDIVIDE_BELOW", "CMAP", "DPI",
            "SLENDER_RATIO", "Surface", "boundary_surface", "is_slender", "draw_mode",
@@ -175,7 +175,7 @@ def _face_colours(mag: np.ndarray, drawn: np.ndarray):
     return matplotlib.colormaps[CMAP](mag[drawn].mean(axis=1) / peak)
 
 
-def draw_mode_2d(ax, data: ModeSet, surface: Surface, mode: int, *, colorbar_fig=None,
+def draw_mode_2d(ax, data: StoredMesh, surface: Surface, mode: int, *, colorbar_fig=None,
                   small=False, amplitude: float = 1.0) -> bool:
     """Side view of a slender body: long axis across, the mode's main transverse axis up;
     a twist (:func:`is_twist`) end-on instead, the cross-section axes across and up,
@@ -229,7 +229,7 @@ def draw_mode_2d(ax, data: ModeSet, surface: Surface, mode: int, *, colorbar_fig
     return end_on
 
 
-def draw_mode(ax, data: ModeSet, surface: Surface, mode: int, *, light=True, outline=True,
+def draw_mode(ax, data: StoredMesh, surface: Surface, mode: int, *, light=True, outline=True,
                colorbar_fig=None, amplitude: float = 1.0, triad: bool = True) -> None:
     """3D perspective view of mode ``mode`` from :func:`view_for_mode`, with an axis
     triad; ``amplitude`` multiplies the drawn deformation (an animation frame)."""
@@ -286,7 +286,7 @@ def _fmt_hz(f: float) -> str:
     return f"{f:.1f}" if abs(f) >= 100 else f"{f:.4g}"
 
 
-def mode_title(data: ModeSet, mode: int) -> str:
+def mode_title(data: StoredMesh, mode: int) -> str:
     label = data.labels[mode] if mode < len(data.labels) else ""
     return f"mode {mode + 1}: {_fmt_hz(data.frequencies_hz[mode])} Hz" + (
         f"  ({label})" if label else "")

@@ -41,13 +41,11 @@ from pipeline.apps.mode_drawing import (DEFORMATION_FRACTION, DPI, Surface, boun
                                         colour_bar, draw_mode, draw_mode_2d, is_slender,
                                         mode_title)
 from pipeline.apps.response_plots import plot_bode, plot_step, save_figure
-from pipeline.store.read import ModeSet, read_modes
-
-ModeData = ModeSet  # what the pictures need: the mesh and modes of one file
+from pipeline.store.read import StoredMesh, read_stored_mesh
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ModeData", "read_modes", "boundary_surface", "plot_mode", "plot_modes_overview",
+__all__ = ["boundary_surface", "plot_mode", "plot_modes_overview",
            "plot_frequency_table", "plot_bode", "plot_step", "plot_file", "add_plot_parser"]
 
 
@@ -57,7 +55,7 @@ def _savefig(fig, out: Path) -> None:
     save_figure(fig, out)
 
 
-def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
+def plot_mode(data: StoredMesh, mode: int, out: str | Path, surface: Surface | None = None) -> Path:
     """One mode (0-based index) as a PNG."""
     from matplotlib.figure import Figure
 
@@ -87,7 +85,7 @@ def plot_mode(data: ModeData, mode: int, out: str | Path, surface: Surface | Non
     return out
 
 
-def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None = None,
+def plot_modes_overview(data: StoredMesh, out: str | Path, surface: Surface | None = None,
                         max_modes: int = 12) -> Path:
     """Small multiples of the first ``max_modes`` modes."""
     from matplotlib.figure import Figure
@@ -121,7 +119,7 @@ def plot_modes_overview(data: ModeData, out: str | Path, surface: Surface | None
 
 
 # --------------------------------------------------------------------------- table
-def frequency_rows(data: ModeData) -> list[dict]:
+def frequency_rows(data: StoredMesh) -> list[dict]:
     rows = []
     for i, f in enumerate(data.frequencies_hz):
         damping = data.retained_damping[i] if i < data.retained_damping.size else None
@@ -132,7 +130,7 @@ def frequency_rows(data: ModeData) -> list[dict]:
     return rows
 
 
-def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
+def write_frequency_csv(data: StoredMesh, out: str | Path) -> Path:
     out = Path(out)
     with atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
@@ -144,7 +142,7 @@ def write_frequency_csv(data: ModeData, out: str | Path) -> Path:
     return out
 
 
-def plot_frequency_table(data: ModeData, out: str | Path) -> Path:
+def plot_frequency_table(data: StoredMesh, out: str | Path) -> Path:
     """The frequencies as a chart (left) and a table (right)."""
     from matplotlib.figure import Figure
 
@@ -202,7 +200,7 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     path = Path(path)
     out_dir = Path(out_dir) if out_dir else path.with_name(f"{path.stem}_plots")
     out_dir.mkdir(parents=True, exist_ok=True)
-    data = read_modes(path)
+    data = read_stored_mesh(path)
     n = data.frequencies_hz.size if modes is None else min(modes, data.frequencies_hz.size)
     surface = boundary_surface(data.points, data.cells)
     written = []

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline.store.read import load_model, open_verified, read_strings
+from pipeline.store.read import StoredModels, load_model
 
 DPI = 130
 PLANT = "#1f4e9c"
@@ -38,13 +38,9 @@ def position_outputs(names: tuple[str, ...]) -> list[int]:
     return pos or list(range(len(names)))
 
 
-def port_units(path) -> tuple[list[str], list[str]]:
-    """(input units, output units) of the file's plant."""
-    with open_verified(path, verify_checksum=False) as h5:
-        attrs = h5["statespace"].attrs
-        ins = read_strings(attrs["input_units"]) if "input_units" in attrs else []
-        outs = read_strings(attrs["output_units"]) if "output_units" in attrs else []
-    return ins, outs
+def port_units(model: StoredModels) -> tuple[list[str], list[str]]:
+    """(input units, output port units) of the file's plant."""
+    return list(model.input_units), list(model.port_units)
 
 
 def ratio_unit(units: tuple[list[str], list[str]], r: int, c: int) -> str:
@@ -113,7 +109,7 @@ def plot_bode(path: str | Path, out: str | Path) -> Path:
     from matplotlib.figure import Figure
 
     model = load_model(path, require_plant=True)
-    units = port_units(path)
+    units = port_units(model)
     outs = position_outputs(model.output_names)
     n_in = len(model.input_names)
     retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])
@@ -168,7 +164,7 @@ def plot_step(path: str | Path, out: str | Path) -> Path:
     from matplotlib.figure import Figure
 
     model = load_model(path, require_plant=True)
-    units = port_units(path)
+    units = port_units(model)
     outs = position_outputs(model.output_names)
     n_in = len(model.input_names)
     retained = np.asarray(model.frequencies_hz[:model.damping_ratios.size])

@@ -17,14 +17,14 @@ import numpy as np
 from pipeline._util.atomic import atomic_path
 from pipeline.apps.mode_drawing import boundary_surface
 from pipeline.apps.stress_fields import static_von_mises
-from pipeline.store.read import ModeSet, read_modes
+from pipeline.store.read import StoredMesh, read_stored_mesh
 
 log = logging.getLogger(__name__)
 
 __all__ = ["plot_von_mises", "plot_static_von_mises"]
 
 
-def plot_von_mises(mesh: ModeSet, values: np.ndarray, title: str, out: str | Path,
+def plot_von_mises(mesh: StoredMesh, values: np.ndarray, title: str, out: str | Path,
                    unit_note: str = "Pa") -> Path:
     """The boundary surface of ``mesh`` coloured by ``values`` (n_points,), hot spot marked."""
     import matplotlib
@@ -66,7 +66,7 @@ def plot_static_von_mises(path: str | Path, out_dir: str | Path) -> list[Path]:
     fields = static_von_mises(path)
     if not fields:
         return []
-    mesh = read_modes(path)
+    mesh = read_stored_mesh(path)
     written = []
     for name, vm in fields.items():
         written.append(plot_von_mises(mesh, vm, f"{mesh.name}: static von Mises stress, "

@@ -61,7 +61,7 @@ def matrices_of_stored_mesh(cfg: Config, points: np.ndarray, cells: np.ndarray,
     if space.node_points.shape != points.shape or not np.array_equal(space.node_points, points):
         raise MeshError(f"{what}: the stored mesh does not rebuild to the same nodes (edge "
                         "nodes in another order); cannot re-assemble its matrices",
-                        key="mesh/points", value="different node order",
+                        key=what, value="different node order",
                         expected="the pipeline's own edge numbering")
     K, M = assemble_stiffness_mass(space, cfg.material) if assemble else (None, None)
     n_u = len(cfg.ports.inputs)

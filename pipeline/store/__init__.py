@@ -1,1 +1,4 @@
-"""The HDF5 file: the one writer of its layout, atomic checksummed files, the one reader."""
+"""The HDF5 file (docs/hdf5-format.md): ``layout`` names every path and attribute once;
+``schema`` (with ``schema_interfaces``) is the one writer of the layout, ``h5file`` writes
+atomic, checksummed files and verifies them; ``read`` is the one reader, returning the
+typed records of ``records``."""

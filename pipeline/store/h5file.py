@@ -32,6 +32,7 @@ import numpy as np
 from pipeline._util.atomic import atomic_path, signals_held
 from pipeline._util.paths import check_name
 from pipeline.errors import FileFormatError, OutputError
+from pipeline.store.layout import ROOT, SIMULATION_CONTENT
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ def content_digest(h5) -> str:
 
 
 # root attributes that are not themselves covered by attrs_sha256
-_SIGNATURES = ("content_sha256", "attrs_sha256")
+_SIGNATURES = (ROOT.content_sha256, ROOT.attrs_sha256)
 
 
 def _attr_bytes(value: Any) -> bytes:
@@ -137,14 +138,15 @@ def _attrs_digests(h5) -> tuple[str, dict[str, str]]:
         obj = h5[name]
         one = hashlib.sha256()
         for key in sorted(obj.attrs):
-            if name == "/" and key in _SIGNATURES + ("content_index",):
+            if name == "/" and key in _SIGNATURES + (ROOT.content_index,):
                 continue
             one.update(key.encode() + b"=" + _attr_bytes(obj.attrs[key]) + b"\0")
         part = one.hexdigest()
         digest.update(name.encode() + b":" + part.encode() + b"\n")
         each[name] = part
-    if "content_index" in h5.attrs:
-        digest.update(b"content_index=" + _attr_bytes(h5.attrs["content_index"]))
+    if ROOT.content_index in h5.attrs:
+        index = h5.attrs[ROOT.content_index]
+        digest.update(ROOT.content_index.encode() + b"=" + _attr_bytes(index))
     return digest.hexdigest(), each
 
 
@@ -153,7 +155,7 @@ def sign(h5) -> str:
     ``content_index``, ``content_sha256`` and ``attrs_sha256``. Returns the content digest.
     A tool that adds datasets to one of our files calls this to re-sign it."""
     content, datasets = _dataset_digests(h5)
-    for key in _SIGNATURES + ("content_index",):
+    for key in _SIGNATURES + (ROOT.content_index,):
         if key in h5.attrs:
             del h5.attrs[key]
     _, objects = _attrs_digests(h5)
@@ -161,9 +163,9 @@ def sign(h5) -> str:
              "attrs": {k: v[:16] for k, v in objects.items()}}
     text = json.dumps(index, sort_keys=True, separators=(",", ":"))
     if len(text) < 60000:  # an attribute lives in a 64 kB object header
-        h5.attrs["content_index"] = text
-    h5.attrs["content_sha256"] = content
-    h5.attrs["attrs_sha256"] = f"{content[:16]}:{_attrs_digests(h5)[0]}"
+        h5.attrs[ROOT.content_index] = text
+    h5.attrs[ROOT.content_sha256] = content
+    h5.attrs[ROOT.attrs_sha256] = f"{content[:16]}:{_attrs_digests(h5)[0]}"
     return content
 
 
@@ -184,10 +186,10 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     # temporary file is removed and nothing appears under the final name
     with atomic_path(path) as tmp, signals_held():
         with h5py.File(tmp, "w") as h5:
-            h5.attrs["schema"] = SCHEMA
-            h5.attrs["schema_version"] = SCHEMA_VERSION
-            h5.attrs["pipeline_version"] = __version__
-            h5.attrs["created_utc"] = _dt.datetime.now(_dt.timezone.utc).strftime(
+            h5.attrs[ROOT.schema] = SCHEMA
+            h5.attrs[ROOT.schema_version] = SCHEMA_VERSION
+            h5.attrs[ROOT.pipeline_version] = __version__
+            h5.attrs[ROOT.created_utc] = _dt.datetime.now(_dt.timezone.utc).strftime(
                 "%Y-%m-%dT%H:%M:%SZ")
             for key, value in (root_attrs or {}).items():
                 h5.attrs[key] = _attr_value(value)
@@ -259,9 +261,9 @@ def _open_h5(path: Path):
 
 
 def _schema_version(h5, path: Path) -> int:
-    if "schema_version" not in h5.attrs:
+    if ROOT.schema_version not in h5.attrs:
         raise FileFormatError(f"file '{path}': has no schema_version attribute")
-    raw = h5.attrs["schema_version"]
+    raw = h5.attrs[ROOT.schema_version]
     value = raw.item() if isinstance(raw, np.ndarray) and raw.size == 1 else raw
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise FileFormatError(f"file '{path}': schema_version {_short(value)} is not an integer; "
@@ -304,7 +306,7 @@ def _diagnose(h5, stored_index: Any, actual: dict[str, str], kind: str) -> str:
 
 
 def _verify(h5, path: Path, verify_checksum: bool) -> None:
-    schema = h5.attrs.get("schema")
+    schema = h5.attrs.get(ROOT.schema)
     if isinstance(schema, bytes):
         schema = schema.decode("utf-8", "replace")
     if not isinstance(schema, str) or schema != SCHEMA:
@@ -317,15 +319,15 @@ def _verify(h5, path: Path, verify_checksum: bool) -> None:
                               f"{', '.join(map(str, KNOWN_VERSIONS))}")
     if not verify_checksum:
         return
-    stored = h5.attrs.get("content_sha256")
+    stored = h5.attrs.get(ROOT.content_sha256)
     if stored is None:
         raise FileFormatError(f"file '{path}': has no content_sha256 attribute")
     stored = stored.decode("utf-8", "replace") if isinstance(stored, bytes) else str(stored)
-    index = h5.attrs.get("content_index")
+    index = h5.attrs.get(ROOT.content_index)
     actual, each = _dataset_digests(h5, _finite_check(h5, path))
     _require_digest(h5, path, index, "content", stored, actual, each, "datasets",
                     "the file was modified or corrupted after it was written")
-    signed = h5.attrs.get("attrs_sha256")
+    signed = h5.attrs.get(ROOT.attrs_sha256)
     if signed is None:
         return  # written before attribute checksums existed
     signed = signed.decode("utf-8", "replace") if isinstance(signed, bytes) else str(signed)
@@ -425,10 +427,10 @@ def _finite_check(h5, path: Path):
     state-space matrices A, B, C, D of every model, and every float dataset under
     /mesh, /body, /modes and /fe (elsewhere NaN has a meaning: no filter cut-off, a
     comparison that does not apply, a quantity a simulation cannot measure)."""
-    content = h5.attrs.get("content")
+    content = h5.attrs.get(ROOT.content)
     if isinstance(content, bytes):
         content = content.decode("utf-8", "replace")
-    if content == "simulation results":
+    if content == SIMULATION_CONTENT:
         return None
 
     def check(name: str, data: np.ndarray) -> None:

@@ -1,5 +1,6 @@
-"""The one writer of the HDF5 layout of the reduced models (docs/hdf5-format.md,
-docs/hdf5-connection.md): every ``<group>/<name>`` dataset, its units and attributes.
+"""The one writer of the HDF5 layout of the reduced models (docs/hdf5-format.md; the paths
+are named in :mod:`pipeline.store.layout`): every ``<group>/<name>`` dataset, its units
+and attributes.
 
 :func:`models_tree` turns the reduce stage's :class:`~pipeline.reduce.build.Models`
 record into ``(datasets, group attributes)``: ``{"<group>/<name>": Dataset}`` and
@@ -18,7 +19,7 @@ that write a partial file:
 ``stress_modes``           :func:`stress_modes_datasets` (stress and strain of every basis
                            vector and static correction shape at the mesh points)
 ``fe/{mass,stiffness}_matrix``  :func:`exudyn_datasets` (CSR, :func:`csr_datasets`;
-                           read back by :func:`pipeline.apps.exports.read_csr`)
+                           read back by :func:`pipeline.store.read.read_csr`)
 =========================  ==============================================================
 
 Units are SI strings per dataset (``"mixed"`` with a ``units_note`` / ``units_rule`` /
@@ -32,21 +33,22 @@ import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import scipy.sparse as sp
 
-from pipeline.reduce.connection import ConnectionModel
-from pipeline.reduce.craig_bampton import CraigBamptonModel
-from pipeline.reduce.ffrf import MODAL_UNIT, FFRFInvariants
 from pipeline.reduce.filters import check_filter, filtered_model
-from pipeline.reduce.interfaces import DIRECTIONS, TWIST_UNITS_BLOCKS
 from pipeline.reduce.lumped import DOF_AXIS, DOF_KIND, ComparisonRow, LumpedModel
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel
 from pipeline.reduce.models import Models
-from pipeline.reduce.statespace import StateSpace
+from pipeline.store.layout import (BODY, LUMPED, MESH, MODES, RUN, STATESPACE,
+                                   STATESPACE_FILTERED, STRESS_MODES, cells, region)
+from pipeline.store.schema_interfaces import (connection_datasets, craig_bampton_datasets,
+                                              csr_datasets, exudyn_datasets, ffrf_datasets)
 from pipeline.store.tree import Dataset
 
 __all__ = [
     "models_tree",
+    "core_datasets",
+    "core_group_attrs",
+    "run_group_attrs",
     "statespace_datasets",
     "filter_datasets",
     "filter_group_attrs",
@@ -74,8 +76,8 @@ def models_tree(models: Models) -> tuple[dict[str, Dataset], dict[str, dict[str,
     attrs: dict[str, dict[str, Any]] = {}
     reduced = models.reduced
     if reduced is not None:
-        tree.update(statespace_datasets(reduced, "statespace", models.compliance_units))
-        attrs["statespace"] = {"static_correction": reduced.static_correction,
+        tree.update(statespace_datasets(reduced, STATESPACE.path, models.compliance_units))
+        attrs[STATESPACE.path] = {"static_correction": reduced.static_correction,
                                "n_modes": reduced.n_modes, "n_basis": reduced.n_basis,
                                "input_units": list(models.input_units),
                                "output_units": list(models.output_units)}
@@ -95,6 +97,71 @@ def models_tree(models: Models) -> tuple[dict[str, Dataset], dict[str, dict[str,
     if models.fe_matrices is not None:
         tree.update(exudyn_datasets(*models.fe_matrices))
     return tree, attrs
+
+
+# --------------------------------------------------------------------------- mesh, body, modes
+def core_datasets(space, regions: Mapping[str, np.ndarray], fixed: np.ndarray, props, modes,
+                  shapes: np.ndarray, labels: Sequence[str]) -> dict[str, Dataset]:
+    """The ``mesh``, ``body`` and ``modes`` datasets of every result file.
+
+    space: the FE space (node_points (n_p, 3) m, element_nodes, cell_type); regions:
+    boundary triangles (n_f, 3) by name; fixed (n_c,): constrained DOFs; props: the body's
+    mass (kg), center_of_mass (3,) m, inertia (3, 3) kg m^2, rigid_mass (6, 6); modes: the
+    solve stage's frequencies_hz, omega2 (rad^2/s^2), residuals (n_m,); shapes (n_p, 3, n_m)
+    kg^-1/2; labels (n_m,).
+    """
+    tree = {
+        MESH.points: Dataset(space.node_points, "m", "node coordinates (vertices, then edge "
+                             "midpoints for quadratic elements)"),
+        cells(space.cell_type): Dataset(space.element_nodes.astype(np.int64), "1",
+                                        "node indices per element, meshio order"),
+        MESH.fixed_dofs: Dataset(fixed.astype(np.int64), "1",
+                                 "constrained DOFs; DOF 3*node+c is component c of node"),
+        BODY.mass: Dataset(np.float64(props.mass), "kg", "total mass from the FE mass matrix"),
+        BODY.center_of_mass: Dataset(props.center_of_mass, "m", "centre of mass"),
+        BODY.inertia: Dataset(props.inertia, "kg m^2", "inertia tensor about the centre of mass"),
+        BODY.rigid_mass_matrix: Dataset(props.rigid_mass, "mixed",
+                                        "R^T M R at the origin, twist order [v; omega]",
+                                        {"units_blocks": "kg | kg m ; kg m | kg m^2"}),
+        MODES.frequencies_hz: Dataset(modes.frequencies_hz, "Hz", "natural frequencies"),
+        MODES.omega2: Dataset(modes.omega2, "rad^2/s^2", "eigenvalues omega^2"),
+        MODES.labels: Dataset(list(labels), "1", "dominant motion of each mode"),
+        MODES.shapes: Dataset(shapes, "kg^-1/2", "M-orthonormal mode shapes, "
+                              "(n_points, 3, n_modes): displacement of every mesh point"),
+        MODES.residuals: Dataset(modes.residuals, "1",
+                                 "||K phi - omega^2 M phi|| / ||K phi|| per mode"),
+    }
+    for name, tris in regions.items():
+        tree[region(name)] = Dataset(tris.astype(np.int64), "1",
+                                     "boundary triangles (vertex node indices)")
+    return tree
+
+
+def core_group_attrs(space, element_order: int, n_free_dofs: int, mesh_source: str,
+                     mesh_sha256: str, modes, preconditioned_residual: float | None
+                     ) -> dict[str, dict[str, Any]]:
+    """Attributes of ``/mesh`` and ``/modes`` (docs/hdf5-format.md): the mesh's cell type,
+    order, source file and DOF counts; the modes' count, rigid modes, solver backend and
+    shift (rad^2/s^2), and the two-grid solver's convergence measure when given."""
+    m = MODES.attr
+    modes_attrs = {m.count: int(modes.omega2.size), m.n_rigid: modes.n_rigid,
+                   m.solver: modes.backend, m.shift_rad2_s2: modes.shift}
+    if preconditioned_residual is not None:
+        modes_attrs[m.preconditioned_residual] = float(preconditioned_residual)
+    a = MESH.attr
+    return {MODES.path: modes_attrs,
+            MESH.path: {a.cell_type: space.cell_type, a.element_order: element_order,
+                        a.source: mesh_source, a.source_sha256: mesh_sha256,
+                        a.n_dofs: space.n_dofs, a.n_free_dofs: int(n_free_dofs)}}
+
+
+def run_group_attrs(times: Mapping[str, float], peak_memory_mb: float, solver: str
+                    ) -> dict[str, dict[str, Any]]:
+    """Attributes of ``/run``: seconds per stage (``<stage>_s``), peak memory, solver."""
+    attrs: dict[str, Any] = {f"{k}_s": v for k, v in times.items()}
+    attrs[RUN.attr.peak_memory_mb] = peak_memory_mb
+    attrs[RUN.attr.solver] = solver
+    return {RUN.path: attrs}
 
 
 # --------------------------------------------------------------------------- modal plant
@@ -128,7 +195,7 @@ def _statespace_tree(ss: StateSpaceModel, group: str, extra_attrs: Mapping | Non
     return tree
 
 
-def statespace_datasets(model: ReducedModel, group: str = "statespace",
+def statespace_datasets(model: ReducedModel, group: str = STATESPACE.path,
                         compliance_units: str = "m/N") -> dict[str, Dataset]:
     """HDF5 datasets of the (unfiltered) reduced model, keyed ``"<group>/<name>"``.
 
@@ -159,7 +226,7 @@ def statespace_datasets(model: ReducedModel, group: str = "statespace",
 
 # --------------------------------------------------------------------------- stress modes
 def stress_modes_datasets(stress: np.ndarray, strain: np.ndarray, model: ReducedModel,
-                          input_units: Sequence[str], group: str = "stress_modes"
+                          input_units: Sequence[str], group: str = STRESS_MODES.path
                           ) -> dict[str, Dataset]:
     """The ``stress_modes`` group (docs/hdf5-format.md): ``stress`` (Pa per unit coordinate)
     and ``strain`` (1 per unit coordinate), each (n_points, 6, n_b + n_c), of the n_b basis
@@ -195,14 +262,14 @@ def stress_modes_datasets(stress: np.ndarray, strain: np.ndarray, model: Reduced
 
 # --------------------------------------------------------------------------- filtered model
 def filter_group_attrs(kind: str, cutoff_hz: float | None,
-                       group: str = "statespace_filtered") -> dict[str, dict]:
+                       group: str = STATESPACE_FILTERED.path) -> dict[str, dict]:
     """Group attributes ``{group: {"filter_kind": kind, "cutoff_hz": Hz}}`` (NaN: none)."""
     f_c = check_filter(kind, cutoff_hz)
     return {group: {"filter_kind": kind, "cutoff_hz": float("nan") if f_c is None else f_c}}
 
 
 def filter_datasets(model: StateSpaceModel | ReducedModel, kind: str, cutoff_hz: float | None,
-                    group: str = "statespace_filtered") -> dict[str, Dataset]:
+                    group: str = STATESPACE_FILTERED.path) -> dict[str, Dataset]:
     """HDF5 datasets of the filtered model, keyed ``"<group>/<name>"``.
 
     ``model`` is the plant (a :class:`ReducedModel` or its ``statespace``; it is
@@ -233,7 +300,7 @@ def _q_units(model: LumpedModel) -> list[str]:
 
 
 def lumped_datasets(model: LumpedModel, comparison: Sequence[ComparisonRow] | None = None,
-                    prefix: str = "lumped") -> dict[str, Dataset]:
+                    prefix: str = LUMPED.path) -> dict[str, Dataset]:
     """The HDF5 contents of the chain under ``prefix/`` (every dataset with units).
 
     Joint coordinates q are listed in ``stiffness.attrs['dof_names']`` (``j<joint>.<dof>``,
@@ -342,7 +409,7 @@ def lumped_datasets(model: LumpedModel, comparison: Sequence[ComparisonRow] | No
     return {f"{p}/{k}": v for k, v in out.items()}
 
 
-def lumped_group_attrs(model: LumpedModel, prefix: str = "lumped") -> dict[str, dict[str, Any]]:
+def lumped_group_attrs(model: LumpedModel, prefix: str = LUMPED.path) -> dict[str, dict[str, Any]]:
     """Attributes of the ``prefix`` group: kind, n, element length, section source, damping rule."""
     return {prefix.rstrip("/"): {
         "constants": model.kind, "elements": model.n,
@@ -351,218 +418,3 @@ def lumped_group_attrs(model: LumpedModel, prefix: str = "lumped") -> dict[str, 
         "damping_rule": "stiffness-proportional C = beta K, beta = 2 xi / omega_ref",
         "coordinates": "joint coordinates q, joint-major; linearised about the straight beam",
     }}
-
-
-# --------------------------------------------------------------------------- connection point
-def connection_datasets(model: ConnectionModel, ss: StateSpace | None = None,
-                        group: str | None = None, include_shapes: bool = False
-                        ) -> dict[str, Dataset]:
-    """HDF5 datasets of one connection model, keyed ``"<group>/<name>"`` with group
-    ``connections/<parent name>`` by default (see docs/hdf5-connection.md)."""
-    p = model.parent
-    g = group or f"connections/{p.name}"
-    blocks = {"units_blocks": TWIST_UNITS_BLOCKS, "order": list(DIRECTIONS)}
-    tree = {
-        f"{g}/point": Dataset(p.point, "m", "connection point P",
-                              {"region": p.region, "coupling": p.coupling}),
-        f"{g}/region_nodes": Dataset(p.nodes, "1", "nodes of the region tied to P"),
-        f"{g}/mass": Dataset(np.float64(model.rigid.mass), "kg", "body mass from R_P^T M R_P"),
-        f"{g}/center_of_mass": Dataset(model.rigid.center_of_mass, "m", "centre of mass G"),
-        f"{g}/inertia_G": Dataset(model.rigid.inertia_G, "kg m^2", "inertia about G"),
-        f"{g}/inertia_P": Dataset(model.rigid.inertia_P, "kg m^2", "inertia about P"),
-        f"{g}/D_P": Dataset(model.D_P, "mixed", "rigid-body mass matrix at P, R_P^T M R_P "
-                            "= tau_GP^T diag(m I, I_G) tau_GP, twist order [v; omega]", blocks),
-        f"{g}/L_P": Dataset(model.L_P, "mixed", "modal participation factors Phi_c^T M R_P "
-                            "(clamped modes x 6)", {"units_columns": "kg^1/2 (x,y,z) | "
-                                                    "kg^1/2 m (rx,ry,rz)",
-                                                    "columns": list(DIRECTIONS)}),
-        f"{g}/D_P0": Dataset(model.D_P0, "mixed", "residual mass D_P - L_P^T L_P "
-                             "(symmetric positive definite)", blocks),
-        f"{g}/omega": Dataset(np.sqrt(np.maximum(model.omega2, 0.0)), "rad/s",
-                              "circular frequencies of the modes clamped at P"),
-        f"{g}/frequencies_hz": Dataset(model.frequencies_hz, "Hz",
-                                       "frequencies of the modes clamped at P"),
-        f"{g}/effective_mass": Dataset(model.effective_mass, "mixed",
-                                       "effective modal mass L_P[i, d]^2 per mode and direction",
-                                       {"units_columns": "kg (x,y,z) | kg m^2 (rx,ry,rz about P)",
-                                        "columns": list(DIRECTIONS)}),
-        f"{g}/effective_mass_cumulative_fraction": Dataset(
-            model.effective_mass_cumulative_fraction, "1",
-            "cumulative effective mass of modes 1..i divided by diag(D_P)",
-            {"columns": list(DIRECTIONS)}),
-    }
-    if model.children:
-        tree[f"{g}/child_names"] = Dataset([c.name for c in model.children], "",
-                                           "child connection points, in input/output order")
-        tree[f"{g}/child_points"] = Dataset(np.array([c.point for c in model.children]), "m",
-                                            "child points C_k")
-        tree[f"{g}/tau_C"] = Dataset(model.tau_C, "mixed", "twist transport P -> C_k, "
-                                     "stacked (6 n_c x 6)", {"units_blocks": "1 | m ; 0 | 1"})
-        tree[f"{g}/Phi_C"] = Dataset(model.Phi_C, "mixed", "clamped modes at the child "
-                                     "coordinates (6 n_c x N)",
-                                     {"units_rows": "m kg^-1/2 | rad kg^-1/2"})
-    if include_shapes:
-        n_nodes = model.shapes.shape[0] // 3
-        tree[f"{g}/shapes"] = Dataset(model.shapes.reshape(n_nodes, 3, -1), "kg^-1/2",
-                                      "M-orthonormal modes clamped at P, (n_points, 3, N)")
-    if ss is not None:
-        s = f"{g}/statespace"
-        note = {"units_note": "inputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                                     zip(ss.input_names, ss.input_units))
-                + "; outputs " + ", ".join(f"{n} [{u}]" for n, u in
-                                           zip(ss.output_names, ss.output_units))
-                + "; states eta [m kg^1/2], eta_dot [m kg^1/2 / s]"}
-        tree.update({
-            f"{g}/damping_ratio": Dataset(ss.attrs["damping_ratio"], "1", "modal damping ratio xi_i"),
-            f"{s}/A": Dataset(ss.A, "mixed", "state matrix of x' = A x + B u, x = [eta; eta']",
-                              note),
-            f"{s}/B": Dataset(ss.B, "mixed", "input matrix: inputs [a_P; W_children]", note),
-            f"{s}/C": Dataset(ss.C, "mixed", "output matrix: outputs [W_P; a_children]", note),
-            f"{s}/D": Dataset(ss.D, "mixed", "feedthrough; top-left block D_P0", note),
-            f"{s}/input_names": Dataset(list(ss.input_names), "", "name of each input"),
-            f"{s}/input_units": Dataset(list(ss.input_units), "", "SI unit of each input"),
-            f"{s}/output_names": Dataset(list(ss.output_names), "", "name of each output"),
-            f"{s}/output_units": Dataset(list(ss.output_units), "", "SI unit of each output"),
-            f"{s}/state_names": Dataset(list(ss.state_names), "", "name of each state"),
-        })
-    return tree
-
-
-# --------------------------------------------------------------------------- Craig-Bampton
-def craig_bampton_datasets(cb: CraigBamptonModel, group: str = "craig_bampton",
-                           include_shapes: bool = True) -> dict[str, Dataset]:
-    """HDF5 datasets of the reduced model (see docs/hdf5-connection.md)."""
-    note = {"coordinates": list(cb.coordinate_names), "coordinate_units": list(cb.coordinate_units)}
-    w_free = cb.frequencies_hz()
-    tree = {
-        f"{group}/M": Dataset(cb.M, "mixed", "reduced mass matrix; entry (i, j) in "
-                              "kg m^2 / (u_i u_j), u the coordinate units", note),
-        f"{group}/K": Dataset(cb.K, "mixed", "reduced stiffness matrix; entry (i, j) in "
-                              "N m / (u_i u_j), u the coordinate units", note),
-        f"{group}/coordinate_names": Dataset(list(cb.coordinate_names), "",
-                                             "label of each reduced coordinate"),
-        f"{group}/coordinate_units": Dataset(list(cb.coordinate_units), "",
-                                             "SI unit of each reduced coordinate"),
-        f"{group}/interface_names": Dataset([i.name for i in cb.interfaces], "",
-                                            "interfaces in coordinate order"),
-        f"{group}/interface_regions": Dataset([i.region for i in cb.interfaces], "",
-                                              "region of each interface"),
-        f"{group}/interface_couplings": Dataset([i.coupling for i in cb.interfaces], "",
-                                                "rigid (RBE2) or distributing (RBE3)"),
-        f"{group}/interface_points": Dataset(np.array([i.point for i in cb.interfaces]), "m",
-                                             "point of each interface"),
-        f"{group}/fixed_interface_frequencies_hz": Dataset(
-            cb.fixed_interface_frequencies_hz, "Hz", "modes with every interface clamped"),
-        f"{group}/free_frequencies_hz": Dataset(
-            w_free, "Hz", "eigenfrequencies of (K, M), the free reduced body (6 rigid zeros)"),
-    }
-    if include_shapes:
-        n_nodes = cb.shapes.shape[0] // 3
-        tree[f"{group}/shapes"] = Dataset(
-            cb.shapes.reshape(n_nodes, 3, -1), "mixed",
-            "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
-            "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
-    return tree
-
-
-# --------------------------------------------------------------------------- FFRF invariants
-_FFRF_UNITS = {
-    "translational_coupling": ("kg^1/2", "kg m / u_k"),
-    "rotational_coupling": ("kg^1/2 m", "kg m^2 / u_k"),
-    "modal_mass": ("1", "kg m^2 / (u_k u_l)"),
-    "modal_stiffness": ("rad^2/s^2", "N m / (u_k u_l)"),
-    "inertia_first_order": ("kg^1/2 m", "kg m^2 / u_k"),
-    "inertia_second_order": ("1", "kg m^2 / (u_k u_l)"),
-    "gyroscopic_coupling": ("1", "kg m^2 / (u_k u_l)"),
-    "basis": ("kg^-1/2", "m / u_k"),
-}
-
-
-def ffrf_datasets(inv: FFRFInvariants, group: str = "ffrf", include_basis: bool = False
-                  ) -> dict[str, Dataset]:
-    """HDF5 datasets of the invariants (see docs/hdf5-connection.md, section ffrf).
-
-    Units: for modal coordinates (every u_k = m kg^1/2) the simplified unit; otherwise
-    ``mixed`` with the attribute ``units_rule`` in terms of ``coordinate_units``.
-    """
-    attrs = {"coordinates": list(inv.coordinate_names), "basis": inv.basis_kind,
-             "coordinate_units": list(inv.coordinate_units)}
-    modal = all(u == MODAL_UNIT for u in inv.coordinate_units)
-
-    def units(term: str) -> str:
-        return _FFRF_UNITS[term][0] if modal else "mixed"
-
-    def at(term: str) -> dict:
-        return attrs if modal else {**attrs, "units_rule": _FFRF_UNITS[term][1]}
-    tree = {
-        f"{group}/origin": Dataset(inv.origin, "m", "frame origin O the invariants refer to",
-                                   {"basis": inv.basis_kind}),
-        f"{group}/coordinate_names": Dataset(list(inv.coordinate_names), "",
-                                             "elastic coordinate of each basis column"),
-        f"{group}/mass": Dataset(np.float64(inv.mass), "kg", "total mass, int rho dV"),
-        f"{group}/first_moment": Dataset(inv.first_moment, "kg m", "int rho x dV = m c (about O)"),
-        f"{group}/center_of_mass": Dataset(inv.center_of_mass, "m", "c, relative to O"),
-        f"{group}/inertia": Dataset(inv.inertia, "kg m^2",
-                                    "J0 = -int rho x~ x~ dV, inertia tensor about O"),
-        f"{group}/translational_coupling": Dataset(
-            inv.translational_coupling, units("translational_coupling"),
-            "C_t = int rho psi_k dV (3 x n)", at("translational_coupling")),
-        f"{group}/rotational_coupling": Dataset(
-            inv.rotational_coupling, units("rotational_coupling"),
-            "C_r = int rho x x psi_k dV (3 x n)", at("rotational_coupling")),
-        f"{group}/modal_mass": Dataset(inv.modal_mass, units("modal_mass"),
-                                       "Psi^T M Psi (n x n)", at("modal_mass")),
-        f"{group}/inertia_first_order": Dataset(
-            inv.inertia_first_order, units("inertia_first_order"),
-            "J1_k = -int rho (x~ psi_k~ + psi_k~ x~) dV, (n, 3, 3)", at("inertia_first_order")),
-        f"{group}/inertia_second_order": Dataset(
-            inv.inertia_second_order, units("inertia_second_order"),
-            "J2_kl = -int rho psi_k~ psi_l~ dV, (n, n, 3, 3)", at("inertia_second_order")),
-        f"{group}/gyroscopic_coupling": Dataset(
-            inv.gyroscopic_coupling, units("gyroscopic_coupling"),
-            "G_kl = int rho psi_k x psi_l dV, (n, n, 3)", at("gyroscopic_coupling")),
-    }
-    if inv.modal_stiffness is not None:
-        tree[f"{group}/modal_stiffness"] = Dataset(inv.modal_stiffness,
-                                                   units("modal_stiffness"),
-                                                   "Psi^T K Psi (n x n)", at("modal_stiffness"))
-    if include_basis:
-        n_nodes = inv.basis.shape[0] // 3
-        tree[f"{group}/basis"] = Dataset(inv.basis.reshape(n_nodes, 3, -1), units("basis"),
-                                         "Psi on every mesh point (n_points, 3, n)", at("basis"))
-    return tree
-
-
-# --------------------------------------------------------------------------- FE matrices (CSR)
-def csr_datasets(A: sp.spmatrix, group: str, units: str, description: str,
-                 symmetric: bool = True) -> dict[str, Dataset]:
-    """A sparse matrix as CSR arrays ``<group>/{data, indices, indptr, shape}``.
-
-    Explicit zeros are dropped. ``symmetric``: store only the upper triangle (diagonal
-    included); the ``data``
-    dataset then carries ``storage = "upper"`` (else ``"full"``). :func:`read_csr`
-    restores the full matrix.
-    """
-    A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
-    A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
-    A.sort_indices()
-    itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
-    storage = "upper" if symmetric else "full"
-    return {
-        f"{group}/data": Dataset(A.data.astype(np.float64), units, description,
-                                 {"storage": storage, "format": "csr"}),
-        f"{group}/indices": Dataset(A.indices.astype(itype), "1", "CSR column indices"),
-        f"{group}/indptr": Dataset(A.indptr.astype(np.int64), "1", "CSR row pointers"),
-        f"{group}/shape": Dataset(np.array(A.shape, dtype=np.int64), "1", "(rows, columns)"),
-    }
-
-
-def exudyn_datasets(K_full: sp.spmatrix, M_full: sp.spmatrix) -> dict[str, Dataset]:
-    """What the export needs beyond the core file: the assembled M and K of the
-    unsupported body (before support condensation), as upper-triangle CSR arrays
-    ``fe/mass_matrix/*`` (kg) and ``fe/stiffness_matrix/*`` (N/m)."""
-    tree = csr_datasets(M_full, "fe/mass_matrix", "kg",
-                        "consistent mass matrix of the unsupported body, DOF 3*node+c")
-    tree.update(csr_datasets(K_full, "fe/stiffness_matrix", "N/m",
-                             "stiffness matrix of the unsupported body, DOF 3*node+c"))
-    return tree

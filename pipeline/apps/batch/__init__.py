@@ -13,7 +13,7 @@ One module per job:
   cluster, memory-aware admission, locking, progress;
 * :mod:`~pipeline.apps.batch.outcome`: :class:`BatchResult`, :class:`CaseOutcome`;
 * :mod:`~pipeline.apps.batch.report`, :mod:`~pipeline.apps.batch.plots`,
-  :mod:`~pipeline.apps.batch.models`: ``summary.csv``, ``report.html`` and the PNG plots.
+  :mod:`~pipeline.apps.batch.gains`: ``summary.csv``, ``report.html`` and the PNG plots.
 
 Outputs, under ``outputs/<name>/`` (or ``-o DIR``)::
 

@@ -34,9 +34,7 @@ from pipeline._util.atomic import write_text
 from pipeline.apps.batch.cases import RECORD_VERSION, Case, portable_config
 from pipeline.config import config_to_yaml
 from pipeline.errors import FileFormatError
-
-# TODO(store.read): import open_verified, read_strings from pipeline.store.read once it
-# re-exports them explicitly
+from pipeline.store.layout import BODY, MESH, MODES, ROOT, RUN
 from pipeline.store.read import open_verified, read_strings
 
 log = logging.getLogger(__name__)
@@ -162,29 +160,30 @@ def record_from_file(path: Path, case: Case, verify: bool = True) -> CaseRecord:
     """A case record rebuilt from its HDF5 file (verified); FileFormatError if unusable
     (not ours, corrupt, another config or version, a dataset missing)."""
     with open_verified(path, verify_checksum=verify) as h5:
-        stored = h5.attrs.get("config_yaml")
+        stored = h5.attrs.get(ROOT.config_yaml)
         if stored is not None and str(stored) != config_to_yaml(portable_config(case.config)):
             raise FileFormatError(f"file '{path}': its config differs from case {case.index}'s",
                                   key=str(path))
-        if str(h5.attrs.get("pipeline_version")) != __version__:
+        written_by = h5.attrs.get(ROOT.pipeline_version)
+        if str(written_by) != __version__:
             raise FileFormatError(f"file '{path}': written by pipeline "
-                                  f"{h5.attrs.get('pipeline_version')}, not {__version__}",
+                                  f"{written_by}, not {__version__}",
                                   key=str(path))
         try:
-            mesh = h5["mesh"].attrs
-            run = dict(h5["run"].attrs) if "run" in h5 else {}
+            mesh = h5[MESH.path].attrs
+            run = dict(h5[RUN.path].attrs) if RUN.path in h5 else {}
             return CaseRecord(
                 status="ok",
-                n_dofs=int(mesh["n_dofs"]),
-                n_free_dofs=int(mesh["n_free_dofs"]),
-                n_elements=int(sum(len(h5["mesh/cells"][k]) for k in h5["mesh/cells"])),
+                n_dofs=int(mesh[MESH.attr.n_dofs]),
+                n_free_dofs=int(mesh[MESH.attr.n_free_dofs]),
+                n_elements=int(sum(len(c) for c in h5[MESH.cells].values())),
                 frequencies_hz=tuple(float(f) for f in
-                                     np.atleast_1d(h5["modes/frequencies_hz"][()])),
-                mode_labels=tuple(read_strings(h5["modes/labels"])),
-                mass_kg=float(h5["body/mass"][()]),
+                                     np.atleast_1d(h5[MODES.frequencies_hz][()])),
+                mode_labels=tuple(read_strings(h5[MODES.labels])),
+                mass_kg=float(h5[BODY.mass][()]),
                 times_s={k[:-2]: float(x) for k, x in run.items() if k.endswith("_s")},
-                peak_memory_mb=float(run.get("peak_memory_mb", math.nan)),
-                solver=str(run.get("solver", "")),
+                peak_memory_mb=float(run.get(RUN.attr.peak_memory_mb, math.nan)),
+                solver=str(run.get(RUN.attr.solver, "")),
                 rebuilt_from_file=True)
         except (KeyError, IndexError, ValueError, TypeError, OSError) as exc:
             text = " ".join(str(exc).split())[:200]

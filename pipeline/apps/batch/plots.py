@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.apps.batch.cache import CaseRecord
-from pipeline.apps.batch.models import ReducedModel, bode_magnitude, position_rows
+from pipeline.apps.batch.gains import bode_magnitude, position_rows, ratio_unit
+from pipeline.store.read import StoredModels
 from pipeline.apps.batch.outcome import CaseOutcome
 from pipeline.config import config_to_dict
 
@@ -308,14 +309,13 @@ def plot_convergence(groups: list[tuple[str, list[CaseOutcome]]]) -> Figure | No
     return ("Convergence with mesh refinement", fig, "convergence.png")
 
 
-def plot_bode(ok: list[CaseOutcome], models: dict[str, ReducedModel]) -> Figure | None:
+def plot_bode(ok: list[CaseOutcome], models: dict[str, StoredModels]) -> Figure | None:
     cases = [o for o in ok if o.case.key in models and position_rows(models[o.case.key])]
     if not cases:
         return None
-    f_lo = min(float(np.min(models[o.case.key].frequencies_hz)) if
-               models[o.case.key].frequencies_hz.size else 1.0 for o in cases)
-    f_hi = max(float(np.max(models[o.case.key].frequencies_hz)) if
-               models[o.case.key].frequencies_hz.size else 1e3 for o in cases)
+    retained = [models[o.case.key].retained_frequencies_hz for o in cases]
+    f_lo = min(float(np.min(f)) if f.size else 1.0 for f in retained)
+    f_hi = max(float(np.max(f)) if f.size else 1e3 for f in retained)
     f = np.logspace(np.log10(max(f_lo / 10, 1e-3)), np.log10(f_hi * 3), 600)
     pairs: list[tuple[str, str]] = []
     curves = []
@@ -334,7 +334,7 @@ def plot_bode(ok: list[CaseOutcome], models: dict[str, ReducedModel]) -> Figure 
                           label=f"{o.case.index}: {o.case.label}")
         ax.set_title(f"{pair[0]} -> {pair[1]}", fontsize=9)
         ax.set_xlabel("f [Hz]")
-        units = {models[o.case.key].ratio_unit(*pair) for o, mags in curves if pair in mags}
+        units = {ratio_unit(models[o.case.key], *pair) for o, mags in curves if pair in mags}
         ax.set_ylabel(f"|H| [{units.pop() if len(units) == 1 else 'SI output/input'}]")
         ax.grid(True, which="both", alpha=0.3)
     _legend(fig, axes, fontsize=7 if len(cases) > 8 else 8, ncols=2 if len(pairs) == 1 else 3)

@@ -1,7 +1,7 @@
 """The report of a batch run: ``summary.csv``, ``report.html`` and the plots as PNG.
 
 Written by :func:`write_outputs` into the batch folder from the case records and the
-HDF5 files (read-only, through :func:`pipeline.apps.batch.models.read_statespace`):
+HDF5 files (read-only, through :func:`pipeline.apps.batch.gains.case_models`):
 
 * ``summary.csv``: one row per case: number, label, status and error, the value of every
   swept or overridden key (as resolved, so every row is filled), DOFs, stage times [s],
@@ -32,7 +32,8 @@ from typing import Any
 from pipeline import __version__
 from pipeline._util.atomic import write_bytes, write_text
 from pipeline.apps.batch import plots
-from pipeline.apps.batch.models import ReducedModel, dc_gains, read_statespace
+from pipeline.apps.batch.gains import case_models, dc_gains
+from pipeline.store.read import StoredModels
 from pipeline.apps.batch.outcome import BatchResult
 from pipeline.apps.batch.plots import ConvergenceRow, case_values, value_text
 
@@ -46,11 +47,11 @@ PNG_PATTERNS = ("freq_vs_*.png", "freq_by_case.png", "convergence.png", "bode.pn
 
 # --------------------------------------------------------------------------- summary
 def summary_table(result: BatchResult
-                  ) -> tuple[list[str], list[dict[str, Any]], dict[str, ReducedModel]]:
+                  ) -> tuple[list[str], list[dict[str, Any]], dict[str, StoredModels]]:
     """(columns, rows, state-space models by case key) of the batch."""
     spec = result.spec
     keys = list(spec.case_keys)
-    models: dict[str, ReducedModel] = {}
+    models: dict[str, StoredModels] = {}
     rows = []
     n_freq = max((len(o.record.frequencies_hz or ()) for o in result.outcomes), default=0)
     gain_cols: list[str] = []
@@ -81,7 +82,7 @@ def summary_table(result: BatchResult
             row[f"f{i + 1}_hz"] = freqs[i] if i < len(freqs) else None
         row["mode_labels"] = ";".join(r.mode_labels or ())
         if o.h5 is not None and o.status in ("done", "cached"):
-            ss = models.get(o.case.key) or read_statespace(o.h5)
+            ss = models.get(o.case.key) or case_models(o.h5)
             if ss is not None:
                 models[o.case.key] = ss
                 for col, value in dc_gains(ss).items():

@@ -6,8 +6,8 @@ writes ``out_path``; ``suffix`` is the default file ending. :func:`export` is wh
 CLI calls (``python -m pipeline export FILE.h5 --to FORMAT [-o OUT]``). To add a format,
 write its module here and add one line to :data:`EXPORTERS`.
 
-Helpers shared by exporters: :func:`read_csr` reads a sparse matrix stored by
-:func:`pipeline.store.schema.csr_datasets` (e.g. ``/fe/mass_matrix``).
+Exporters read the file through :mod:`pipeline.store.read` (a sparse matrix of ``/fe``:
+:func:`pipeline.store.read.read_csr`).
 """
 
 from __future__ import annotations
@@ -16,11 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import scipy.sparse as sp
+from pipeline.errors import ConfigError
 
-from pipeline.errors import ConfigError, FileFormatError
-
-__all__ = ["Exporter", "EXPORTERS", "export", "default_output", "read_csr"]
+__all__ = ["Exporter", "EXPORTERS", "export", "default_output"]
 
 
 @dataclass(frozen=True)
@@ -101,20 +99,3 @@ def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None,
     out = (Path(out_path) if out_path is not None
            else default_output(h5_path, fmt, options.get("model")))
     return EXPORTERS[fmt].write(Path(h5_path), out, **options)
-
-
-# --------------------------------------------------------------------------- sparse I/O
-def read_csr(h5, group: str) -> sp.csr_matrix:
-    """The full sparse matrix stored at ``group`` of an open h5py file by
-    :func:`pipeline.store.schema.csr_datasets`. Raises FileFormatError if it is missing."""
-    if group not in h5 or "data" not in h5[group]:
-        raise FileFormatError(f"file '{h5.filename}': has no sparse matrix /{group}")
-    g = h5[group]
-    shape = tuple(int(v) for v in g["shape"][()])
-    A = sp.csr_matrix((g["data"][()], g["indices"][()], g["indptr"][()]), shape=shape)
-    storage = g["data"].attrs.get("storage", "full")
-    if isinstance(storage, bytes):
-        storage = storage.decode()
-    if storage == "upper":
-        A = (A + sp.triu(A, k=1, format="csr").T).tocsr()
-    return A

@@ -62,8 +62,9 @@ import scipy.sparse as sp
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
-from pipeline.store.read import open_verified, read_strings
-from pipeline.apps.exports import read_csr
+from pipeline.store.layout import CRAIG_BAMPTON, FE, MESH, MODES, ROOT, region
+from pipeline.store.layout import cells as cells_path
+from pipeline.store.read import open_verified, read_csr, read_strings
 
 log = logging.getLogger(__name__)
 
@@ -197,25 +198,25 @@ def write_tagged_hdf5(path: Path, data: dict[str, Any]) -> Path:
 def _basis(h5, basis: str, n_dofs: int) -> tuple[np.ndarray, str, str]:
     """(matrix (n_dofs, n), Exudyn type, description)."""
     if basis == "auto":
-        basis = "craig_bampton" if "craig_bampton/shapes" in h5 else "modes"
+        basis = "craig_bampton" if CRAIG_BAMPTON.shapes in h5 else "modes"
     if basis == "craig_bampton":
-        if "craig_bampton/shapes" not in h5:
+        if CRAIG_BAMPTON.shapes not in h5:
             raise FileFormatError(f"file '{h5.filename}': has no /craig_bampton/shapes; expected "
                                   "a run with a craig_bampton section (or use basis='modes')")
-        S = h5["craig_bampton/shapes"][()].reshape(n_dofs, -1)
-        names = read_strings(h5["craig_bampton/coordinate_names"])
-        first = read_strings(h5["craig_bampton/interface_names"])[0]
+        S = h5[CRAIG_BAMPTON.shapes][()].reshape(n_dofs, -1)
+        names = read_strings(h5[CRAIG_BAMPTON.coordinate_names])
+        first = read_strings(h5[CRAIG_BAMPTON.interface_names])[0]
         keep = [i for i, nm in enumerate(names) if not nm.startswith(first + ".")]
         return (S[:, keep], "HCBmodes",
                 f"Craig-Bampton basis without the static modes of interface '{first}' "
                 "(the floating frame follows it): " + ", ".join(names[i] for i in keep))
     if basis != "modes":
         raise FileFormatError(f"exudyn export: basis {basis!r} is not one of {', '.join(BASES)}")
-    S = h5["modes/shapes"][()].reshape(n_dofs, -1)
-    omega2 = h5["modes/omega2"][()]
-    n_rigid = int(h5["modes"].attrs.get("n_rigid", 0))
+    S = h5[MODES.shapes][()].reshape(n_dofs, -1)
+    omega2 = h5[MODES.omega2][()]
+    n_rigid = int(h5[MODES.path].attrs.get(MODES.attr.n_rigid, 0))
     keep = np.arange(n_rigid, omega2.size)
-    fixed = h5["mesh/fixed_dofs"][()] if "mesh/fixed_dofs" in h5 else np.zeros(0)
+    fixed = h5[MESH.fixed_dofs][()] if MESH.fixed_dofs in h5 else np.zeros(0)
     what = ("modes of the supported body (zero on its supports)" if fixed.size
             else "elastic free-free modes (rigid-body modes dropped)")
     return S[:, keep], "NormalModes", what
@@ -267,13 +268,13 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
         raise FileFormatError(f"exudyn export: output '{out}' must end in '.hdf5' (Exudyn "
                               "loads HDF5 only from that ending; '.h5' is read as NumPy)")
     with open_verified(h5_path) as h5:
-        points = h5["mesh/points"][()].astype(float)
-        cell_key = "tetra10" if "mesh/cells/tetra10" in h5 else "tetra"
-        cells = h5[f"mesh/cells/{cell_key}"][()].astype(np.int64)
+        points = h5[MESH.points][()].astype(float)
+        cell_key = "tetra10" if cells_path("tetra10") in h5 else "tetra"
+        cells = h5[cells_path(cell_key)][()].astype(np.int64)
         n_dofs = 3 * points.shape[0]
-        if "fe/mass_matrix" in h5 and "fe/stiffness_matrix" in h5:
-            M = read_csr(h5, "fe/mass_matrix")
-            K = read_csr(h5, "fe/stiffness_matrix")
+        if FE.mass_matrix in h5 and FE.stiffness_matrix in h5:
+            M = read_csr(h5, FE.mass_matrix)
+            K = read_csr(h5, FE.stiffness_matrix)
             source = "M and K stored by the run (/fe)"
         elif fe_data is not None and getattr(fe_data, "K_full", None) is not None:
             K, M, source = fe_data.K_full, fe_data.M_full, fe_data.source
@@ -288,10 +289,10 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
             raise FileFormatError(f"file '{h5_path}': /fe matrices are {M.shape}, {K.shape}; "
                                   f"expected ({n_dofs}, {n_dofs}) for {points.shape[0]} points")
         Psi, kind, what = _basis(h5, basis, n_dofs)
-        fixed = h5["mesh/fixed_dofs"][()].astype(np.int64) if "mesh/fixed_dofs" in h5 \
+        fixed = h5[MESH.fixed_dofs][()].astype(np.int64) if MESH.fixed_dofs in h5 \
             else np.zeros(0, np.int64)
-        regions = {name: h5[f"mesh/regions/{name}"][()] for name in h5.get("mesh/regions", {})}
-        name = h5.attrs.get("name", Path(h5_path).stem)
+        regions = {name: h5[region(name)][()] for name in h5.get(MESH.regions, {})}
+        name = h5.attrs.get(ROOT.name, Path(h5_path).stem)
         name = name.decode() if isinstance(name, bytes) else str(name)
     F = getattr(fe_data, "F", None)
     n_modes = Psi.shape[1]

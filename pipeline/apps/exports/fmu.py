@@ -58,7 +58,7 @@ import numpy as np
 from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.errors import ConfigError, FileFormatError, ResourceError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.store.read import load_model, open_verified, read_strings
+from pipeline.store.read import StoredModels, load_model
 
 log = logging.getLogger(__name__)
 
@@ -93,13 +93,10 @@ class FmuModel:
     nominals: np.ndarray
 
 
-def _port_units(h5_path: Path, ss: StateSpace) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(input units, output units) from /statespace attributes (one per input, one per
-    output port) expanded to position/velocity/acceleration."""
-    with open_verified(h5_path, verify_checksum=False) as h5:
-        attrs = h5["statespace"].attrs
-        u_units = read_strings(attrs.get("input_units", []))
-        port_units = read_strings(attrs.get("output_units", []))
+def _port_units(lm: StoredModels, ss: StateSpace) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(input units, output units) of the file's plant (one per input, one per output
+    port) expanded to position/velocity/acceleration."""
+    u_units, port_units = list(lm.input_units), list(lm.port_units)
     if len(u_units) != ss.B.shape[1]:
         u_units = [""] * ss.B.shape[1]
     ports = ss.ports
@@ -171,7 +168,7 @@ def fmu_model(h5_path: str | Path, model: str = "plant") -> FmuModel:
         raise FileFormatError(f"file '{h5_path}': holds no filtered model (the config had no "
                               "'filter' section); use --model plant", key="--model",
                               value=model, expected="plant")
-    u_units, y_units = _port_units(h5_path, ss)
+    u_units, y_units = _port_units(lm, ss)
     structure = _damping_structure(ss, np.asarray(lm.damping_ratios, float))
     if structure is None:
         log.info("fmu: %s model is not modal with damping in A; no damping parameters", model)

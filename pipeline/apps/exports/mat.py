@@ -50,15 +50,14 @@ import numpy as np
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
-from pipeline.store.read import open_verified, read_strings
+from pipeline.store.read import StoredModels, load_model
 
 log = logging.getLogger(__name__)
 
 __all__ = ["export", "mat_variables", "MODELS"]
 
-#: (HDF5 group, suffix of the MATLAB variable names)
-MODELS = (("statespace", ""), ("statespace_filtered", "_filtered"),
-          ("lumped/statespace", "_lumped"))
+#: (model of :class:`pipeline.store.read.StoredModels`, suffix of the MATLAB variable names)
+MODELS = (("plant", ""), ("filtered", "_filtered"), ("lumped", "_lumped"))
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
 
 
@@ -70,26 +69,18 @@ def cell_array(items) -> np.ndarray:
     return out
 
 
-def _group_names(grp, key: str) -> list[str]:
-    if key in grp:
-        return read_strings(grp[key])
-    return read_strings(grp["A"].attrs.get(key, []))
-
-
 def _matlab_name(text: str) -> str:
     name = re.sub(r"[^A-Za-z0-9_]", "_", text)
     return name if name[:1].isalpha() else "c" + name
 
 
-def _other_models(h5_path: Path) -> dict[str, Any]:
-    """Variables of the connection-point and Craig-Bampton models (through the reader)."""
-    from pipeline.store.read import load_model
+def _column(values) -> np.ndarray:
+    return np.asarray(values, dtype=float).reshape(-1, 1)
 
+
+def _other_models(lm: StoredModels) -> dict[str, Any]:
+    """Variables of the connection-point and Craig-Bampton models."""
     out: dict[str, Any] = {}
-    try:
-        lm = load_model(h5_path)
-    except FileFormatError:
-        return out   # modes only: mat_variables says so
     for name, ss in lm.connections.items():
         suffix = "_conn_" + _matlab_name(name)
         for k in "ABCD":
@@ -103,62 +94,52 @@ def _other_models(h5_path: Path) -> dict[str, Any]:
         out["cb_coordinate_names"] = cell_array(cb.coordinate_names)
         out["cb_coordinate_units"] = cell_array(cb.coordinate_units)
         out["cb_interface_names"] = cell_array(cb.interface_names)
-        out["cb_fixed_interface_frequencies_hz"] = cb.fixed_interface_frequencies_hz.reshape(-1, 1)
-        with open_verified(h5_path, verify_checksum=False) as h5:
-            for key in ("interface_points", "free_frequencies_hz"):
-                if f"craig_bampton/{key}" in h5:
-                    value = np.array(h5[f"craig_bampton/{key}"][()], dtype=float)
-                    out["cb_" + key] = value.reshape(-1, 1) if value.ndim == 1 else value
+        out["cb_fixed_interface_frequencies_hz"] = _column(cb.fixed_interface_frequencies_hz)
+        if cb.interface_points.size:
+            out["cb_interface_points"] = np.array(cb.interface_points, dtype=float)
+        if cb.free_frequencies_hz.size:
+            out["cb_free_frequencies_hz"] = _column(cb.free_frequencies_hz)
     return out
 
 
 def mat_variables(h5_path: str | Path) -> dict[str, Any]:
     """The variables :func:`export` writes, as a dict (verified read of ``h5_path``)."""
     h5_path = Path(h5_path)
-    out: dict[str, Any] = {}
-    others = _other_models(h5_path)
-    out.update(others)
-    with open_verified(h5_path) as h5:
-        if "statespace" not in h5 and not others and "lumped/statespace" not in h5:
-            raise FileFormatError(f"file '{h5_path}': has no /statespace group (the config had "
-                                  "no 'reduction' section) and no connection-point, "
-                                  "Craig-Bampton or lumped model, so there is no model for the "
-                                  "mat export; expected a file with a reduced model")
-        for group, suffix in MODELS:
-            if group not in h5:
-                continue
-            grp = h5[group]
-            mats = {k: np.atleast_2d(np.array(grp[k][()], dtype=np.float64)) for k in "ABCD"}
-            n, m, p = mats["A"].shape[0], mats["B"].shape[1], mats["C"].shape[0]
-            for k, shape in {"A": (n, n), "B": (n, m), "C": (p, n), "D": (p, m)}.items():
-                if mats[k].shape != shape:
-                    raise FileFormatError(f"file '{h5_path}': /{group}/{k} has shape "
-                                          f"{mats[k].shape}, expected {shape}")
-                out[k + suffix] = mats[k]
-            for key in ("input_names", "output_names", "state_names"):
-                names = _group_names(grp, key)
-                if names:
-                    out[key + suffix] = cell_array(names)
-        ss = h5["statespace"] if "statespace" in h5 else {}
-        ss_attrs = h5["statespace"].attrs if "statespace" in h5 else {}
-        for key in ("input_units", "output_units"):
-            if key in ss_attrs:
-                out[key] = cell_array(read_strings(ss_attrs[key]))
-        if "damping_ratios" in ss:
-            out["damping_ratios"] = np.array(ss["damping_ratios"][()], dtype=float).reshape(-1, 1)
-        if "static_compliance" in ss:
-            out["static_compliance"] = np.atleast_2d(np.array(ss["static_compliance"][()],
-                                                              dtype=float))
-        if "statespace_filtered" in h5:
-            attrs = h5["statespace_filtered"].attrs
-            out["filter_kind"] = str(attrs.get("filter_kind", "unknown"))
-            if "cutoff_hz" in attrs:
-                out["cutoff_hz"] = float(attrs["cutoff_hz"])
-        out["frequencies_hz"] = np.array(h5["modes/frequencies_hz"][()], dtype=float).reshape(-1, 1)
-        out["mode_labels"] = cell_array(read_strings(h5["modes/labels"]))
-        if "body/mass" in h5:
-            out["mass_kg"] = float(h5["body/mass"][()])
-        out["model_name"] = str(h5.attrs.get("name", h5_path.stem))
+    try:
+        lm = load_model(h5_path)
+    except FileFormatError as exc:
+        if exc.value != "no /statespace":
+            raise
+        raise FileFormatError(f"file '{h5_path}': has no /statespace group (the config had "
+                              "no 'reduction' section) and no connection-point, "
+                              "Craig-Bampton or lumped model, so there is no model for the "
+                              "mat export; expected a file with a reduced model") from None
+    out: dict[str, Any] = _other_models(lm)
+    for model, suffix in MODELS:
+        ss = getattr(lm, model)
+        if ss is None:
+            continue
+        for k, matrix in zip("ABCD", ss):
+            out[k + suffix] = np.array(matrix)
+        for key in ("input_names", "output_names", "state_names"):
+            if getattr(ss, key):
+                out[key + suffix] = cell_array(getattr(ss, key))
+    if lm.plant is not None:
+        for key, units in (("input_units", lm.input_units), ("output_units", lm.port_units)):
+            if units:
+                out[key] = cell_array(units)
+        out["damping_ratios"] = _column(lm.damping_ratios)
+        if lm.static_compliance is not None:
+            out["static_compliance"] = np.array(lm.static_compliance, dtype=float)
+    if lm.filtered is not None:
+        out["filter_kind"] = lm.filter_kind
+        if lm.cutoff_hz is not None:
+            out["cutoff_hz"] = float(lm.cutoff_hz)
+    out["frequencies_hz"] = _column(lm.frequencies_hz)
+    out["mode_labels"] = cell_array(lm.labels)
+    if np.isfinite(lm.mass):
+        out["mass_kg"] = lm.mass
+    out["model_name"] = lm.name
     out["source_file"] = str(h5_path)
     out["description"] = (
         "Reduced model exported by fe-reduced-body (SI units). x' = A x + B u, y = C x + D u; "

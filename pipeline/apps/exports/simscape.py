@@ -43,7 +43,8 @@ import scipy.linalg as sla
 from pipeline._util.atomic import atomic_path, write_text
 from pipeline.apps.exports.mat import cell_array
 from pipeline.errors import FileFormatError
-from pipeline.store.read import load_model, open_verified
+from pipeline.store.layout import CRAIG_BAMPTON
+from pipeline.store.read import load_model
 
 log = logging.getLogger(__name__)
 
@@ -53,14 +54,12 @@ __all__ = ["export", "simscape_variables", "damping_matrix", "script_path"]
 RIGID_RTOL = 1e-9
 
 
-def _config_damping(h5_path: Path) -> dict[str, Any]:
-    """The ``damping`` section of the config stored in the file (empty when none)."""
+def _config_damping(config_yaml: str) -> dict[str, Any]:
+    """The ``damping`` section of the stored config ``config_yaml`` (empty when none)."""
     import yaml
 
-    with open_verified(h5_path, verify_checksum=False) as h5:
-        text = h5.attrs.get("config_yaml", "")
     try:
-        cfg = yaml.safe_load(str(text)) or {}
+        cfg = yaml.safe_load(config_yaml) or {}
     except yaml.YAMLError:
         return {}
     damping = cfg.get("damping") if isinstance(cfg, dict) else None
@@ -94,30 +93,33 @@ def damping_matrix(K: np.ndarray, M: np.ndarray, damping: dict[str, Any]
 def simscape_variables(h5_path: str | Path) -> dict[str, Any]:
     """The variables :func:`export` writes (see the module docstring)."""
     h5_path = Path(h5_path)
-    cb = load_model(h5_path).craig_bampton if _has_models(h5_path) else None
+    try:
+        lm = load_model(h5_path)
+    except FileFormatError as exc:
+        if exc.value != "no /statespace":
+            raise
+        lm = None  # modes only
+    cb = None if lm is None else lm.craig_bampton
     if cb is None:
         raise FileFormatError(f"file '{h5_path}': has no Craig-Bampton model (/craig_bampton); "
                               "the Simscape export needs one: add a 'craig_bampton' section "
                               "(and 'connections', its interfaces) to the config",
-                              key="craig_bampton", value="absent",
+                              key=CRAIG_BAMPTON.path, value="absent",
                               expected="a run with craig_bampton and connections")
     k = len(cb.interface_names)
     n = cb.M.shape[0]
     n_modes = n - 6 * k
     if n_modes < 0 or [c.split(".")[-1] for c in cb.coordinate_names[:6 * k]] != \
             ["x", "y", "z", "rx", "ry", "rz"] * k:
-        raise FileFormatError(f"file '{h5_path}': craig_bampton/coordinate_names do not start "
-                              "with x y z rx ry rz of every interface",
-                              key="craig_bampton/coordinate_names",
+        raise FileFormatError(f"file '{h5_path}': {CRAIG_BAMPTON.coordinate_names} do not "
+                              "start with x y z rx ry rz of every interface",
+                              key=CRAIG_BAMPTON.coordinate_names,
                               value=list(cb.coordinate_names[:6]), expected="x y z rx ry rz")
     K = 0.5 * (cb.K + cb.K.T)
     M = 0.5 * (cb.M + cb.M.T)
-    with open_verified(h5_path, verify_checksum=False) as h5:
-        origins = np.array(h5["craig_bampton/interface_points"][()], dtype=float).reshape(k, 3)
-        free = (np.array(h5["craig_bampton/free_frequencies_hz"][()], dtype=float)
-                if "craig_bampton/free_frequencies_hz" in h5 else np.zeros(0))
-        name = str(h5.attrs.get("name", h5_path.stem))
-    C, ratio = damping_matrix(K, M, _config_damping(h5_path))
+    origins = cb.interface_points.reshape(k, 3)
+    free, name = cb.free_frequencies_hz, lm.name
+    C, ratio = damping_matrix(K, M, _config_damping(lm.config_yaml))
     return {
         "origins": origins, "K": K, "M": M, "C": C, "damping_ratio": ratio,
         "interface_names": cell_array(cb.interface_names),
@@ -131,11 +133,6 @@ def simscape_variables(h5_path: str | Path) -> dict[str, Any]:
                         "DOFs Tx Ty Tz Rx Ry Rz per interface frame (rows of origins), then "
                         "the modal DOFs. Exported by fe-reduced-body."),
     }
-
-
-def _has_models(h5_path: Path) -> bool:
-    with open_verified(h5_path) as h5:
-        return "craig_bampton/M" in h5
 
 
 def script_path(mat_path: str | Path) -> Path:

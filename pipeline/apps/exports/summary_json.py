@@ -32,7 +32,9 @@ from typing import Any
 import numpy as np
 
 from pipeline._util.atomic import write_text
-from pipeline.store.read import open_verified, read_strings
+from pipeline.store.layout import (BODY, LUMPED, LUMPED_STATESPACE, MESH, MODES, ROOT,
+                                   STATESPACE, STATESPACE_FILTERED)
+from pipeline.store.read import open_verified, read_names, read_strings
 
 log = logging.getLogger(__name__)
 
@@ -61,13 +63,13 @@ def _clean(value: Any) -> Any:
 
 
 def _names(grp, key: str) -> list[str]:
-    if key in grp:
-        return read_strings(grp[key])
-    return read_strings(grp["A"].attrs.get(key, []))
+    return list(read_names(grp, key))
 
 
-def _dc_gain(grp) -> np.ndarray | None:
-    A, B, C, D = (np.atleast_2d(np.array(grp[k][()], dtype=float)) for k in "ABCD")
+def _dc_gain(h5, group) -> np.ndarray | None:
+    """D - C A^-1 B of the state-space ``group`` (a layout Group), None when A is singular."""
+    A, B, C, D = (np.atleast_2d(np.array(h5[group.dataset(k)][()], dtype=float))
+                  for k in "ABCD")
     try:
         if np.linalg.cond(A) > 1e14:
             return None
@@ -110,21 +112,24 @@ def summary(h5_path: str | Path) -> dict:
     h5_path = Path(h5_path)
     with open_verified(h5_path) as h5:
         a = h5.attrs
-        freqs = np.array(h5["modes/frequencies_hz"][()], dtype=float)
-        labels = read_strings(h5["modes/labels"])
-        cells_group = h5["mesh/cells"]
+        freqs = np.array(h5[MODES.frequencies_hz][()], dtype=float)
+        labels = read_strings(h5[MODES.labels])
+        cells_group = h5[MESH.cells]
         kind = next(iter(cells_group))
-        mesh_attrs = h5["mesh"].attrs
+        mesh_attrs = h5[MESH.path].attrs
         units: tuple[list[str], list[str]] = ([], [])
         reduced = filtered = lumped = None
-        if "statespace" in h5:
-            ss = h5["statespace"]
-            units = (read_strings(ss.attrs["input_units"]) if "input_units" in ss.attrs else [],
-                     read_strings(ss.attrs["output_units"]) if "output_units" in ss.attrs else [])
+        if STATESPACE.path in h5:
+            ss = h5[STATESPACE.path]
+            at = STATESPACE.attr
+            units = (read_strings(ss.attrs[at.input_units]) if at.input_units in ss.attrs else [],
+                     read_strings(ss.attrs[at.output_units]) if at.output_units in ss.attrs
+                     else [])
             inputs, outputs = _names(ss, "input_names"), _names(ss, "output_names")
-            damping = np.array(ss["damping_ratios"][()]) if "damping_ratios" in ss else []
-            compliance = (np.atleast_2d(np.array(ss["static_compliance"][()]))
-                          if "static_compliance" in ss else None)
+            damping = (np.array(h5[STATESPACE.damping_ratios][()])
+                       if STATESPACE.damping_ratios in h5 else [])
+            compliance = (np.atleast_2d(np.array(h5[STATESPACE.static_compliance][()]))
+                          if STATESPACE.static_compliance in h5 else None)
             fe_gain = None
             if compliance is not None:
                 pos = [o for o in outputs if o.endswith("/position")] or outputs
@@ -132,43 +137,46 @@ def summary(h5_path: str | Path) -> dict:
                                                                              compliance.shape[0]))}
                            for c, inp in enumerate(inputs) if c < compliance.shape[1]}
             reduced = {
-                "states": int(ss["A"].shape[0]),
+                "states": int(h5[STATESPACE.A].shape[0]),
                 "retained_modes": int(len(damping)),
                 "damping_ratios": damping,
-                "static_correction": str(ss.attrs.get("static_correction", "")),
+                "static_correction": str(ss.attrs.get(at.static_correction, "")),
                 "inputs": inputs,
                 "outputs": outputs,
-                "dc_gain": _gain_table(_dc_gain(ss), inputs, outputs),
+                "dc_gain": _gain_table(_dc_gain(h5, STATESPACE), inputs, outputs),
                 "dc_gain_full_fe": fe_gain,
             }
-            if "statespace_filtered" in h5:
-                fs = h5["statespace_filtered"]
+            if STATESPACE_FILTERED.path in h5:
+                fs = h5[STATESPACE_FILTERED.path]
+                at = STATESPACE_FILTERED.attr
                 f_out = _names(fs, "output_names")
                 filtered = {
-                    "states": int(fs["A"].shape[0]),
-                    "filter_kind": str(fs.attrs.get("filter_kind", "")),
-                    "cutoff_hz": float(fs.attrs["cutoff_hz"]) if "cutoff_hz" in fs.attrs else None,
-                    "dc_gain": _gain_table(_dc_gain(fs), _names(fs, "input_names"), f_out),
+                    "states": int(h5[STATESPACE_FILTERED.A].shape[0]),
+                    "filter_kind": str(fs.attrs.get(at.filter_kind, "")),
+                    "cutoff_hz": float(fs.attrs[at.cutoff_hz]) if at.cutoff_hz in fs.attrs
+                    else None,
+                    "dc_gain": _gain_table(_dc_gain(h5, STATESPACE_FILTERED),
+                                           _names(fs, "input_names"), f_out),
                 }
-        if "lumped/statespace" in h5:
-            lumped = {"states": int(h5["lumped/statespace/A"].shape[0])}
-            if "lumped/frequencies_hz" in h5:
-                lumped["frequencies_hz"] = np.array(h5["lumped/frequencies_hz"][()])[:10]
+        if LUMPED_STATESPACE.path in h5:
+            lumped = {"states": int(h5[LUMPED_STATESPACE.A].shape[0])}
+            if LUMPED.frequencies_hz in h5:
+                lumped["frequencies_hz"] = np.array(h5[LUMPED.frequencies_hz][()])[:10]
         data = {
             "format": FORMAT,
             "version": VERSION,
-            "name": str(a.get("name", h5_path.stem)),
+            "name": str(a.get(ROOT.name, h5_path.stem)),
             "source_file": str(h5_path),
-            "created_utc": str(a.get("created_utc", "")),
-            "pipeline_version": str(a.get("pipeline_version", "")),
-            "body": {"mass_kg": float(h5["body/mass"][()]),
-                     "center_of_mass_m": np.array(h5["body/center_of_mass"][()])},
-            "mesh": {"points": int(h5["mesh/points"].shape[0]),
+            "created_utc": str(a.get(ROOT.created_utc, "")),
+            "pipeline_version": str(a.get(ROOT.pipeline_version, "")),
+            "body": {"mass_kg": float(h5[BODY.mass][()]),
+                     "center_of_mass_m": np.array(h5[BODY.center_of_mass][()])},
+            "mesh": {"points": int(h5[MESH.points].shape[0]),
                      "cells": int(cells_group[kind].shape[0]), "cell_type": kind,
-                     "dofs": int(mesh_attrs.get("n_dofs", 3 * h5["mesh/points"].shape[0]))},
+                     "dofs": int(mesh_attrs.get(MESH.attr.n_dofs, 3 * h5[MESH.points].shape[0]))},
             "modes": [{"mode": i + 1, "frequency_hz": f,
                        "label": labels[i] if i < len(labels) else ""} for i, f in enumerate(freqs)],
-            "ports": _ports(a.get("config_yaml"), units),
+            "ports": _ports(a.get(ROOT.config_yaml), units),
             "reduced_model": reduced,
             "filtered_model": filtered,
             "lumped_model": lumped,

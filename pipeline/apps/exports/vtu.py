@@ -38,7 +38,7 @@ import numpy as np
 from pipeline._util.atomic import atomic_path, private_folder
 from pipeline.errors import ConfigError
 from pipeline.apps.exports.stress_arrays import stress_point_data
-from pipeline.store.read import read_modes
+from pipeline.store.read import read_stored_mesh
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ def mode_mesh(h5_path: str | Path):
     """A :class:`meshio.Mesh` of ``h5_path`` (verified) with every mode as point data."""
     import meshio
 
-    modes = read_modes(h5_path)
+    modes = read_stored_mesh(h5_path)
     points, kind, cells, shapes = modes.points, modes.cell_type, modes.cells, modes.shapes
     freqs, labels, fixed, regions = (modes.frequencies_hz, modes.labels, modes.fixed_dofs,
                                      modes.regions)

@@ -23,6 +23,8 @@ import yaml
 
 from pipeline._util.atomic import atomic_path
 from pipeline.store.h5file import write_file
+from pipeline.store.layout import (RESULT_ROOT, RESULT_SUMMARY, SIMULATION_CONTENT,
+                                   result_fit, result_run)
 from pipeline.store.read import ModelFile
 from pipeline.store.tree import Dataset
 
@@ -43,12 +45,13 @@ def results_tree(res: SimulationResults, scenarios_yaml: str):
         sname = slug(s.scenario.name)
         attrs[sname] = {"kind": s.scenario.kind, "notes": list(s.notes) or ["none"]}
         for i, run in enumerate(s.runs):
-            grp = f"{sname}/{run.key}" + ("" if run.mass is None or s.scenario.kind != "mass_sweep"
-                                          else f"/run_{i:02d}")
-            tree[f"{grp}/time"] = Dataset(run.t, "s", "sample times")
+            group = result_run(sname, run.key, None if run.mass is None
+                               or s.scenario.kind != "mass_sweep" else i)
+            grp = group.path
+            tree[group.time] = Dataset(run.t, "s", "sample times")
             for name, values in run.signals.items():
-                tree[f"{grp}/signals/{name}"] = Dataset(values, run.units[name],
-                                                        f"{name} of the {run.model} model")
+                tree[f"{group.signals}/{name}"] = Dataset(values, run.units[name],
+                                                          f"{name} of the {run.model} model")
             a: dict[str, Any] = {"model": run.model}
             if run.mass is not None:
                 a["mass_kg"] = float(run.mass)
@@ -67,25 +70,26 @@ def results_tree(res: SimulationResults, scenarios_yaml: str):
             if run.info.get("stress_peak") is not None:
                 tree.update(stress_peak_datasets(grp, run.info["stress_peak"]))
         for key, fit in s.fits.items():
-            g = f"{sname}/{key}/fit"
-            tree[f"{g}/masses"] = Dataset(fit["masses"], "kg", "tip masses of the sweep")
-            tree[f"{g}/measured_frequency"] = Dataset(fit["measured_hz"], "Hz",
-                                                      "zero-crossing frequency per mass")
-            tree[f"{g}/predicted_frequency"] = Dataset(fit["predicted_hz"], "Hz",
-                                                       "coupled eigenvalue per mass")
-            tree[f"{g}/period_squared"] = Dataset(1.0 / fit["measured_hz"] ** 2, "s^2",
-                                                  "measured T^2 per mass")
-            attrs[g] = {k: float(v) for k, v in fit.items()
+            g = result_fit(sname, key)
+            tree[g.masses] = Dataset(fit["masses"], "kg", "tip masses of the sweep")
+            tree[g.measured_frequency] = Dataset(fit["measured_hz"], "Hz",
+                                                 "zero-crossing frequency per mass")
+            tree[g.predicted_frequency] = Dataset(fit["predicted_hz"], "Hz",
+                                                  "coupled eigenvalue per mass")
+            tree[g.period_squared] = Dataset(1.0 / fit["measured_hz"] ** 2, "s^2",
+                                             "measured T^2 per mass")
+            attrs[g.path] = {k: float(v) for k, v in fit.items()
                         if isinstance(v, (int, float)) and not isinstance(v, bool)}
     rows = res.rows
-    tree["summary/scenario"] = Dataset([r.scenario for r in rows], "1", "scenario name")
-    tree["summary/model"] = Dataset([r.model for r in rows], "1", "model")
-    tree["summary/quantity"] = Dataset([r.quantity for r in rows], "1", "what is compared")
-    tree["summary/units"] = Dataset([r.units for r in rows], "1", "unit of measured/predicted")
-    tree["summary/measured"] = Dataset(np.array([r.measured for r in rows]), "mixed",
-                                       "value measured from the response (units: summary/units)")
-    tree["summary/predicted"] = Dataset(np.array([r.predicted for r in rows]), "mixed",
-                                        "analytic prediction from the matrices")
+    sm = RESULT_SUMMARY
+    tree[sm.scenario] = Dataset([r.scenario for r in rows], "1", "scenario name")
+    tree[sm.model] = Dataset([r.model for r in rows], "1", "model")
+    tree[sm.quantity] = Dataset([r.quantity for r in rows], "1", "what is compared")
+    tree[sm.units] = Dataset([r.units for r in rows], "1", "unit of measured/predicted")
+    tree[sm.measured] = Dataset(np.array([r.measured for r in rows]), "mixed",
+                                f"value measured from the response (units: {sm.units})")
+    tree[sm.predicted] = Dataset(np.array([r.predicted for r in rows]), "mixed",
+                                 "analytic prediction from the matrices")
     return tree, attrs
 
 
@@ -216,10 +220,11 @@ def write_outputs(results: SimulationResults, mf: ModelFile, output_ports: Mappi
     output.parent.mkdir(parents=True, exist_ok=True)
     doc = yaml.safe_dump([s.as_dict() for s in scenarios], sort_keys=False)
     tree, attrs = results_tree(results, doc)
-    write_file(output, tree, attrs, {"content": "simulation results",
-                                     "model_file": str(mf.path.resolve()),
-                                     "model_content_sha256": mf.sha256,
-                                     "scenarios_yaml": doc})
+    root = RESULT_ROOT
+    write_file(output, tree, attrs, {root.content: SIMULATION_CONTENT,
+                                     root.model_file: str(mf.path.resolve()),
+                                     root.model_content_sha256: mf.sha256,
+                                     root.scenarios_yaml: doc})
     results.output = output
     results.files.append(output)
     stem = output.with_suffix("")

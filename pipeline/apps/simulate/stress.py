@@ -167,22 +167,24 @@ def add_stress_outputs(run, mf: ModelFile, em: StateSpace, inp: str, Z: np.ndarr
 
 def stress_peak_datasets(group: str, peak: StressPeak) -> dict:
     """Result-file datasets of a run's stress peak under ``<group>/stress/``."""
+    from pipeline.store.layout import result_stress
     from pipeline.store.tree import Dataset
 
-    attrs = {"hot_spot_index": peak.hot_spot, "hot_spot_point_m": peak.point.tolist(),
-             "peak_von_mises_pa": peak.value, "peak_time_s": peak.time,
-             "voigt_order": ["xx", "yy", "zz", "yz", "xz", "xy"]}
-    g = f"{group}/stress"
+    g = result_stress(group)
+    a = g.attr
+    attrs = {a.hot_spot_index: peak.hot_spot, a.hot_spot_point_m: peak.point.tolist(),
+             a.peak_von_mises_pa: peak.value, a.peak_time_s: peak.time,
+             a.voigt_order: ["xx", "yy", "zz", "yz", "xz", "xy"]}
     tree = {
-        f"{g}/peak_von_mises": Dataset(peak.peak, "Pa", "largest von Mises stress of the run "
-                                       "at every mesh point", attrs),
-        f"{g}/peak_time": Dataset(peak.peak_time, "s", "instant of each point's peak"),
-        f"{g}/field_at_hot_spot_peak": Dataset(peak.field_at_peak, "Pa", "stress field (n_points, "
-                                               "6) at the instant of the hot spot's peak"),
+        g.peak_von_mises: Dataset(peak.peak, "Pa", "largest von Mises stress of the run "
+                                  "at every mesh point", attrs),
+        g.peak_time: Dataset(peak.peak_time, "s", "instant of each point's peak"),
+        g.field_at_hot_spot_peak: Dataset(peak.field_at_peak, "Pa", "stress field (n_points, "
+                                          "6) at the instant of the hot spot's peak"),
     }
     if peak.instants.size:
-        tree[f"{g}/instants"] = Dataset(peak.instants, "s", "requested instants (nearest sample)")
-        tree[f"{g}/fields"] = Dataset(peak.fields, "Pa", "stress field (n_instants, n_points, 6)")
+        tree[g.instants] = Dataset(peak.instants, "s", "requested instants (nearest sample)")
+        tree[g.fields] = Dataset(peak.fields, "Pa", "stress field (n_instants, n_points, 6)")
     return tree
 
 
@@ -239,10 +241,10 @@ def plot_stress(path: Path, scenario_result, model_path: Path | None = None) -> 
     written = [path]
     if peak is not None and model_path is not None:
         from pipeline.apps.stress_plots import plot_von_mises  # deferred: matplotlib
-        from pipeline.store.read import read_modes
+        from pipeline.store.read import read_stored_mesh
 
         written.append(plot_von_mises(
-            read_modes(model_path), peak.peak, f"{scenario_result.scenario.name}: peak von Mises "
-            f"over the run (hot spot at t = {peak.time:.4g} s)",
+            read_stored_mesh(model_path), peak.peak, f"{scenario_result.scenario.name}: peak "
+            f"von Mises over the run (hot spot at t = {peak.time:.4g} s)",
             path.with_name(path.name.replace(".stress.png", ".peak_von_mises.png"))))
     return written
