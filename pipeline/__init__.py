@@ -47,7 +47,7 @@ Running it, and reading the result back::
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from pipeline._version import __version__  # noqa: E402
 
 from pipeline.errors import (
     ConfigError,

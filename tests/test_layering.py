@@ -85,17 +85,9 @@ def test_a_new_top_level_module_must_be_placed_in_a_layer(tmp_path):
     assert "pipeline.helpers" in result.stdout
 
 
-#: Imports (importer, imported) that close a module-level cycle today, each through a
-#: package's ``__init__``, left to the branches of issue 34 that own them: remove an
-#: entry once its import is gone (the test fails on an entry that no longer exists).
-#: - the store reads ``pipeline.__version__`` from the root package, which imports the
-#:   reader lazily (``pipeline.load_model``): the version belongs in a lower module;
-#: - the Exudyn exporter reads ``read_csr`` from its package's ``__init__``, which imports
-#:   the exporter lazily: ``read_csr`` belongs in the store (the reader's branch).
-KNOWN_CYCLE_IMPORTS = {
-    ("pipeline.store.h5file", "pipeline"),
-    ("pipeline.apps.exports.exudyn", "pipeline.apps.exports"),
-}
+#: Imports (importer, imported) allowed to close a module-level cycle, each with its
+#: reason in a comment; none today. The test fails on an entry that no longer exists.
+KNOWN_CYCLE_IMPORTS: set[tuple[str, str]] = set()
 
 _CYCLES = """
 import json, sys

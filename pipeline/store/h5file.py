@@ -175,7 +175,7 @@ def write_file(path: str | Path, tree: Mapping[str, Dataset],
     """Write ``tree`` (path -> Dataset) to ``path`` atomically, with the schema header."""
     import h5py
 
-    from pipeline import __version__
+    from pipeline._version import __version__
 
     path = Path(path)
     for name in tree:  # every part of a key is a plain name (a region, port or case name)

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import __version__
+from pipeline._version import __version__
 from pipeline._util.atomic import write_text
 from pipeline.apps.batch.cases import RECORD_VERSION, Case, portable_config
 from pipeline.config import config_to_yaml

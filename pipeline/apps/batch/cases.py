@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline import __version__
+from pipeline._version import __version__
 from pipeline.config import Config, apply_overrides, config_from_dict, config_to_yaml
 from pipeline._util.paths import file_sha256
 from pipeline.errors import ConfigError

@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__
+from pipeline._version import __version__
 from pipeline._util.atomic import write_bytes, write_text
 from pipeline.apps.batch import plots
 from pipeline.apps.batch.gains import case_models, dc_gains

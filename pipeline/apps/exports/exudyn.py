@@ -261,7 +261,7 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
     K_full and M_full for a file without ``/fe``, and the input-port loads F from which
     static modes are added to a normal-mode basis (its statics then equal the full FE's).
     """
-    from pipeline import __version__
+    from pipeline._version import __version__
 
     out = Path(out_path)
     if out.suffix.lower() != ".hdf5":

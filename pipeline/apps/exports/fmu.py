@@ -247,7 +247,7 @@ def _unit_definitions(units: set[str]) -> str:
 def model_description(m: FmuModel, identifier: str, guid: str, model: str,
                       source: str) -> str:
     """The FMI 2.0 modelDescription.xml (variables ordered as their value references)."""
-    from pipeline import __version__
+    from pipeline._version import __version__
 
     ss = m.ss
     nx = ss.A.shape[0]
