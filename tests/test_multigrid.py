@@ -32,7 +32,7 @@ from pipeline.errors import ConfigError
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.solve import eigen, multigrid
 from pipeline.solve.eigen import solve_modes
-from pipeline.solve.factorize import backward_errors
+from pipeline.solve.refine import backward_errors
 from pipeline.solve.lobpcg import PROJECT_FROM, lobpcg, projected_sweeps
 from pipeline.solve.pcg import pcg
 

@@ -1,7 +1,7 @@
 """Modes stage: the lowest eigenpairs of K phi = omega^2 M phi.
 
 Shift-invert around sigma (0 for a supported body, slightly negative for a free one):
-the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solve.factorize`.
+the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solve.factorization`.
 
 - With a symmetric factor A = F F^T (PARDISO), a **block Lanczos** method with full
   re-orthogonalisation and thick restarts finds the largest eigenvalues
@@ -54,8 +54,8 @@ from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, MULTIGRID_AUTO_DO
                                       retained_heap)
 from pipeline.errors import ConfigError, ResourceError, SolverError
 from pipeline.solve import lobpcg, mixed, multigrid
-from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
-                                      sparse_times_dense)
+from pipeline.solve.blas import is_csr, sparse_times_dense
+from pipeline.solve.factorization import check_factorization, factorize, resolve_backend
 from pipeline.solve.modes import Modes
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ def factor_expected(n: int, count: int, *, supported: bool = True, backend: str 
                     method: str = "auto", precision: str = "double") -> bool:
     """Whether :func:`solve_modes` will factorise K itself with PARDISO at shift 0 for
     ``n`` free DOFs (by its own rules, before the values exist), so that a
-    :class:`~pipeline.solve.factorize.PatternAnalysis` started during the assembly will
+    :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` started during the assembly will
     be used. A wrong guess costs only the background analysis."""
     return (supported and n > DENSE_MAX and precision != "mixed"
             and (method == "factor" or (method == "auto" and n < MULTIGRID_AUTO_DOFS))
@@ -174,7 +174,7 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     (a float32 PARDISO factor, answers refined in double: :mod:`pipeline.solve.mixed`;
     no factor is kept); ``auto``: mixed when a double factor would not fit in memory
     (the size estimate, or PARDISO's exact size after its analysis), else double.
-    ``analysis``: a :class:`~pipeline.solve.factorize.PatternAnalysis` of K's pattern
+    ``analysis``: a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's pattern
     started during the assembly; the factor path at shift 0 takes it (PARDISO then only
     factorises numerically); the caller releases what is left (its ``with`` block).
     ``backend`` ``cudss`` (the factor on an NVIDIA GPU) keeps ``auto`` on the factor
@@ -193,8 +193,8 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     if method == "multigrid" and coarse is None:
         raise ConfigError.field("modes.method", "multigrid", "'auto' or 'factor' (the "
                                 "multigrid solver needs a quadratic mesh: mesh.order 2)")
-    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
-    M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
+    K = K if is_csr(K) else sp.csr_matrix(K)
+    M = M if is_csr(M) else sp.csr_matrix(M)
     sigma = default_shift(K, M, supported) if shift is None else float(shift)
     stats: dict = {"n": n, "count": count}
     kept = None
@@ -283,15 +283,15 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         del shifted
         t2 = time.perf_counter()
         stats.update(backend=fact.backend, factor_seconds=t2 - t1,
-                     **{k: v for k, v in fact.info.items() if not callable(v)})
+                     **fact.info)
         log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", n,
                  fact.backend, t2 - t1, sigma, fact.info.get("factor_bytes", 0) / 1e9)
         backend_name = fact.backend
         use_lanczos = method == "lanczos" or (method in ("auto", "factor")
-                                               and fact.forward is not None)
+                                               and fact.capabilities.half_solves)
         try:
             if use_lanczos:
-                if fact.forward is None:
+                if not fact.capabilities.half_solves:
                     raise SolverError(f"method 'lanczos' needs a symmetric factor; backend "
                                       f"'{fact.backend}' has none (use method 'arpack')")
                 v, lstats = _lanczos_modes(fact, M, count, tolerance,
@@ -346,7 +346,7 @@ def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress,
     t2 = time.perf_counter()
     stats = {"backend": "pardiso", "precision": "mixed", "mixed_shift": sigma_f,
              "factor_seconds": t2 - t1,
-             **{k: v for k, v in fact.info.items() if not callable(v)}}
+             **fact.info}
     try:
         v, lstats = _lanczos_modes(fact, M, count, max(tolerance, mixed.LANCZOS_TOLERANCE),
                                    block_size, max_basis, progress)
@@ -382,7 +382,7 @@ def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep,
         guard = max(3, count // 4)
         width = min(count + guard, tg.coarse_n // 2)
         # start block: the coarse problem's own modes, through the coarse factor
-        if tg.coarse.forward is not None:
+        if tg.coarse.capabilities.half_solves:
             vc, _ = _lanczos_modes(tg.coarse, Mc, width, MULTIGRID_START_TOLERANCE,
                                    default_block_size(width, sigma == 0.0), None, None)
         else:
@@ -514,17 +514,16 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
 def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
     """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
     n = fact.n
-    rows = fact.info["rows"]  # (phase, C-ordered (k, n) block) -> (k, n)
     calls = [0, 0]
     clock = {"solve": 0.0, "mass": 0.0}
 
     def op(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t0 = time.perf_counter()
-        X = rows(333, Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
+        X = fact.backward_rows(Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
         t1 = time.perf_counter()
         MX = sparse_times_dense(M, X.T)  # (n, k), column-major
         t2 = time.perf_counter()
-        out = rows(331, MX.T)  # F^-1 M F^-T Y
+        out = fact.forward_rows(MX.T)  # F^-1 M F^-T Y
         del MX
         clock["solve"] += time.perf_counter() - t2 + t1 - t0
         clock["mass"] += t2 - t1

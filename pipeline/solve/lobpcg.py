@@ -44,7 +44,7 @@ import numpy as np
 import scipy.linalg as la
 import scipy.sparse as sp
 
-from pipeline.solve.factorize import column_norms, sparse_times_dense
+from pipeline.solve.blas import column_norms, sparse_times_dense
 
 log = logging.getLogger(__name__)
 

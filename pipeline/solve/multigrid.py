@@ -47,7 +47,8 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
-from pipeline.solve.factorize import Factorization, axpby, factorize, sparse_times_dense
+from pipeline.solve.blas import axpby, sparse_times_dense
+from pipeline.solve.factorization import SolverFactorization, factorize
 from pipeline.solve.pcg import pcg
 
 log = logging.getLogger(__name__)
@@ -270,7 +271,7 @@ class TwoGrid:
         """This solver as a :class:`Factorization` of A (``solve`` by PCG), which the
         static correction uses like a direct factor; ``release()`` frees the coarse
         factor."""
-        return Factorization(solve=self.solve, backend="multigrid", n=self.A.shape[0],
-                             release=self.release,
-                             info={"coarse_dofs": self.coarse_n,
-                                   "factor_bytes": self.coarse.info.get("factor_bytes", 0)})
+        return SolverFactorization(self.solve, backend="multigrid", n=self.A.shape[0],
+                                   release=self.release,
+                                   info={"coarse_dofs": self.coarse_n,
+                                         "factor_bytes": self.coarse.memory_bytes})
