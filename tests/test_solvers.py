@@ -24,6 +24,7 @@ from scipy.linalg import eigh
 from pipeline.solve import blas
 from pipeline.solve import mkl as mkl_runtime
 from pipeline.solve import factorization as solvers
+from pipeline.solve import plan
 from pipeline.solve.backends import cudss as cudss_backend
 from pipeline.solve.backends import pardiso as pardiso_backend
 from pipeline.fe.assemble import assemble_stiffness_mass, restrict
@@ -31,7 +32,8 @@ from pipeline.config import Geometry, Material, MeshSpec, Support
 from pipeline.errors import ConfigError, SolverError
 from pipeline.fe.space import build_space
 from pipeline.fe.mesh import generate_mesh, read_mesh
-from pipeline.solve.eigen import block_lanczos, solve_modes
+from pipeline.solve.eigen import solve_modes
+from pipeline.solve.lanczos import block_lanczos
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
 from conftest import (EPS, ROUND_OFF_FACTOR, assert_elementwise_within,
@@ -343,7 +345,7 @@ def test_block_lanczos_images_follow_the_ritz_vectors():
 
 
 def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
-    from pipeline.solve.eigen import _orthonormal_block
+    from pipeline.solve.lanczos import _orthonormal_block
 
     rng = np.random.default_rng(4)
     W = rng.standard_normal((4, 500))
@@ -496,7 +498,7 @@ def test_gpu_backend_takes_the_factor_path_with_arpack_and_no_multigrid_trial(
 
     _cpu_stand_in_for_cudss(monkeypatch)
     K, M = beam["K"], beam["M"]
-    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", 0)  # auto would try multigrid
+    monkeypatch.setattr(plan, "MULTIGRID_AUTO_DOFS", 0)  # auto would try multigrid
     coarse = p1_prolongation(beam["space"], beam["free"])
     modes = solve_modes(K, M, COUNT, backend="cudss", keep=True, precision="auto",
                         coarse=coarse)
@@ -622,6 +624,6 @@ def test_factor_expected_follows_solve_modes_rules():
     assert not eigen.factor_expected(n, 20, supported=False)  # shift < 0
     assert not eigen.factor_expected(n, 20, precision="mixed")
     assert not eigen.factor_expected(n, 20, method="multigrid")
-    assert not eigen.factor_expected(eigen.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
-    assert not eigen.factor_expected(eigen.DENSE_MAX, 4)  # dense
+    assert not eigen.factor_expected(plan.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
+    assert not eigen.factor_expected(plan.DENSE_MAX, 4)  # dense
     assert not eigen.factor_expected(n, 20, backend="superlu")

@@ -134,6 +134,7 @@ class PardisoFactorization(Factorization):
             self.release()
             raise
         self.seconds["factorisation"] = time.perf_counter() - t1
+        self.info = self.statistics()
 
     def _call(self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None,
               nrhs: int = 1) -> None:
@@ -207,7 +208,8 @@ class PardisoFactorization(Factorization):
 
     def _check_halves(self) -> None:
         if not self.capabilities.half_solves:
-            super().forward(np.zeros(0))  # raises: an indefinite factor has no halves
+            raise SolverError("an indefinite PARDISO factor (LDL^T with pivoting) has no "
+                              "separate forward and backward substitutions")
 
     def _rows(self, phase: int, bt: np.ndarray) -> np.ndarray:
         """Solve for a C-ordered (k, n) block of right-hand sides (rows); no copies."""
@@ -333,7 +335,6 @@ def factor(A: sp.spmatrix, *, positive_definite: bool = True, single: bool = Fal
             fact.factorise()
     if fact is None:
         fact = PardisoFactorization(A, positive_definite, single)
-    fact.info = fact.statistics()
     return fact
 
 
