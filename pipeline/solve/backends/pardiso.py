@@ -222,8 +222,8 @@ class PardisoFactorization(Factorization):
 
     def release(self) -> None:
         """Free PARDISO's memory. A factor above 1 GB is freed in a background thread
-        (0.7 s for the 9 GB factor at 1M DOFs, which then overlaps the file writing);
-        the interpreter waits for that thread before it exits."""
+        (freeing the 9 GB factor of 1M DOFs takes most of a second, which then overlaps
+        the file writing); the interpreter waits for that thread before it exits."""
         if not self._alive:
             return
         self._alive = False
