@@ -67,6 +67,9 @@ def test_a_registered_backend_is_reached_by_name_end_to_end(registered):
     np.testing.assert_allclose(K @ fact.solve(np.ones(700)), 1.0, rtol=1e-9)
     rows = fact.solve_rows(np.ones((3, 700)))  # the protocol's default block form
     assert rows.shape == (3, 700) and rows.flags.c_contiguous
+    out = np.empty((3, 700))
+    assert fact.solve_rows(np.ones((3, 700)), out=out) is out
+    np.testing.assert_array_equal(out, rows)
     modes = solve_modes(K, M, 4, backend="dense-test")  # Lanczos on its half-solves
     exact = 2e4 * (1 - np.cos(np.arange(1, 5) * np.pi / 701))
     np.testing.assert_allclose(modes.omega2, exact, rtol=1e-9)

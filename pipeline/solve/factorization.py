@@ -73,9 +73,10 @@ class Factorization(abc.ABC):
     def solve(self, b: np.ndarray) -> np.ndarray:
         """A^-1 b for b (n,) or (n, k), in b's shape."""
 
-    def solve_rows(self, bt: np.ndarray) -> np.ndarray:
-        """A^-1 for the rows of a C-ordered (k, n) block: (k, n)."""
-        return np.ascontiguousarray(np.asarray(self.solve(np.asarray(bt).T)).T)
+    def solve_rows(self, bt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """A^-1 for the rows of a C-ordered (k, n) block: (k, n), written into ``out``
+        ((k, n), C-ordered) when given (in place where the backend can) and returned."""
+        return _into(np.asarray(self.solve(np.asarray(bt).T)).T, out)
 
     def forward(self, b: np.ndarray) -> np.ndarray:
         """F^-1 b for A = F F^T (b (n,) or (n, k)); only with ``half_solves``."""
@@ -87,13 +88,15 @@ class Factorization(abc.ABC):
         raise SolverError(f"backend '{self.backend}' has no separate forward and backward "
                           "substitutions")
 
-    def forward_rows(self, bt: np.ndarray) -> np.ndarray:
-        """:meth:`forward` of the rows of a C-ordered (k, n) block: (k, n)."""
-        return np.ascontiguousarray(self.forward(np.asarray(bt).T).T)
+    def forward_rows(self, bt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`forward` of the rows of a C-ordered (k, n) block: (k, n) (``out``: as
+        in :meth:`solve_rows`)."""
+        return _into(self.forward(np.asarray(bt).T).T, out)
 
-    def backward_rows(self, yt: np.ndarray) -> np.ndarray:
-        """:meth:`backward` of the rows of a C-ordered (k, n) block: (k, n)."""
-        return np.ascontiguousarray(self.backward(np.asarray(yt).T).T)
+    def backward_rows(self, yt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`backward` of the rows of a C-ordered (k, n) block: (k, n) (``out``: as
+        in :meth:`solve_rows`)."""
+        return _into(self.backward(np.asarray(yt).T).T, out)
 
     @property
     def memory_bytes(self) -> int:
@@ -115,6 +118,16 @@ class Factorization(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def _into(X: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    """X as a C-ordered array, or copied into ``out`` (same shape) and ``out`` returned."""
+    if out is None:
+        return np.ascontiguousarray(X)
+    if out.shape != X.shape:
+        raise ValueError(f"out: expected shape {X.shape}, got {out.shape}")
+    out[...] = X
+    return out
 
 
 class SolverFactorization(Factorization):

@@ -195,28 +195,32 @@ class PardisoFactorization(Factorization):
         self._check_halves()
         return self._apply(_BACKWARD, y)
 
-    def solve_rows(self, bt: np.ndarray) -> np.ndarray:
-        return self._rows(_SOLVE, bt)
+    def solve_rows(self, bt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        return self._rows(_SOLVE, bt, out)
 
-    def forward_rows(self, bt: np.ndarray) -> np.ndarray:
+    def forward_rows(self, bt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         self._check_halves()
-        return self._rows(_FORWARD, bt)
+        return self._rows(_FORWARD, bt, out)
 
-    def backward_rows(self, yt: np.ndarray) -> np.ndarray:
+    def backward_rows(self, yt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         self._check_halves()
-        return self._rows(_BACKWARD, yt)
+        return self._rows(_BACKWARD, yt, out)
 
     def _check_halves(self) -> None:
         if not self.capabilities.half_solves:
             raise SolverError("an indefinite PARDISO factor (LDL^T with pivoting) has no "
                               "separate forward and backward substitutions")
 
-    def _rows(self, phase: int, bt: np.ndarray) -> np.ndarray:
-        """Solve for a C-ordered (k, n) block of right-hand sides (rows); no copies."""
+    def _rows(self, phase: int, bt: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Solve for a C-ordered (k, n) block of right-hand sides (rows), into ``out``
+        when given (C-ordered, the factor's precision, bt's shape); no copies."""
         if not self._alive:
             raise SolverError("the PARDISO factorisation was released")
         bt = np.ascontiguousarray(bt, dtype=self.dtype)
-        xt = np.empty_like(bt)
+        xt = np.empty_like(bt) if out is None else out
+        if xt.shape != bt.shape or xt.dtype != self.dtype or not xt.flags.c_contiguous:
+            raise ValueError(f"out: expected a C-ordered {np.dtype(self.dtype).name} array "
+                             f"of shape {bt.shape}, got {xt.dtype.name} {xt.shape}")
         self._call(phase, bt, xt, bt.shape[0] if bt.ndim == 2 else 1)
         return xt
 
