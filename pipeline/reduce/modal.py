@@ -37,7 +37,6 @@ from typing import Sequence
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
 
 from pipeline._util import validate
 from pipeline.errors import SolverError

@@ -1,8 +1,9 @@
 """Solvers: sparse factorisations behind one protocol, and the eigensolver of the modes
 stage.
 
-- :mod:`~pipeline.solve.factorization`: the :class:`~pipeline.solve.factorization.Factorization` protocol and the
-  backend registry (``factorize``, ``register_backend``, ``available_backends``);
+- :mod:`~pipeline.solve.factorization`: the
+  :class:`~pipeline.solve.factorization.Factorization` protocol and the backend
+  registry (``factorize``, ``register_backend``, ``available_backends``);
 - :mod:`~pipeline.solve.backends`: one module per backend (PARDISO, SuperLU, CHOLMOD,
   cuDSS), each ending in its registry line;
 - :mod:`~pipeline.solve.mkl`: finding MKL, its interface check and scoped threads;
