@@ -29,6 +29,7 @@ from pipeline.errors import ResourceError, SolverError
 from pipeline.solve.blas import upper_triangle_csr
 from pipeline.solve.factorization import Capabilities, Factorization, register_backend
 
+
 @functools.lru_cache(maxsize=1)
 def cudss_modules() -> tuple[Any, Any] | None:
     """(cupy, nvmath) where an NVIDIA GPU, CuPy and nvmath-python with a loadable cuDSS
