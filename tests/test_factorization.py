@@ -113,3 +113,21 @@ def test_mkl_threads_are_the_same_before_and_after_a_factorisation(monkeypatch):
     finally:
         lib.MKL_Set_Num_Threads(ctypes.c_int(host))
     assert mkl.interface_is_lp64(lib)
+
+
+def test_factorising_leaves_the_environment_alone():
+    """Loading MKL and factorising write nothing into os.environ (KMP_BLOCKTIME is the
+    command-line entry point's to set, in its own process)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, numpy as np, scipy.sparse as sp\n"
+            "import pipeline\n"
+            "before = dict(os.environ)\n"
+            "from pipeline.solve.factorization import factorize\n"
+            "K = sp.diags([-1.0, 2.5, -1.0], [-1, 0, 1], shape=(500, 500), format='csr')\n"
+            "factorize(K).solve(np.ones(500))\n"
+            "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n")
+    env = {k: v for k, v in os.environ.items() if k != "KMP_BLOCKTIME"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
