@@ -131,3 +131,22 @@ def test_factorising_leaves_the_environment_alone():
             "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n")
     env = {k: v for k, v in os.environ.items() if k != "KMP_BLOCKTIME"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=120)
+
+
+def test_an_ilp64_mkl_is_recognised_and_refused():
+    """Our ctypes signatures pass 32-bit integers: a runtime that reports the ILP64 layer
+    (or cannot say) is not LP64."""
+    class Layer:
+        def __init__(self, value):
+            self.value = value
+
+        def __call__(self, requested):
+            return self.value
+
+    class FakeMKL:
+        def __init__(self, value):
+            self.MKL_Set_Interface_Layer = Layer(value)
+
+    assert mkl.interface_is_lp64(FakeMKL(mkl.INTERFACE_LP64))
+    assert not mkl.interface_is_lp64(FakeMKL(mkl.INTERFACE_ILP64))
+    assert not mkl.interface_is_lp64(object())
