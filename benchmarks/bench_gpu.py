@@ -128,7 +128,7 @@ def pipeline_modes(K, M, count: int, reference_hz) -> dict:
     """The pipeline's own eigensolver with ``modes.solver: cudss`` (factor kept, then one
     static solve with it, as the reduce stage does), against the direct run above."""
     from pipeline.solve.eigen import solve_modes
-    from pipeline.solve.factorize import refined_solve
+    from pipeline.solve.refine import refined_solve
 
     t0 = time.perf_counter()
     modes = solve_modes(K, M, count, backend="cudss", keep=True)

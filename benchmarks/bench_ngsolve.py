@@ -16,7 +16,7 @@ stiffness and mass assembled with ``symmetric=True, symmetric_storage=True``, an
 - ``pardiso_spd``: NGSolve's fastest variant on the bench machine, an MKL PARDISO SPD
   factor (mtype 2, METIS ordering, no iterative refinement) registered through
   ``ngsolve.la.RegisterInverseType``. Its factor and solves are this project's own
-  PARDISO wrapper (:func:`pipeline.solve.factorize.factorize`, the settings our
+  PARDISO wrapper (:func:`pipeline.solve.factorization.factorize`, the settings our
   pipeline uses), so the two stacks compared differ in everything but the sparse
   factorisation. Arnoldi is complex: the real and imaginary parts of a right-hand side
   are solved as two columns of one real solve.
@@ -45,7 +45,7 @@ def register_pardiso_spd() -> str:
     import scipy.sparse as sp
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from pipeline.solve.factorize import factorize
+    from pipeline.solve.factorization import factorize
 
     class PardisoSPD(ngs.la.SparseFactorizationInterface):
         def Factor(self):

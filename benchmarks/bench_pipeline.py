@@ -87,7 +87,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     total = time.perf_counter() - t0
     import numpy as np
 
-    from pipeline.solve.factorize import sparse_times_dense
+    from pipeline.solve.blas import sparse_times_dense
 
     Phi = captured.pop("shapes")
     ortho = float(np.abs(Phi.T @ sparse_times_dense(captured.pop("M"), Phi)

@@ -25,7 +25,8 @@ from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.eigen import factor_expected
-from pipeline.solve.factorize import PatternAnalysis, resolve_backend
+from pipeline.solve.backends.pardiso import PatternAnalysis
+from pipeline.solve.factorization import resolve_backend
 from pipeline.solve.stage import compute_modes
 from pipeline.store.h5file import write_file
 from pipeline.store.layout import ROOT
@@ -61,7 +62,7 @@ STAGE_MODULES = ("numpy", "scipy.sparse", "scipy.sparse.linalg", "scipy.linalg",
                  "meshio", "skfem", "yaml", "gmsh", "pipeline.fe.mesh", "pipeline.fe.space",
                  "pipeline.fe.assemble", "pipeline.fe.body", "pipeline.fe.model",
                  "pipeline.solve.eigen", "pipeline.solve.stage", "pipeline.fe.regions",
-                 "pipeline._util.resources", "pipeline.store.h5file", "pipeline.solve.factorize",
+                 "pipeline._util.resources", "pipeline.store.h5file", "pipeline.solve.factorization",
                  "pipeline.reduce.build")
 
 

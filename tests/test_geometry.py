@@ -49,7 +49,7 @@ def _run(cfg, tmp_path: Path, name: str = "out"):
         return run_pipeline(cfg, tmp_path / f"{name}.h5", mesh_dir=tmp_path)
     except SolverError as exc:
         if "singular to working precision" in str(exc) and cfg.name == "slender_beam":
-            # pipeline.solve.factorize.factorize checks ||K x - 1|| / ||1|| < 1e-6, which a
+            # pipeline.solve.factorization.factorize checks ||K x - 1|| / ||1|| < 1e-6, which a
             # well-posed but ill-conditioned slender body fails (its backward error is
             # 1e-16); the check has to be relative to ||K|| ||x||. See the issue 9 report.
             pytest.xfail(f"solver singularity check is not scale-invariant: {exc}")

@@ -32,9 +32,9 @@ from conftest import (ALUMINIUM, build_model, cond_eps, condition_number, eigenv
 from pipeline.config import config_from_dict
 from pipeline.errors import ConfigError
 from pipeline.fe.coarse import p1_prolongation
-from pipeline.solve import eigen, multigrid
+from pipeline.solve import eigen, multigrid, plan
 from pipeline.solve.eigen import solve_modes
-from pipeline.solve.factorize import backward_errors
+from pipeline.solve.refine import backward_errors
 from pipeline.solve.lobpcg import PROJECT_FROM, lobpcg, projected_sweeps
 from pipeline.solve.pcg import pcg
 
@@ -247,7 +247,7 @@ def test_multigrid_free_body_finds_the_rigid_modes(free_beam):
 
 def test_auto_takes_multigrid_only_when_no_factor_fits(beam, monkeypatch, caplog):
     """Below MULTIGRID_AUTO_DOFS, auto factorises whenever a factor fits."""
-    assert beam.K.shape[0] < eigen.MULTIGRID_AUTO_DOFS
+    assert beam.K.shape[0] < plan.MULTIGRID_AUTO_DOFS
     P = p1_prolongation(beam.space, beam.free)
     fits = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
     assert fits.stats["method"] == "block-lanczos"
@@ -267,7 +267,7 @@ def test_auto_tries_multigrid_from_its_size(beam, monkeypatch):
     tolerance (both defined for the factor path), or no coarse space, keep the factor."""
     P = p1_prolongation(beam.space, beam.free)
     ref = solve_modes(beam.K, beam.M, COUNT, method="factor")
-    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", beam.K.shape[0])
+    monkeypatch.setattr(plan, "MULTIGRID_AUTO_DOFS", beam.K.shape[0])
     auto = solve_modes(beam.K, beam.M, COUNT, coarse=P, precision="auto")
     assert auto.stats["method"] == "multigrid-lobpcg"
     assert "multigrid_trial" not in auto.stats
@@ -303,7 +303,7 @@ def test_auto_gives_a_slow_multigrid_trial_up_for_the_factor(soft_beam, monkeypa
     b = soft_beam
     P = p1_prolongation(b.space, b.free)
     ref = solve_modes(b.K, b.M, COUNT, method="factor")
-    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", b.K.shape[0])
+    monkeypatch.setattr(plan, "MULTIGRID_AUTO_DOFS", b.K.shape[0])
     # a clock that ticks once per reading: the seconds below count readings, so the
     # check on them says what the total covers, whatever the machine's speed or load
     ticks = itertools.count()
@@ -312,8 +312,8 @@ def test_auto_gives_a_slow_multigrid_trial_up_for_the_factor(soft_beam, monkeypa
         auto = solve_modes(b.K, b.M, COUNT, coarse=P)
     assert auto.stats["method"] == "block-lanczos"
     trial = auto.stats["multigrid_trial"]
-    assert PROJECT_FROM <= trial["sweeps"] < eigen.MULTIGRID_AUTO_SWEEPS
-    assert trial["projected_sweeps"] > eigen.MULTIGRID_AUTO_SWEEPS
+    assert PROJECT_FROM <= trial["sweeps"] < plan.MULTIGRID_AUTO_SWEEPS
+    assert trial["projected_sweeps"] > plan.MULTIGRID_AUTO_SWEEPS
     assert "converges slowly" in caplog.text and "factor instead" in caplog.text
     np.testing.assert_allclose(auto.omega2, ref.omega2, rtol=eigenvalue_rtol(b.K, b.M))
     assert auto.seconds > trial["seconds"] > 0  # the total covers the trial and the factor

@@ -79,7 +79,7 @@ def test_slender_beam_matches_the_papers_table(tmp_path):
 def test_nearly_incompressible_quadratic_body_runs_under_every_backend(tmp_path):
     """nu = 0.4999 with quadratic elements: K is ill-conditioned (lambda / mu = 5000), not
     singular; PARDISO used to be refused, SuperLU not. Both must give the same compliance."""
-    from pipeline.solve.factorize import available_backends
+    from pipeline.solve.factorization import available_backends
 
     f1 = {}
     for backend in available_backends():

@@ -75,7 +75,7 @@ def test_eigsh_matches_dense_eigh(tmp_path):
                        subset_by_index=[0, 5])
     # both iterative paths (block Lanczos on the PARDISO factor, ARPACK shift-invert),
     # never the dense shortcut the stage takes for tiny systems
-    from pipeline.solve.factorize import available_backends
+    from pipeline.solve.factorization import available_backends
 
     runs = [("arpack", "superlu")] + ([("lanczos", "pardiso")]
                                       if "pardiso" in available_backends() else [])

@@ -98,7 +98,7 @@ def test_cholesky_flop_estimate_is_above_its_lower_bound():
 
 def test_factorisation_and_lanczos_report_their_stages(caplog, monkeypatch):
     from pipeline.solve.eigen import solve_modes
-    from pipeline.solve.factorize import available_backends
+    from pipeline.solve.factorization import available_backends
 
     n = 2000
     K = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")

@@ -24,8 +24,8 @@ from pipeline.reduce.modal import (
     damping_ratios,
     modal_statespace,
     reduce_model,
-    static_compliance,
 )
+from pipeline.reduce.statics import static_compliance
 from pipeline.store.schema import statespace_datasets
 
 L, H, W = 0.5, 0.02, 0.05  # m: the reference cantilever (METHODS section 1)

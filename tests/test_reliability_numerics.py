@@ -49,7 +49,7 @@ def free_beam(tmp_path_factory):
 
 
 def backends() -> list[str]:
-    from pipeline.solve.factorize import available_backends
+    from pipeline.solve.factorization import available_backends
 
     return sorted(set(available_backends()))
 
@@ -82,9 +82,9 @@ def test_a_mechanism_is_refused_naming_the_supports(tmp_path, solver):
 
 
 def test_factorising_a_free_body_stiffness_is_refused(free_beam):
-    """What the pipeline's statics use (pipeline.solve.factorize.factorize, with its residual
+    """What the pipeline's statics use (pipeline.solve.factorization.factorize, with its residual
     check): every backend refuses the singular K of an unsupported body."""
-    from pipeline.solve.factorize import factorize
+    from pipeline.solve.factorization import factorize
 
     for backend in backends():
         with pytest.raises(SolverError, match=r"check the supports"):
@@ -92,12 +92,12 @@ def test_factorising_a_free_body_stiffness_is_refused(free_beam):
 
 
 def test_static_solve_of_a_free_body_is_refused(free_beam):
-    from pipeline.reduce.modal import default_factorize, static_shapes
+    from pipeline.reduce.statics import static_shapes
 
     F = np.zeros((free_beam.K.shape[0], 1))
     F[-1, 0] = 1.0
     with pytest.raises(SolverError, match=r"supported|singular"):
-        static_shapes(free_beam.K, F, factorize=default_factorize)
+        static_shapes(free_beam.K, F)
 
 
 # --------------------------------------------------------------------------- indefinite K
@@ -147,7 +147,7 @@ def test_lanczos_that_does_not_converge_is_a_solver_error(beam):
     tolerance stops after its restarts with a SolverError (takes ~20 s)."""
     if "method" not in inspect.signature(solve_modes).parameters:
         pytest.skip("this modes.py has no block Lanczos")
-    from pipeline.solve.factorize import available_backends
+    from pipeline.solve.factorization import available_backends
 
     if "pardiso" not in available_backends():
         pytest.skip("block Lanczos needs the PARDISO factor")
@@ -288,7 +288,7 @@ def test_scaled_inf_norm_equals_the_scaled_matrix_row_sums(rows_per_chunk):
     """The singularity bound of static_shapes uses |W |K| W|_inf without building W|K|W:
     equal to the explicit product's largest row sum (to round-off of one row sum), with
     empty rows, negative entries and any chunking."""
-    from pipeline.solve.factorize import scaled_inf_norm
+    from pipeline.solve.blas import scaled_inf_norm
 
     rng = np.random.default_rng(5)
     n, m = 300, 2000

@@ -82,7 +82,7 @@ def test_available_memory_is_positive():
 
 
 def test_pardiso_checks_the_exact_factor_size_before_factorising(monkeypatch):
-    from pipeline.solve import factorize as solvers
+    from pipeline.solve import factorization as solvers
 
     if "pardiso" not in solvers.available_backends():
         pytest.skip("needs MKL PARDISO")

@@ -21,13 +21,19 @@ import pytest
 import scipy.sparse as sp
 from scipy.linalg import eigh
 
-from pipeline.solve import factorize as solvers
+from pipeline.solve import blas
+from pipeline.solve import mkl as mkl_runtime
+from pipeline.solve import factorization as solvers
+from pipeline.solve import plan
+from pipeline.solve.backends import cudss as cudss_backend
+from pipeline.solve.backends import pardiso as pardiso_backend
 from pipeline.fe.assemble import assemble_stiffness_mass, restrict
 from pipeline.config import Geometry, Material, MeshSpec, Support
 from pipeline.errors import ConfigError, SolverError
 from pipeline.fe.space import build_space
 from pipeline.fe.mesh import generate_mesh, read_mesh
-from pipeline.solve.eigen import block_lanczos, solve_modes
+from pipeline.solve.eigen import solve_modes
+from pipeline.solve.lanczos import block_lanczos
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
 from conftest import (EPS, ROUND_OFF_FACTOR, assert_elementwise_within,
@@ -182,7 +188,7 @@ def test_factorisation_solves_blocks_of_right_hand_sides(beam, rounding, backend
     bound = _residual_bound(rounding["norm_K"], X, B)
     record_tolerance(f"test_solvers::block_residual[{backend}]", residual, bound)
     assert residual <= bound, (residual, bound)
-    if fact.forward is not None:  # A = F F^T: ||F^-1 b||^2 = b^T A^-1 b
+    if fact.capabilities.half_solves:  # A = F F^T: ||F^-1 b||^2 = b^T A^-1 b
         Y = fact.forward(B)
         # b^T x and ||F^-1 b||^2: first-order error x^T dK x <= c eps cond(K) b^T x each
         assert_elementwise_within((Y * Y).sum(axis=0), (B * X).sum(axis=0), two_paths,
@@ -199,9 +205,9 @@ def test_factorisation_solves_blocks_of_right_hand_sides(beam, rounding, backend
 def test_large_pardiso_factor_is_freed_in_the_background(beam, rounding, monkeypatch):
     """Factors above BACKGROUND_RELEASE_BYTES are freed by a thread: the handle is dead at
     once (solves refused), the thread finishes, and a new factorisation still works."""
-    monkeypatch.setattr(solvers, "BACKGROUND_RELEASE_BYTES", 0)
+    monkeypatch.setattr(pardiso_backend, "BACKGROUND_RELEASE_BYTES", 0)
     K = beam["K"]
-    handle = solvers._Pardiso(K, True)
+    handle = pardiso_backend.PardisoFactorization(K, True)
     b = np.ones(K.shape[0])
     x = handle.solve(b)
     handle.release()
@@ -224,7 +230,7 @@ def test_kept_factorisation_is_handed_on_in_the_result_and_freed_by_its_owner(be
     assert not hasattr(solvers, "_kept") and not hasattr(solvers, "keep_factorization")
     assert solve_modes(K, M, 4).factorization is None
     modes = solve_modes(K, M, 4, keep=True)
-    assert modes.factorization is not None and modes.solve is modes.factorization.solve
+    assert modes.factorization is not None and modes.solve == modes.factorization.solve
     b = np.random.default_rng(1).standard_normal(K.shape[0])
     x = modes.solve(b)
     residual = np.linalg.norm(K @ x - b) / np.linalg.norm(b)
@@ -240,7 +246,7 @@ def test_kept_factorisation_is_handed_on_in_the_result_and_freed_by_its_owner(be
 
 def test_upper_triangle_is_one_pass_and_32_bit(beam):
     K = beam["K"]
-    U = solvers.upper_triangle_csr(K)
+    U = blas.upper_triangle_csr(K)
     assert U.indices.dtype == np.int32 and U.indptr.dtype == np.int32
     assert abs(U - sp.triu(K)).max() == 0.0
 
@@ -261,7 +267,7 @@ def test_sparse_times_dense_matches_scipy_in_every_shape(beam, dtype):
               rng.standard_normal((A.shape[1], 3)),
               np.asfortranarray(rng.standard_normal((A.shape[1], 3)))):
         X = X.astype(dtype)
-        got = solvers.sparse_times_dense(A, X)
+        got = blas.sparse_times_dense(A, X)
         assert got.shape == X.shape and got.dtype == dtype
         ref = A.astype(np.float64) @ X.astype(np.float64)
         scale = abs(A).astype(np.float64) @ np.abs(X.astype(np.float64))
@@ -277,8 +283,8 @@ def test_fused_products_and_axpby(beam, dtype, mkl, monkeypatch):
     round-off bound as above (plus one rounding of beta out); a wrong ``out`` is one
     ValueError naming the expected shape."""
     if not mkl:
-        monkeypatch.setattr(solvers, "_mkl_library", lambda: None)
-    elif solvers._mkl_library() is None:
+        monkeypatch.setattr(mkl_runtime, "mkl_library", lambda: None)
+    elif mkl_runtime.mkl_library() is None:
         pytest.skip("MKL is not installed (the 'fast' extra)")
     K = beam["K"]
     A = sp.csr_matrix((K.data.astype(dtype), K.indices.astype(np.int32),
@@ -290,22 +296,22 @@ def test_fused_products_and_axpby(beam, dtype, mkl, monkeypatch):
         X = rng.standard_normal(shape).astype(dtype)
         Y0 = rng.standard_normal(shape).astype(dtype)
         out = Y0.copy()
-        got = solvers.sparse_times_dense(A, X, out=out, alpha=-0.5, beta=2.0)
+        got = blas.sparse_times_dense(A, X, out=out, alpha=-0.5, beta=2.0)
         assert got is out and got.dtype == dtype
         ref = -0.5 * (A.astype(np.float64) @ X.astype(np.float64)) + 2.0 * Y0
         scale = 0.5 * (abs(A).astype(np.float64) @ np.abs(X.astype(np.float64))) \
             + 2.0 * np.abs(Y0)
         assert np.all(np.abs(got - ref) <= 2 * (row_len + 1) * eps * scale)
     with pytest.raises(ValueError, match=r"out: expected a C-contiguous"):
-        solvers.sparse_times_dense(A, X, out=np.empty((3, 3), dtype=dtype))
+        blas.sparse_times_dense(A, X, out=np.empty((3, 3), dtype=dtype))
     x, y = rng.standard_normal(50).astype(dtype), rng.standard_normal(50).astype(dtype)
     y0 = y.astype(np.float64)
     ref = 3.0 * x.astype(np.float64) - 0.25 * y0
-    got = solvers.axpby(3.0, x, -0.25, y)
+    got = blas.axpby(3.0, x, -0.25, y)
     assert got is y
     assert np.all(np.abs(got - ref) <= 2 * eps * (3 * np.abs(x) + 0.25 * np.abs(y0)))
     with pytest.raises(ValueError, match="axpby"):
-        solvers.axpby(1.0, x[:10], 1.0, y)
+        blas.axpby(1.0, x[:10], 1.0, y)
 
 
 def test_block_lanczos_on_a_diagonal_operator():
@@ -339,7 +345,7 @@ def test_block_lanczos_images_follow_the_ritz_vectors():
 
 
 def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
-    from pipeline.solve.eigen import _orthonormal_block
+    from pipeline.solve.lanczos import _orthonormal_block
 
     rng = np.random.default_rng(4)
     W = rng.standard_normal((4, 500))
@@ -431,7 +437,7 @@ def test_auto_precision_uses_mixed_only_when_a_double_factor_does_not_fit(beam, 
         if nbytes > 0.75 * double_bytes:
             raise ResourceError("the factor does not fit")
 
-    monkeypatch.setattr(solvers, "check_factor_memory", exact_check)
+    monkeypatch.setattr(pardiso_backend, "check_factor_memory", exact_check)
     with pytest.raises(ResourceError):
         solve_modes(K, M, COUNT, method="lanczos", precision="double")
     after_analysis = solve_modes(K, M, COUNT, method="lanczos", precision="auto")
@@ -470,11 +476,16 @@ def _cpu_stand_in_for_cudss(monkeypatch):
     """Make ``cudss`` an installed backend whose factor is SuperLU's, named cudss (no
     separate forward/backward substitutions, like cuDSS): what the pipeline does around
     the GPU factor, tested where there is no GPU."""
-    import dataclasses
+    from pipeline.solve.backends.superlu import SuperLUFactorization
 
-    monkeypatch.setattr(solvers, "_cudss_modules", lambda: ("cupy", "nvmath"))
-    monkeypatch.setattr(solvers, "_cudss", lambda A: dataclasses.replace(
-        solvers._superlu(A), backend="cudss"))
+    class StandIn(SuperLUFactorization):
+        backend = "cudss"
+        capabilities = solvers.Capabilities(gpu=True)
+
+    solvers.available_backends()  # the built-in backends are registered
+    monkeypatch.setitem(solvers._REGISTRY, "cudss", solvers.Backend(
+        name="cudss", factor=lambda A, **options: StandIn(A), installed=lambda: True,
+        capabilities=StandIn.capabilities))
 
 
 def test_gpu_backend_takes_the_factor_path_with_arpack_and_no_multigrid_trial(
@@ -487,7 +498,7 @@ def test_gpu_backend_takes_the_factor_path_with_arpack_and_no_multigrid_trial(
 
     _cpu_stand_in_for_cudss(monkeypatch)
     K, M = beam["K"], beam["M"]
-    monkeypatch.setattr(eigen, "MULTIGRID_AUTO_DOFS", 0)  # auto would try multigrid
+    monkeypatch.setattr(plan, "MULTIGRID_AUTO_DOFS", 0)  # auto would try multigrid
     coarse = p1_prolongation(beam["space"], beam["free"])
     modes = solve_modes(K, M, COUNT, backend="cudss", keep=True, precision="auto",
                         coarse=coarse)
@@ -514,7 +525,7 @@ def test_missing_gpu_backend_is_one_config_line_before_meshing(tmp_path, capsys,
 
     import pipeline.run
 
-    monkeypatch.setattr(solvers, "_cudss_modules", lambda: None)
+    monkeypatch.setattr(cudss_backend, "cudss_modules", lambda: None)
     meshed = []
     monkeypatch.setattr(pipeline.run, "build_fe_model", lambda *a, **k: meshed.append(1))
     config = Path(__file__).resolve().parents[1] / "configs" / "cantilever.yaml"
@@ -547,7 +558,7 @@ def test_cpu_backends_never_probe_the_gpu(monkeypatch):
     def probe():
         raise AssertionError("probed the GPU stack")
 
-    monkeypatch.setattr(solvers, "_cudss_modules", probe)
+    monkeypatch.setattr(cudss_backend, "cudss_modules", probe)
     assert solvers.resolve_backend("auto") == BACKENDS[0]
     assert solvers.resolve_backend("superlu") == "superlu"
     with pytest.raises(AssertionError, match="probed"):
@@ -566,7 +577,7 @@ def test_analysis_of_the_pattern_alone_factorises_the_matrix_given_later(beam, r
     reference = solvers.factorize(K, "pardiso")
     x_ref = reference.solve(b)
     reference.release()
-    with solvers.PatternAnalysis(K.indptr, K.indices) as early:
+    with pardiso_backend.PatternAnalysis(K.indptr, K.indices) as early:
         fact = solvers.factorize(K, "pardiso", analysis=early)
     assert fact.info["analysis_ahead"]
     x = fact.solve(b)
@@ -579,7 +590,7 @@ def test_analysis_of_the_pattern_alone_factorises_the_matrix_given_later(beam, r
     v = sp.csr_matrix(([1.0, 1.0], ([0, n - 1], [0, 0])), shape=(n, 1))
     other = (K + 1e-3 * K[0, 0] * (v @ v.T)).tocsr()
     other.sort_indices()
-    early = solvers.PatternAnalysis(K.indptr, K.indices)
+    early = pardiso_backend.PatternAnalysis(K.indptr, K.indices)
     fact = solvers.factorize(other, "pardiso", analysis=early)
     assert not fact.info["analysis_ahead"] and early._result[0] is None
     assert np.linalg.norm(other @ fact.solve(b) - b) <= 1e-8 * np.linalg.norm(b)
@@ -590,14 +601,14 @@ def test_analysis_of_the_pattern_alone_factorises_the_matrix_given_later(beam, r
 def test_solve_modes_takes_the_early_analysis_only_at_shift_zero(beam, dense_reference,
                                                                  rounding):
     K, M = beam["K"], beam["M"]
-    with solvers.PatternAnalysis(K.indptr, K.indices) as early:
+    with pardiso_backend.PatternAnalysis(K.indptr, K.indices) as early:
         modes = solve_modes(K, M, COUNT, backend="pardiso", keep=False, analysis=early)
     assert modes.stats["analysis_ahead"]
     assert_elementwise_within(modes.frequencies_hz, dense_reference, rounding["freq_rtol"],
                               "test_solvers::analysis_ahead")
     _check_modes(modes, K, M, COUNT)
     Kf, Mf = beam["K_full"], beam["M_full"]  # a free body: shift < 0, K - sigma M
-    with solvers.PatternAnalysis(Kf.indptr, Kf.indices) as early:
+    with pardiso_backend.PatternAnalysis(Kf.indptr, Kf.indices) as early:
         free = solve_modes(Kf, Mf, 10, supported=False, backend="pardiso", keep=False,
                            analysis=early)
     assert not free.stats["analysis_ahead"] and early._result[0] is None
@@ -613,6 +624,6 @@ def test_factor_expected_follows_solve_modes_rules():
     assert not eigen.factor_expected(n, 20, supported=False)  # shift < 0
     assert not eigen.factor_expected(n, 20, precision="mixed")
     assert not eigen.factor_expected(n, 20, method="multigrid")
-    assert not eigen.factor_expected(eigen.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
-    assert not eigen.factor_expected(eigen.DENSE_MAX, 4)  # dense
+    assert not eigen.factor_expected(plan.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
+    assert not eigen.factor_expected(plan.DENSE_MAX, 4)  # dense
     assert not eigen.factor_expected(n, 20, backend="superlu")

@@ -8,7 +8,7 @@ grows like n^(4/3) in 3D. The constants below are calibrated on the cantilever w
 the whole run peaks at 11.7 GB; the estimate gives 9.1 and 12.1 GB. A compact body
 (a casting rather than a beam) fills in more: there the exact factor size, known after
 PARDISO's analysis and before its factorisation, is checked again
-(:func:`check_factor_memory`, called by :mod:`pipeline.solve.factorize`).
+(:func:`check_factor_memory`, called by :mod:`pipeline.solve.factorization`).
 """
 
 from __future__ import annotations

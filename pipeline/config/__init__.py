@@ -17,7 +17,7 @@ from pipeline.config.overrides import apply_overrides
 from pipeline.config.parse import TOP_KEYS, config_from_dict, load_config
 from pipeline.config.schema import (BOX_FACES, GEOMETRY_KINDS, SOLVERS, Config, Connection,
                                     Constraints, Damping, Filter, Geometry, Lumped, Material,
-                                    MeshSpec, Modes, Port, Ports, Reduction, RegionSelector,
+                                    MeshSpec, ModesConfig, Port, Ports, Reduction, RegionSelector,
                                     Support)
 from pipeline.config.serialize import config_to_dict, config_to_yaml
 
@@ -37,7 +37,7 @@ __all__ = [
     "Material",
     "Support",
     "Constraints",
-    "Modes",
+    "ModesConfig",
     "RegionSelector",
     "Port",
     "Ports",

@@ -22,7 +22,7 @@ from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOME
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
                                     FilterKind,
                                     Geometry, InputKind, Lumped, LumpedConstants, Material,
-                                    MeshAlgorithm, MeshSpec, Modes, OutputKind, Port, Ports,
+                                    MeshAlgorithm, MeshSpec, ModesConfig, OutputKind, Port, Ports,
                                     Reduction, RegionSelector, SelectorKind, StaticCorrection,
                                     Support)
 from pipeline.errors import ConfigError
@@ -229,7 +229,7 @@ def _damping(raw: Any) -> Damping:
                    beta=v.number(raw, "beta", "damping", lo=0.0))
 
 
-def _reduction(raw: Any, modes: Modes) -> Reduction | None:
+def _reduction(raw: Any, modes: ModesConfig) -> Reduction | None:
     if raw is None:
         return None
     raw = v.mapping(raw, "reduction", ("modes", "static_correction"), ("modes",))
@@ -304,7 +304,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
     modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",
                                                               "precision", "method"))
-    modes = Modes(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
+    modes = ModesConfig(count=v.integer(modes_raw, "count", "modes", 10, lo=1, hi=500),
                   solver=v.choice(modes_raw, "solver", "modes", SOLVERS, "auto"),
                   tolerance=v.number(modes_raw, "tolerance", "modes", 0.0, lo=0.0, hi=1e-2),
                   precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"),

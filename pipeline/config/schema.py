@@ -14,7 +14,7 @@ from typing import Literal, Mapping, get_args
 GeometryKind = Literal["box", "step", "geo", "mesh"]
 MeshAlgorithm = Literal["delaunay", "hxt", "frontal"]
 Component = Literal["x", "y", "z"]
-Solver = Literal["auto", "pardiso", "cholmod", "mumps", "superlu", "cudss"]
+Solver = Literal["auto", "pardiso", "cholmod", "superlu", "cudss"]
 SelectorKind = Literal["plane", "box", "sphere"]
 InputKind = Literal["force", "moment"]
 OutputKind = Literal["displacement", "rotation", "strain", "stress"]
@@ -95,7 +95,7 @@ class Constraints:
 
 
 @dataclass(frozen=True)
-class Modes:
+class ModesConfig:
     """Eigen-solution: the lowest ``count`` modes, sparse factorisation ``solver``."""
 
     count: int = 10
@@ -208,7 +208,7 @@ class Config:
     material: Material = field(default_factory=Material)
     supports: tuple[Support, ...] = ()
     constraints: Constraints = field(default_factory=Constraints)
-    modes: Modes = field(default_factory=Modes)
+    modes: ModesConfig = field(default_factory=ModesConfig)
     regions: Mapping[str, RegionSelector] = field(default_factory=dict)
     ports: Ports = field(default_factory=Ports)
     damping: Damping = field(default_factory=Damping)

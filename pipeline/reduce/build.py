@@ -26,7 +26,7 @@ from pipeline.reduce.lumped import (box_section, comparison_table, format_compar
                                     lumped_model)
 from pipeline.reduce.modal import DampingSpec, reduce_model
 from pipeline.reduce.models import Models
-from pipeline.solve.factorize import factorize
+from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 

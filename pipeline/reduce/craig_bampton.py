@@ -41,7 +41,7 @@ from pipeline.errors import RegionError
 from pipeline.reduce import connection  # module, so clamped_modes is looked up at call time
 from pipeline.reduce.interfaces import (DIRECTIONS, Interface, check_interfaces,
                                         interface_transformation, make_interfaces, project)
-from pipeline.solve.factorize import factorize
+from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 

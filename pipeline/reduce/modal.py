@@ -33,34 +33,28 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
-from pipeline.solve.factorize import (rigid_omega2_threshold, scaled_inf_norm,
-                                      sparse_times_dense,
-                                      stiffness_scale)
+from pipeline.solve.blas import sparse_times_dense
+from pipeline.reduce.statics import Solve, dense_array, static_shapes
+from pipeline.solve.thresholds import rigid_omega2_threshold, stiffness_scale
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "DAMPING_KINDS",
     "STATIC_CORRECTIONS",
-    "RIGID_OMEGA2",
     "DampingSpec",
     "StateSpaceModel",
     "ReducedModel",
     "damping_ratios",
     "check_modal_basis",
-    "default_factorize",
-    "static_shapes",
-    "static_compliance",
     "modal_statespace",
     "reduce_model",
     "cluster_end",
@@ -68,11 +62,6 @@ __all__ = [
 
 DAMPING_KINDS = ("uniform", "per_mode", "rayleigh")
 STATIC_CORRECTIONS = ("none", "residual", "augment")
-
-#: Former absolute rigid-mode threshold (omega < 2 pi * 0.01 Hz), kept for callers; the
-#: reduction now uses the relative :func:`pipeline.solve.factorize.rigid_omega2_threshold`
-#: (a soft clamped body, E = 500 Pa, has f1 = 0.007 Hz and no rigid-body mode).
-RIGID_OMEGA2 = (2.0 * math.pi * 0.01) ** 2
 
 #: Two modes whose frequencies differ by less than this fraction are one cluster of
 #: (nearly) repeated frequencies (a square section bends alike about both axes): their
@@ -84,9 +73,6 @@ CLUSTER_REL_GAP = 1e-3
 #: A static shape whose M-norm falls below this fraction of its initial M-norm after
 #: M-orthogonalisation against the basis is numerically dependent and dropped.
 AUGMENT_DROP_TOL = 1e-8
-
-Solve = Callable[[np.ndarray], np.ndarray]
-
 
 # --------------------------------------------------------------------------- damping
 # Raw values from library callers go through the one field checker
@@ -225,8 +211,7 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
     # stiffness scale: the largest retained omega^2, but never below 1e-6 of the mesh's
     # own eigenvalue scale (diag K / diag M), so rigid-body modes (omega^2 = 0) are judged
     # against round-off of K, not against 1 rad^2/s^2
-    floor = 1e-6 * float(np.median(np.abs(K.diagonal()) / np.abs(M.diagonal()))) \
-        if K.shape[0] else 0.0
+    floor = 1e-6 * stiffness_scale(K, M) if K.shape[0] else 0.0
     scale = max(float(np.max(np.abs(omega2))) if n else 0.0, floor)
     scale = scale if scale > 0 else 1.0
     eK = np.abs(Kr - np.diag(omega2)) / scale
@@ -246,106 +231,6 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
     log.debug("modal basis check: |Phi^T M Phi - I| = %.3g, |Phi^T K Phi - Omega2|/max = %.3g",
               errM, errK)
     return errM, errK
-
-
-# --------------------------------------------------------------------------- statics
-def default_factorize(K) -> Solve:
-    """Sparse LU of K (SuperLU, MMD on A^T + A); returns b -> K^-1 b. Singular -> SolverError."""
-    try:
-        lu = spla.splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
-    except RuntimeError as exc:  # "Factor is exactly singular"
-        raise SolverError(f"stiffness matrix K ({K.shape[0]} DOFs) could not be factorised: "
-                          f"{exc}; is the body supported?") from exc
-    return lu.solve
-
-
-def _solver(K, solve: Solve | None, factorize: Callable[[object], Solve] | None) -> Solve:
-    if solve is not None:
-        return solve
-    return (factorize or default_factorize)(K)
-
-
-def _dense(X) -> np.ndarray:
-    return np.asarray(X.toarray() if sp.issparse(X) else X, dtype=float)
-
-
-def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
-                  lowest_omega2: float | None = None, stiffness_scale: float | None = None
-                  ) -> np.ndarray:
-    """Static deflection shapes X = K^-1 F (n_s x n_u), in m per unit input.
-
-    ``solve``: a ready solver b -> K^-1 b; else ``factorize(K)`` gives one (default
-    :func:`default_factorize`). The solve is refined iteratively and judged by its
-    normwise backward error eta = |F - K X| / (|K| |X| + |F|) (scale-invariant; the
-    relative residual |F - K X| / |F| is not: it can be cond(K) eps for a perfect solve
-    of a thin or slender body), accepted up to
-    :data:`pipeline.solve.factorize.BACKWARD_ERROR_TOL`.
-
-    ``lowest_omega2`` (the lowest eigenvalue of K phi = omega^2 M phi, rad^2/s^2) and
-    ``stiffness_scale`` (an estimate of the largest, see
-    :func:`pipeline.solve.factorize.stiffness_scale`) give the condition number
-    kappa = stiffness_scale / lowest_omega2; kappa eps above
-    :data:`~pipeline.solve.factorize.SINGULAR_COND_EPS` means K is singular to working
-    precision (a rigid-body motion or mechanism the supports leave free), refused as
-    such. Raises :class:`SolverError` naming the cause.
-    """
-    from pipeline.solve.factorize import (BACKWARD_ERROR_TOL, SINGULAR_COND_EPS,
-                                          refined_solve)
-
-    Fd = _dense(F)
-    if Fd.ndim == 1:
-        Fd = Fd[:, None]
-    X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
-    X = np.asarray(X, dtype=float).reshape(Fd.shape)
-    eta = float(report.backward_error.max(initial=0.0))
-    eps = np.finfo(float).eps
-    kappa = None
-    if lowest_omega2 is not None and stiffness_scale is not None:
-        kappa = stiffness_scale / max(float(lowest_omega2), np.finfo(float).tiny)
-    # Singular or not: a lower bound of the condition number of the diagonally scaled
-    # K~ = D^-1/2 K D^-1/2 (D = diag K; Cholesky and LDL^T are insensitive to that
-    # scaling, van der Sluis), from the solve itself: |X~| <= |K~^-1| |F~| gives
-    # cond_inf(K~) >= |K~| |X~| / |F~| with X~ = D^1/2 X, F~ = D^-1/2 F. A backward-stable
-    # solve of a singular K has a small backward error; its null-space component makes
-    # this bound ~1/eps. (kappa from the modes is only reported: the diagonal ratios of
-    # thin P2 elements overstate it by orders of magnitude.)
-    d = np.sqrt(np.abs(K.diagonal()))
-    d = np.where(d > 0, d, 1.0)
-    norm_Ks = scaled_inf_norm(K, 1.0 / d)
-    Fs = np.abs(Fd / d[:, None]).max(initial=0.0)
-    if Fs > 0 and np.all(np.isfinite(X)):
-        lower = norm_Ks * float(np.abs(X * d[:, None]).max(initial=0.0)) / Fs
-        if lower * eps > SINGULAR_COND_EPS:
-            mode = ""
-            if kappa is not None:
-                f1 = math.sqrt(max(float(lowest_omega2), 0.0)) / (2 * math.pi)
-                mode = f"; the lowest mode is at {f1:.3g} Hz"
-            raise SolverError(
-                f"static solve K^-1 F: K is singular to working precision (the condition "
-                f"number of the scaled K is at least {lower:.1e}{mode}): a rigid-body "
-                "motion or mechanism that the supports leave free; look at mode 1's shape "
-                "and support the body so that it cannot move without deforming (or give it "
-                "no supports to model it as a free body)")
-    if not np.all(np.isfinite(X)) or eta > BACKWARD_ERROR_TOL:
-        cond = f", estimated cond(K) {kappa:.1e}" if kappa is not None else ""
-        raise SolverError(
-            f"static solve K^-1 F is inaccurate: backward error {eta:.1e} (> "
-            f"{BACKWARD_ERROR_TOL:g}) after {report.steps} refinement steps{cond}; the "
-            "factorisation of K is unreliable with this backend: try another "
-            "'modes.solver' (superlu, pardiso, cholmod)")
-    if report.steps:
-        log.info("static solve K^-1 F: backward error %.1e -> %.1e after %d refinement "
-                 "step(s)%s", float(report.initial_backward_error.max()), eta, report.steps,
-                 f" (estimated cond(K) {kappa:.1e})" if kappa is not None else "")
-    return X
-
-
-def static_compliance(K, F, T, solve: Solve | None = None, factorize=None) -> np.ndarray:
-    """Exact FE static compliance T K^-1 F (n_y x n_u), e.g. m/N for force -> displacement.
-
-    This is the DC gain every reduced position output should reproduce.
-    """
-    return np.asarray(T @ static_shapes(K, F, solve, factorize), dtype=float)
 
 
 # --------------------------------------------------------------------------- models
@@ -602,7 +487,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     input_names, output_names : n_u input and n_y output port names.
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
     n_rigid : rigid-body modes among the first (the modes stage's count); default: the
-        modes below :func:`pipeline.solve.factorize.rigid_omega2_threshold`.
+        modes below :func:`pipeline.solve.thresholds.rigid_omega2_threshold`.
 
     The static compliance T K^-1 F is always computed, except for a body with rigid-body
     modes (omega^2 below the relative rigid_omega2_threshold) and no correction, where it is None (with a warning);
@@ -620,7 +505,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         raise validate.fail("reduction.static_correction", static_correction,
                    "one of " + ", ".join(STATIC_CORRECTIONS))
     input_names, output_names = list(input_names), list(output_names)
-    Fd = _dense(F)
+    Fd = dense_array(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
     if Fd.shape != (K.shape[0], len(input_names)):

@@ -1,38 +1,26 @@
 """Modes stage: the lowest eigenpairs of K phi = omega^2 M phi.
 
+:func:`solve_modes` asks :func:`pipeline.solve.plan.plan_modes` which method to run (the
+choice and its reasons are in :mod:`pipeline.solve.plan`) and executes that plan; when the
+chosen path gives up (a slow multigrid trial, a factor that does not fit after all), it
+executes the plan's fallback.
+
 Shift-invert around sigma (0 for a supported body, slightly negative for a free one):
-the shifted matrix A = K - sigma M is factorised once by :mod:`pipeline.solve.factorize`.
+the shifted matrix A = K - sigma M is factorised once (:mod:`pipeline.solve.factorization`).
 
-- With a symmetric factor A = F F^T (PARDISO), a **block Lanczos** method with full
-  re-orthogonalisation and thick restarts finds the largest eigenvalues
+- With a symmetric factor A = F F^T offering half-solves (PARDISO), a **block Lanczos**
+  method (:mod:`pipeline.solve.lanczos`) finds the largest eigenvalues
   theta = 1/(omega^2 - sigma) of the symmetric operator S = F^-1 M F^-T. Every step
-  applies S to a whole block of vectors: one backward and one forward substitution
-  with many right-hand sides, which reads the factor once for the block instead of
-  once per vector (the factor is gigabytes at 1M DOFs, and reading it dominates a
-  single-vector solve). The inner products are plain dot products, so the mass
-  matrix is applied once per step.
-- Otherwise (SuperLU), scipy's ``eigsh`` (ARPACK) in shift-invert mode with the
-  factorisation as its ``OPinv``.
-
-- Without a factor of K (``method="multigrid"``; under ``auto`` when a coarse space is
-  given and the problem has :data:`~pipeline._util.resources.MULTIGRID_AUTO_DOFS` free
-  DOFs or more, or no factor fits in memory): LOBPCG (:mod:`pipeline.solve.lobpcg`)
+  applies S to a whole block of vectors: one backward and one forward substitution with
+  many right-hand sides, which reads the factor once for the block instead of once per
+  vector (the factor is gigabytes at 1M DOFs, and reading it dominates a single-vector
+  solve). The inner products are plain dot products, so the mass matrix is applied once
+  per step.
+- Otherwise (SuperLU, CHOLMOD, cuDSS), scipy's ``eigsh`` (ARPACK) in shift-invert mode
+  with the factorisation as its ``OPinv``.
+- Without a factor of K (``multigrid``): LOBPCG (:mod:`pipeline.solve.lobpcg`)
   preconditioned by the two-grid cycle of :mod:`pipeline.solve.multigrid`, started from
   the coarse problem's own modes.
-
-Why ``auto`` switches at a size (measured on the cantilever, AMD EPYC Zen 4, 2 cores,
-20 modes, whole run): the factor path takes 32 s at 312k free DOFs and 166 s at 996k
-(factorisation flops grow like n^2 for a 3D body, the factor like n^(4/3)), the
-two-grid path 37 s and 107-118 s (about linear in n; peak 6.4 GB against 12.4 GB at
-996k). The two-grid cycle (P2 -> P1 on the same mesh, Jacobi-Chebyshev smoothing) is
-not robust for every body: on 100k-DOF problems it took 15 sweeps at nu = 0.45, 27 at
-0.49 and 84 at 0.499; 40-57 sweeps on 1-2 mm strips, and it stalled on a 0.5 mm
-strip and a slender 10 mm square beam (the P1 coarse space locks in bending and in
-volume), where a factor costs a few seconds. So under ``auto`` it runs on a budget of
-:data:`MULTIGRID_AUTO_SWEEPS` sweeps: from the fourth sweep on, as soon as the rate so
-far projects more (:func:`pipeline.solve.lobpcg.projected_sweeps`), or it stalls, the
-trial is given up and the factor path solves the problem instead -- when a factor fits;
-when none does, the two-grid solve goes on as far as ``method: multigrid`` would.
 
 Either way the Ritz vectors are then re-orthonormalised by a small dense Rayleigh-Ritz
 step with K and M, so that Phi^T M Phi = I and Phi^T K Phi = diag(omega^2) hold to
@@ -49,14 +37,16 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline._util import progress as watch_progress
-from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, MULTIGRID_AUTO_DOFS,
-                                      available_memory_bytes, factor_path_bytes,
-                                      retained_heap)
+from pipeline._util.resources import HEADROOM, LOBPCG_BLOCKS, available_memory_bytes, retained_heap
 from pipeline.errors import ConfigError, ResourceError, SolverError
-from pipeline.solve import lobpcg, mixed, multigrid
-from pipeline.solve.factorize import (check_factorization, factorize, resolve_backend,
-                                      sparse_times_dense)
+from pipeline.solve import lobpcg, mixed, multigrid, plan as planning
+from pipeline.solve.blas import is_csr, sparse_times_dense
+from pipeline.solve.factorization import (backend_capabilities, check_factorization, factorize,
+                                          resolve_backend)
+from pipeline.solve.lanczos import block_lanczos
 from pipeline.solve.modes import Modes
+from pipeline.solve.plan import EigenPlan, EigenProblem, Machine
+from pipeline.solve.thresholds import stiffness_scale
 
 log = logging.getLogger(__name__)
 
@@ -65,27 +55,17 @@ log = logging.getLogger(__name__)
 DEFAULT_TOLERANCE = 1e-10
 LARGE_TOLERANCE = 1e-8
 LARGE_SYSTEM = 100_000  # free DOFs from which LARGE_TOLERANCE is the default
-DENSE_MAX = 600  # below this many free DOFs, a dense generalized eigh
 # multigrid LOBPCG: stop when every wanted mode's preconditioned residual
 # sqrt(r^T T r / omega^2) (r = K x - omega^2 M x, T the two-grid cycle) is below this;
-# the frequency error goes as its square (measured on the cantilever: 1.5e-3 -> 1.7e-6,
+# the frequency error goes as its square (on the cantilever: 1.5e-3 -> 1.7e-6,
 # 2.7e-4 -> 5e-8, 1.2e-5 -> 1.1e-10), the shape error in the energy norm as itself
 MULTIGRID_TOLERANCE = 1e-6
 MULTIGRID_ACCEPT = 1e-4  # a stalled LOBPCG is accepted (with a warning) below this
 MULTIGRID_MAX_SWEEPS = 100
-# the coarse (P1) modes that start LOBPCG: only a start block (they differ from the P2
-# modes by the P1 discretisation error anyway); 1e-4 instead of 1e-8 saves a third of
-# the coarse Lanczos (0.4-0.6 s at 312k DOFs) with the same 11 sweeps and frequencies
-# equal to 2e-10 (measured at 312k DOFs, 1e-8 ... 1e-2)
+# the coarse (P1) modes that start LOBPCG are only a start block (they differ from the
+# P2 modes by the P1 discretisation error anyway): 1e-4 instead of 1e-8 saves a third of
+# the coarse Lanczos with the same sweeps and frequencies equal to 2e-10
 MULTIGRID_START_TOLERANCE = 1e-4
-# under method auto: the two-grid trial is given up for the factor path as soon as it
-# projects more sweeps than this (5 x the cantilever's 8; 12 before LOBPCG's SVQB
-# scaling). At 1M DOFs the two paths broke even near 22 sweeps; 40 lets a body that
-# converges steadily but slowly (nu = 0.49: 24 sweeps, half the factor path's memory)
-# finish instead of wasting 16 sweeps, and still gives up on nu = 0.499 and the 0.5 mm
-# strip after 7-10 sweeps (projected 44-53); the 2 mm strip (10 sweeps) and the slender
-# beam (11) now converge (docs/performance.md, seventh session)
-MULTIGRID_AUTO_SWEEPS = 40
 
 
 class _SlowMultigrid(SolverError):
@@ -100,14 +80,13 @@ def default_shift(K: sp.spmatrix, M: sp.spmatrix, supported: bool) -> float:
     """Shift: 0 for a supported body, a small negative value for a free one.
 
     For a free body K is singular; K - sigma M with sigma < 0 is positive definite.
-    |sigma| is 1e-7 of the median diagonal ratio K_ii / M_ii (a stiffness scale of
-    the finest element), far below any elastic eigenvalue of the meshes we solve and far
-    above round-off of the rigid-body modes.
+    |sigma| is 1e-7 of the stiffness scale (the median diagonal ratio K_ii / M_ii,
+    :func:`pipeline.solve.thresholds.stiffness_scale`), far below any elastic eigenvalue
+    of the meshes we solve and far above round-off of the rigid-body modes.
     """
     if supported:
         return 0.0
-    ratio = np.median(K.diagonal() / M.diagonal())
-    return -1e-7 * float(ratio)
+    return -1e-7 * stiffness_scale(K, M)
 
 
 def default_tolerance(n: int) -> float:
@@ -122,222 +101,173 @@ def default_tolerance(n: int) -> float:
     return LARGE_TOLERANCE if n >= LARGE_SYSTEM else DEFAULT_TOLERANCE
 
 
-def default_block_size(count: int, supported: bool = True) -> int:
-    """Lanczos block size: 4 for a supported body, 8 for a free one.
-
-    A block of b vectors costs one pass over the factor plus b vectors' arithmetic;
-    larger blocks need more vectors in all before the wanted modes converge (20 modes
-    of the cantilever: b = 4: 68 vectors in 17 blocks; 8: 104 in 13; 20: 180 in 9), so
-    small blocks win as soon as the arithmetic per vector dominates, which it does at
-    100k DOFs and more. A free body needs b >= 7: its six rigid-body modes share one
-    eigenvalue, and a block Krylov space holds at most b copies of one eigenvalue.
-    """
-    return int(min(max(count, 1), 4)) if supported else 8
+def _machine(backend: str) -> Machine:
+    """This machine for the plan: usable memory now and the resolved backend."""
+    name = resolve_backend(backend)
+    caps = backend_capabilities(name)
+    return Machine(usable_bytes=HEADROOM * available_memory_bytes(), backend=name,
+                   half_solves=caps.half_solves, gpu=caps.gpu)
 
 
 def factor_expected(n: int, count: int, *, supported: bool = True, backend: str = "auto",
                     method: str = "auto", precision: str = "double") -> bool:
     """Whether :func:`solve_modes` will factorise K itself with PARDISO at shift 0 for
-    ``n`` free DOFs (by its own rules, before the values exist), so that a
-    :class:`~pipeline.solve.factorize.PatternAnalysis` started during the assembly will
-    be used. A wrong guess costs only the background analysis."""
-    return (supported and n > DENSE_MAX and precision != "mixed"
-            and (method == "factor" or (method == "auto" and n < MULTIGRID_AUTO_DOFS))
-            and resolve_backend(backend) == "pardiso"
-            and factor_path_bytes(n, count) <= HEADROOM * available_memory_bytes())
+    ``n`` free DOFs (:func:`pipeline.solve.plan.factor_expected`), so that a
+    :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` started during the assembly
+    will be used."""
+    problem = EigenProblem(n=n, count=count, supported=supported, method=method,
+                           precision=precision)
+    return planning.factor_expected(problem, _machine(backend))
 
 
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
-                backend: str = "auto", tolerance: float = 0.0, shift: float | None = None,
-                progress=None, method: str = "auto", block_size: int | None = None,
-                max_basis: int | None = None, keep: bool = False,
-                precision: str = "double", coarse: sp.spmatrix | None = None,
-                analysis=None) -> Modes:
+                backend: str = "auto", shift: float | None = None,
+                coarse: sp.spmatrix | None = None, analysis=None, progress=None,
+                **options) -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
-    :func:`default_shift`). ``tolerance``: relative residual of the shift-inverted
-    problem at which a mode counts as converged (0: :func:`default_tolerance` for
-    Lanczos, machine precision for ARPACK, :data:`MULTIGRID_TOLERANCE` for multigrid).
-    ``method``: ``auto`` (block Lanczos when the backend offers a symmetric factor, else
-    ARPACK; with ``coarse`` given, multigrid when no factor fits, and a multigrid trial
-    from :data:`~pipeline._util.resources.MULTIGRID_AUTO_DOFS` free DOFs when
-    ``precision`` is not ``mixed`` and ``tolerance`` is 0, see the module doc),
-    ``lanczos``,
-    ``arpack``, ``dense``, ``factor`` (``auto`` without multigrid) or ``multigrid``
-    (factor-free; needs ``coarse``, the (n x n_c) prolongation from a coarse space, see
-    :func:`pipeline.fe.coarse.p1_prolongation`). ``progress``, if given, is called with the number of right-hand sides
-    of every solve. ``keep``: for a supported body (shift 0) solved by factorisation,
-    return the factorisation of K in :attr:`Modes.factorization` instead of freeing it
-    (the static correction solves with the same K); the caller then owns it and frees
-    it with :meth:`Modes.release_factorization`. ``precision``: ``double``; ``mixed``
-    (a float32 PARDISO factor, answers refined in double: :mod:`pipeline.solve.mixed`;
-    no factor is kept); ``auto``: mixed when a double factor would not fit in memory
-    (the size estimate, or PARDISO's exact size after its analysis), else double.
-    ``analysis``: a :class:`~pipeline.solve.factorize.PatternAnalysis` of K's pattern
-    started during the assembly; the factor path at shift 0 takes it (PARDISO then only
-    factorises numerically); the caller releases what is left (its ``with`` block).
-    ``backend`` ``cudss`` (the factor on an NVIDIA GPU) keeps ``auto`` on the factor
-    (no multigrid trial, double precision: the host-memory rules do not apply) and
-    solves with ARPACK, cuDSS having no separate forward and backward substitutions.
-    """
+    :func:`default_shift`). ``backend``: the factorisation (``auto``: the fastest
+    installed). ``coarse``: the (n x n_c) prolongation from a coarse space
+    (:func:`pipeline.fe.coarse.p1_prolongation`), which the multigrid solver needs.
+    ``analysis``: a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's
+    pattern started during the assembly; the factor path at shift 0 takes it; the caller
+    releases what is left (its ``with`` block). ``progress``, if given, is called with
+    the number of right-hand sides of every solve.
 
+    ``options``: the fields of :class:`pipeline.solve.plan.EigenProblem`: ``method``
+    (auto, lanczos, arpack, dense, factor, multigrid), ``precision`` (double, mixed,
+    auto), ``tolerance`` (relative residual of the shift-inverted problem at which a mode
+    counts as converged; 0: :func:`default_tolerance` for Lanczos, machine precision for
+    ARPACK, :data:`MULTIGRID_TOLERANCE` for multigrid), ``block_size``, ``max_basis`` and
+    ``keep``: for a supported body solved with a factor, return the factorisation of K
+    in :attr:`Modes.factorization` instead of freeing it (the static correction solves
+    with the same K); the caller then owns it (:meth:`Modes.release_factorization`).
+    """
     t0 = time.perf_counter()
     n = K.shape[0]
-    if count >= n - 1:
-        raise SolverError(f"config key 'modes.count': got {count}, expected fewer than the "
-                          f"{n - 1} free degrees of freedom of this mesh (refine the mesh)")
-    if method not in ("auto", "lanczos", "arpack", "dense", "factor", "multigrid"):
-        raise ValueError(f"method '{method}': expected auto, lanczos, arpack, dense, factor "
-                         "or multigrid")
-    if method == "multigrid" and coarse is None:
-        raise ConfigError.field("modes.method", "multigrid", "'auto' or 'factor' (the "
-                                "multigrid solver needs a quadratic mesh: mesh.order 2)")
-    K = K if sp.isspmatrix_csr(K) else sp.csr_matrix(K)
-    M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
-    sigma = default_shift(K, M, supported) if shift is None else float(shift)
+    problem = EigenProblem(n=n, count=count, supported=supported,
+                           has_coarse=coarse is not None, **options)
+    planning.check_problem(problem)
+    K = K if is_csr(K) else sp.csr_matrix(K)
+    M = M if is_csr(M) else sp.csr_matrix(M)
+    problem = dataclasses.replace(
+        problem, shift=default_shift(K, M, supported) if shift is None else float(shift))
     stats: dict = {"n": n, "count": count}
-    kept = None
-    if precision not in mixed.PRECISIONS:
-        raise ConfigError.field("modes.precision", precision, "double, mixed or auto")
-    dense = method == "dense" or (method in ("auto", "factor") and n <= DENSE_MAX)
-    # the GPU factor (cuDSS) lives in GPU memory, checked by the backend itself: no
-    # host-memory rule below applies, and no multigrid trial (its factor is fast)
-    gpu = not dense and method != "multigrid" and resolve_backend(backend) == "cudss"
-    if gpu and precision == "auto":
-        precision = "double"
-    usable = HEADROOM * available_memory_bytes()  # K and M are already held
-    any_factor_fits = factor_path_bytes(n, count, single=True) <= usable
-    if not dense and precision == "auto" and factor_path_bytes(n, count) > usable:
-        precision = "mixed"  # the estimate already says a double factor will not fit
-        if method == "auto" and coarse is not None and not any_factor_fits:
-            method = "multigrid"  # nor a float32 one
-    budget = None
-    if (method == "auto" and coarse is not None and not dense and n >= MULTIGRID_AUTO_DOFS
-            and precision != "mixed" and tolerance == 0.0 and not gpu):
-        # large enough for the two-grid path to be faster (module doc): a trial, given
-        # up for a factor if it converges slowly and a factor fits
-        method = "multigrid"
-        budget = MULTIGRID_AUTO_SWEEPS if any_factor_fits else None
-    if method == "multigrid":
-        trial = None
+    while True:
+        plan = planning.plan_modes(problem, _machine(backend))
         try:
-            v, mstats = _multigrid_modes(K, M, coarse, count, sigma, tolerance, progress,
-                                         backend, keep=keep and sigma == 0.0,
-                                         budget=budget)
-        except _SlowMultigrid as slow:
-            log.warning("%s: solving with a factor instead", slow)
-            trial = slow.summary  # outside this block the trial's arrays are freed
-        if trial is not None:
-            result = solve_modes(K, M, count, supported=supported, backend=backend,
-                                 tolerance=tolerance, shift=shift, progress=progress,
-                                 method="factor", block_size=block_size,
-                                 max_basis=max_basis, keep=keep, precision=precision)
-            return dataclasses.replace(
-                result, seconds=time.perf_counter() - t0,
-                stats={**(result.stats or {}), "multigrid_trial": trial})
-        kept = mstats.pop("kept", None)
-        stats.update(mstats)
-        backend_name = f"multigrid (coarse factor: {stats['backend']})"
-    elif not dense and precision == "mixed":
-        try:
-            v, mstats = _mixed_modes(K, M, count, sigma, tolerance,
-                                     block_size or default_block_size(count, supported),
-                                     max_basis, progress, backend,
-                                     keep=keep and sigma == 0.0)
-            kept = mstats.pop("kept", None)
-        except ResourceError:  # the float32 factor's exact size: does not fit either
-            if method != "auto" or coarse is None:
+            v, run_stats, kept, name = _RUNNERS[plan.method](K, M, count, plan, coarse,
+                                                             analysis, progress)
+            break
+        except (ResourceError, _SlowMultigrid) as exc:
+            slow = isinstance(exc, _SlowMultigrid)
+            if plan.fallback is None or slow != (plan.method == "multigrid"):
                 raise
-            log.warning("a float32 factor does not fit either: the factor-free multigrid "
-                        "solver")
-            return solve_modes(K, M, count, supported=supported, backend=backend,
-                               tolerance=tolerance, shift=shift, progress=progress,
-                               method="multigrid", keep=keep, precision="double",
-                               coarse=coarse)
-        stats.update(mstats)
-        backend_name = "pardiso (float32 factor, double refinement)"
-    elif dense:
-        backend_name = f"dense ({resolve_backend(backend)} not needed)"
-        v = _dense_modes(K, M, count, sigma)
-        stats["method"] = "dense"
-    else:
-        shifted = K - sigma * M if sigma != 0.0 else K
-        t1 = time.perf_counter()
-        try:
-            fact = factorize(shifted, backend, positive_definite=True, check=False,
-                             analysis=analysis if sigma == 0.0 else None)
-        except ResourceError:  # PARDISO's exact size after the analysis: does not fit
-            if precision != "auto":
-                raise
-            log.warning("a double-precision factor does not fit: mixed precision")
-            return solve_modes(K, M, count, supported=supported, backend=backend,
-                               tolerance=tolerance, shift=shift, progress=progress,
-                               method=method, block_size=block_size, max_basis=max_basis,
-                               keep=keep, precision="mixed", coarse=coarse)
-        try:
-            check_factorization(shifted, fact)
-        except SolverError:
-            fact.release()
-            raise
-        del shifted
-        t2 = time.perf_counter()
-        stats.update(backend=fact.backend, factor_seconds=t2 - t1,
-                     **{k: v for k, v in fact.info.items() if not callable(v)})
-        log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", n,
-                 fact.backend, t2 - t1, sigma, fact.info.get("factor_bytes", 0) / 1e9)
-        backend_name = fact.backend
-        use_lanczos = method == "lanczos" or (method in ("auto", "factor")
-                                               and fact.forward is not None)
-        try:
-            if use_lanczos:
-                if fact.forward is None:
-                    raise SolverError(f"method 'lanczos' needs a symmetric factor; backend "
-                                      f"'{fact.backend}' has none (use method 'arpack')")
-                v, lstats = _lanczos_modes(fact, M, count, tolerance,
-                                           block_size or default_block_size(count, supported),
-                                           max_basis, progress)
+            if slow:
+                log.warning("%s: solving with a factor instead", exc)
+                stats["multigrid_trial"] = exc.summary
             else:
-                v, lstats = _arpack_modes(fact, K, M, count, sigma, tolerance, progress)
-        except BaseException:
-            fact.release()
-            raise
-        if sigma == 0.0 and keep:
-            kept = fact  # handed to the caller: the static correction solves with this K
-        else:
-            fact.release()
-        stats.update(lstats)
-        stats["eigensolver_seconds"] = time.perf_counter() - t2
-        log.info("%s: %d solves (%d calls) in %.2f s", stats["method"], stats["solves"],
-                 stats["calls"], stats["eigensolver_seconds"])
+                log.warning(_GIVING_UP[plan.method])
+            problem, analysis = plan.fallback, None
+    stats.update(run_stats)
     try:
         t3 = time.perf_counter()
-        w, v, residuals = _rayleigh_ritz(K, M, v, sigma)
+        w, v, residuals = _rayleigh_ritz(K, M, v, plan.shift)
         stats["rayleigh_ritz_seconds"] = time.perf_counter() - t3
         rigid = np.zeros(w.size, dtype=bool)
         if not supported:
-            rigid = np.abs(w) < 1e-6 * abs(sigma)
+            rigid = np.abs(w) < 1e-6 * abs(plan.shift)
         w = np.where(rigid, 0.0, w)
         if (w < 0).any():
-            raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness matrix is "
-                              "indefinite; check the material (E > 0, -1 < nu < 0.5)")
+            raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness "
+                              "matrix is indefinite; check the material (E > 0, -1 < nu < 0.5)")
     except BaseException:
         if kept is not None:
             kept.release()
         raise
-    seconds = time.perf_counter() - t0
     return Modes(omega2=w, frequencies_hz=np.sqrt(w) / (2 * np.pi), shapes=v,
-                 residuals=residuals, n_rigid=int(rigid.sum()), backend=backend_name,
-                 shift=sigma, seconds=seconds, stats=stats, factorization=kept)
+                 residuals=residuals, n_rigid=int(rigid.sum()), backend=name,
+                 shift=plan.shift, seconds=time.perf_counter() - t0, stats=stats,
+                 factorization=kept)
 
 
-def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress, backend,
-                 keep=False):
+_GIVING_UP = {"mixed": "a float32 factor does not fit either: the factor-free multigrid "
+                       "solver",
+              "lanczos": "a double-precision factor does not fit: mixed precision",
+              "arpack": "a double-precision factor does not fit: mixed precision"}
+
+
+# --------------------------------------------------------------------------- the methods
+# each: (K, M, count, plan, coarse, analysis, progress) -> (eigenvectors (n, count),
+# statistics, the kept factorisation of K or None, the backend's name for the result)
+def _run_factor(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+    """Shift-invert with a factor of K - shift M: block Lanczos or ARPACK."""
+    sigma = plan.shift
+    shifted = K - sigma * M if sigma != 0.0 else K
+    t1 = time.perf_counter()
+    fact = factorize(shifted, plan.backend, positive_definite=True, check=False,
+                     analysis=analysis if sigma == 0.0 else None)
+    try:
+        check_factorization(shifted, fact)
+    except SolverError:
+        fact.release()
+        raise
+    del shifted
+    t2 = time.perf_counter()
+    stats = {"backend": fact.backend, "factor_seconds": t2 - t1, **fact.info}
+    log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", K.shape[0],
+             fact.backend, t2 - t1, sigma, fact.memory_bytes / 1e9)
+    try:
+        if plan.method == "lanczos":
+            v, lstats = _lanczos_modes(fact, M, count, plan.tolerance, plan.block_size,
+                                       plan.max_basis, progress)
+        else:
+            v, lstats = _arpack_modes(fact, K, M, count, sigma, plan.tolerance, progress)
+    except BaseException:
+        fact.release()
+        raise
+    kept = fact if plan.keep_factor else None
+    if kept is None:
+        fact.release()
+    stats.update(lstats)
+    stats["eigensolver_seconds"] = time.perf_counter() - t2
+    log.info("%s: %d solves (%d calls) in %.2f s", stats["method"], stats["solves"],
+             stats["calls"], stats["eigensolver_seconds"])
+    return v, stats, kept, fact.backend
+
+
+def _run_dense(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+    """A dense generalized eigh (small problems)."""
+    v = _dense_modes(K, M, count, plan.shift)
+    return v, {"method": "dense"}, None, f"dense ({plan.backend} not needed)"
+
+
+def _run_mixed(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+    """Block Lanczos on a float32 factor, refined in double."""
+    v, stats = _mixed_modes(K, M, count, plan, progress)
+    kept = stats.pop("kept", None)
+    return v, stats, kept, "pardiso (float32 factor, double refinement)"
+
+
+def _run_multigrid(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+    """Factor-free LOBPCG with the two-grid preconditioner (a trial under a budget)."""
+    v, stats = _multigrid_modes(K, M, coarse, count, plan, progress)
+    kept = stats.pop("kept", None)
+    return v, stats, kept, f"multigrid (coarse factor: {stats['backend']})"
+
+
+_RUNNERS = {"lanczos": _run_factor, "arpack": _run_factor, "dense": _run_dense,
+            "mixed": _run_mixed, "multigrid": _run_multigrid}
+
+
+def _mixed_modes(K, M, count, plan: EigenPlan, progress=None):
     """Eigenvectors (n, count) from a float32 factor, refined in double
-    (:mod:`pipeline.solve.mixed`), and the statistics; with ``keep``,
+    (:mod:`pipeline.solve.mixed`), and the statistics; with ``plan.keep_factor``,
     ``stats["kept"]`` is K^-1 by PCG with that factor (:func:`mixed.static_solver`) for
     the static correction (the caller owns it)."""
-    if resolve_backend(backend) != "pardiso":
+    sigma = plan.shift
+    if not backend_capabilities(plan.backend).single_precision:
         raise ConfigError.field("modes.precision", "mixed",
                                 "double, or the 'pardiso' backend for mixed precision")
     t1 = time.perf_counter()
@@ -346,10 +276,11 @@ def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress,
     t2 = time.perf_counter()
     stats = {"backend": "pardiso", "precision": "mixed", "mixed_shift": sigma_f,
              "factor_seconds": t2 - t1,
-             **{k: v for k, v in fact.info.items() if not callable(v)}}
+             **fact.info}
     try:
-        v, lstats = _lanczos_modes(fact, M, count, max(tolerance, mixed.LANCZOS_TOLERANCE),
-                                   block_size, max_basis, progress)
+        v, lstats = _lanczos_modes(fact, M, count,
+                                   max(plan.tolerance, mixed.LANCZOS_TOLERANCE),
+                                   plan.block_size, plan.max_basis, progress)
         v, rstats = mixed.refine(K, M, v, fact, sigma)
     except BaseException:
         fact.release()
@@ -359,32 +290,35 @@ def _mixed_modes(K, M, count, sigma, tolerance, block_size, max_basis, progress,
     log.info("mixed precision: %d Lanczos solves, %d refinement sweeps, preconditioned "
              "residual %.1e", lstats["solves"], rstats["refine_sweeps"],
              rstats["refine_residual"])
-    if keep:
+    if plan.keep_factor:
         stats["kept"] = mixed.static_solver(K, fact)
     else:
         fact.release()
     return v, stats
 
 
-def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep,
-                     budget=None):
+def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
     """Eigenvectors (n, count) by two-grid preconditioned LOBPCG (no factor of K), and the
-    statistics; with ``keep``, ``stats["kept"]`` is the PCG solver of K as a
-    :class:`Factorization` for the static correction (the caller owns it).
+    statistics; with ``plan.keep_factor``, ``stats["kept"]`` is the PCG solver of K as a
+    :class:`~pipeline.solve.factorization.Factorization` for the static correction (the
+    caller owns it).
 
-    ``budget``: the trial of ``method: auto`` (module doc): raises :class:`_SlowMultigrid`
-    when LOBPCG projects more sweeps than this or stalls above the target."""
+    ``plan.multigrid_budget``: the trial of ``method: auto``
+    (:mod:`pipeline.solve.plan`): raises :class:`_SlowMultigrid` when LOBPCG projects more
+    sweeps than this or stalls above the target."""
+    sigma, tolerance, budget = plan.shift, plan.tolerance, plan.multigrid_budget
     t1 = time.perf_counter()
     A = K - sigma * M if sigma != 0.0 else K
-    tg = multigrid.TwoGrid(A, P, backend)
+    tg = multigrid.TwoGrid(A, P, plan.backend)
     try:
         Mc = multigrid.coarse_matrix(tg, M)
         guard = max(3, count // 4)
         width = min(count + guard, tg.coarse_n // 2)
         # start block: the coarse problem's own modes, through the coarse factor
-        if tg.coarse.forward is not None:
+        if tg.coarse.capabilities.half_solves:
             vc, _ = _lanczos_modes(tg.coarse, Mc, width, MULTIGRID_START_TOLERANCE,
-                                   default_block_size(width, sigma == 0.0), None, None)
+                                   planning.default_block_size(width, sigma == 0.0), None,
+                                   None)
         else:
             vc, _ = _arpack_modes(tg.coarse, tg.PT @ A @ P, Mc, width, 0.0, 1e-8, None)
         del Mc
@@ -436,7 +370,7 @@ def _multigrid_modes(K, M, P, count, sigma, tolerance, progress, backend, keep,
     log.info("multigrid LOBPCG: %d sweeps of %d vectors in %.1f s (set-up %.1f s, coarse "
              "%d DOFs), preconditioned residual %.1e", result.sweeps, width,
              result.seconds, t2 - t1, tg.coarse_n, min(result.history))
-    if keep:
+    if plan.keep_factor:
         stats["kept"] = tg.factorization()
     else:
         tg.release()
@@ -514,17 +448,16 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
 def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
     """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
     n = fact.n
-    rows = fact.info["rows"]  # (phase, C-ordered (k, n) block) -> (k, n)
     calls = [0, 0]
     clock = {"solve": 0.0, "mass": 0.0}
 
     def op(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t0 = time.perf_counter()
-        X = rows(333, Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
+        X = fact.backward_rows(Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
         t1 = time.perf_counter()
         MX = sparse_times_dense(M, X.T)  # (n, k), column-major
         t2 = time.perf_counter()
-        out = rows(331, MX.T)  # F^-1 M F^-T Y
+        out = fact.forward_rows(MX.T)  # F^-1 M F^-T Y
         del MX
         clock["solve"] += time.perf_counter() - t2 + t1 - t0
         clock["mass"] += t2 - t1
@@ -556,117 +489,3 @@ def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
                  - clock["mass"]}
 
 
-def _orthonormal_block(W: np.ndarray, basis: np.ndarray, rng, scale: float):
-    """Orthonormal rows V spanning the rows of W (k, n), already orthogonal to ``basis``.
-
-    Returns (V, B) with W = B^T V. A well-conditioned W (smallest singular value above
-    1e-6 of the largest and of ``scale``) goes through Cholesky QR twice: two (k x k) Gram matrices and two
-    thin products, where an SVD of the (n x k) block costs several passes over it. Else
-    the SVD: directions of W below round-off of ``scale`` are replaced by random
-    vectors orthogonal to ``basis`` (rows) and to the rest (their coupling row is 0).
-    """
-    s2, E = np.linalg.eigh(W @ W.T)
-    if s2[-1] > 0.0 and np.sqrt(max(s2[0], 0.0)) > 1e-6 * max(np.sqrt(s2[-1]), scale):
-        s = np.sqrt(s2)
-        V = (E.T @ W) / s[:, None]
-        B = s[:, None] * E.T
-        L = np.linalg.cholesky(V @ V.T)  # = I + O(cond^2 eps): one more pass fixes it
-        V = np.linalg.inv(L) @ V
-        return V, L.T @ B
-    U, s, Vt = np.linalg.svd(W.T, full_matrices=False)  # W^T = U s Vt
-    V = np.ascontiguousarray(U.T)
-    B = s[:, None] * Vt
-    small = s <= 1e-12 * scale
-    if small.any():
-        good = V[~small]
-        R = rng.standard_normal((int(small.sum()), W.shape[1]))
-        for _ in range(2):
-            for Q in (basis, good):
-                R -= (R @ Q.T) @ Q
-        Ur, _, _ = np.linalg.svd(R.T, full_matrices=False)
-        V[small] = Ur.T
-        B[small] = 0.0
-    return V, B
-
-
-def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
-                  seed: int = 12345, max_restarts: int = 50, with_images: bool = False):
-    """The ``count`` largest eigenpairs of the symmetric operator ``op`` (n x n).
-
-    ``op(Y)`` applies the operator to the rows of Y (k, n). Block Lanczos with full
-    two-pass re-orthogonalisation; the projected matrix is built from the projection
-    coefficients themselves, which makes thick restarts (keep the best Ritz vectors,
-    continue from the residual block) exact. The basis lives in one preallocated
-    (max_basis + b, n) array, so each projection is one matrix product.
-    Returns (Y (count, n) orthonormal Ritz vectors, theta (count,), steps, restarts).
-
-    ``with_images``: ``op`` returns (S Y, Z) where Z (k, n) is some linear image of the
-    rows of Y (for the shift-invert operator: F^-T Y); the same combinations of the
-    images as of the basis are returned as a fifth item (count, n).
-    """
-    rng = np.random.default_rng(seed)
-    cap = max_basis + b
-    basis = np.empty((cap, n))  # pages are touched only as rows are filled
-    images = np.empty((cap, n)) if with_images else None
-    V, _ = _orthonormal_block(rng.standard_normal((b, n)), basis[:0], rng, 1.0)
-    size = 0  # rows in basis
-    H = np.zeros((cap, cap))
-    steps = restarts = 0
-    scale = 0.0
-    while True:
-        lo, hi = size, size + V.shape[0]
-        basis[lo:hi] = V
-        size = hi
-        out = op(V)
-        if with_images:
-            W, images[lo:hi] = out
-        else:
-            W = out
-        W = np.array(W, dtype=np.float64)  # own copy: modified in place below
-        del out
-        steps += 1
-        scale = max(scale, float(np.sqrt((W * W).sum(axis=1).max())))
-        Q = basis[:hi]
-        for _ in range(2):  # classical Gram-Schmidt, twice
-            C = Q @ W.T  # (hi, k)
-            H[:hi, lo:hi] += C
-            W -= C.T @ Q
-        Hs = np.triu(H[:hi, :hi])
-        Hs = Hs + np.triu(Hs, 1).T
-        theta, U = np.linalg.eigh(Hs)
-        theta, U = theta[::-1], U[:, ::-1]  # largest first
-        V, B = _orthonormal_block(W, Q, rng, scale)
-        del W
-        want = min(count, hi)
-        resid = np.linalg.norm(B @ U[lo:hi, :want], axis=0)
-        converged = want == count and bool(
-            np.all(resid <= tol * np.abs(theta[:want])))
-        if converged or hi >= n - b:
-            if want < count:
-                raise SolverError(f"block Lanczos: the Krylov space of this {n}-DOF problem "
-                                  f"holds only {want} of the {count} modes asked for")
-            Ut = np.ascontiguousarray(U[:, :count].T)
-            Y = Ut @ Q
-            if with_images:
-                return Y, theta[:count], steps, restarts, Ut @ images[:hi]
-            return Y, theta[:count], steps, restarts
-        if hi + V.shape[0] > max_basis:
-            if restarts >= max_restarts:
-                worst = float(np.max(resid / np.abs(theta[:want])))
-                raise SolverError(f"block Lanczos did not converge for {count} modes in "
-                                  f"{steps} steps (worst relative residual {worst:.1e}, "
-                                  f"tolerance {tol:.1e}); try a smaller modes.count or a "
-                                  "larger modes.tolerance")
-            keep = min(hi - V.shape[0], max(count + V.shape[0], max_basis // 2))
-            Ut = np.ascontiguousarray(U[:, :keep].T)
-            basis[:keep] = Ut @ Q
-            if with_images:
-                images[:keep] = Ut @ images[:hi]
-            H[:] = 0.0
-            H[np.arange(keep), np.arange(keep)] = theta[:keep]
-            # H[:keep, keep:] (the coupling B U_last of V to the kept vectors) is found
-            # again by the next step's projections
-            size = keep
-            restarts += 1
-            log.debug("block Lanczos: restart %d after %d steps, kept %d", restarts, steps,
-                      keep)

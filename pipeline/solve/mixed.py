@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config.schema import PRECISIONS
-from pipeline.solve.factorize import Factorization, factorize
+from pipeline.solve.factorization import Factorization, SolverFactorization, factorize
 from pipeline.solve.lobpcg import lobpcg
 from pipeline.solve.pcg import pcg
 
@@ -104,5 +104,5 @@ def static_solver(K: sp.spmatrix, fact: Factorization) -> Factorization:
         log.debug("static solve by PCG with the float32 factor: %d iterations", its)
         return X
 
-    return Factorization(solve=solve, backend="pardiso-float32+pcg", n=fact.n,
-                         release=fact.release, info=dict(fact.info))
+    return SolverFactorization(solve, backend="pardiso-float32+pcg", n=fact.n,
+                               release=fact.release, info=dict(fact.info))

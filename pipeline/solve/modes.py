@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.solve.factorize import Factorization
+from pipeline.solve.factorization import Factorization
 
 
 @dataclass(frozen=True)

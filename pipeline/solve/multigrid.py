@@ -20,13 +20,13 @@ because the coarse problem is solved exactly.
 For LOBPCG the cycle runs in float32 (``apply(R, single=True)``): a float32 copy of
 D^-1 A (4 bytes per non-zero; the index arrays are shared with A) and float32 smoothing
 on Rh = D^-1 R, where each Chebyshev step is one threaded axpby, one sparse product
-accumulated into the step (MKL's beta = 1) and one axpy (12% off the cycle at 1M DOFs:
-median 2.5 -> 2.2 s for 25 vectors); the coarse correction (restriction by P^T D,
+accumulated into the step (MKL's beta = 1) and one axpy (12% off the cycle at 1M
+DOFs); the coarse correction (restriction by P^T D,
 coarse solve, prolongation) stays in double. A preconditioner only chooses search
 directions, and the eigenvalues and residuals stay in double, so this changes neither
 the accuracy nor (measured) the sweep count; it halves the memory traffic of the
-sparse products, which are most of a sweep (K times 25 vectors at 1M DOFs: 0.38 s
-against 0.99 s). PCG (static solves) takes the float32 cycle too: its Polak-Ribiere beta
+sparse products, which are most of a sweep (K times 25 vectors at 1M DOFs is 2.5
+times faster). PCG (static solves) takes the float32 cycle too: its Polak-Ribiere beta
 (flexible CG, :mod:`pipeline.solve.pcg`) does not assume a fixed linear T, and X and its
 residual stay in double, so it reaches the same round-off floor; each column is scaled
 to unit max before the cast, so a residual near that floor does not underflow.
@@ -47,7 +47,8 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
-from pipeline.solve.factorize import Factorization, axpby, factorize, sparse_times_dense
+from pipeline.solve.blas import axpby, sparse_times_dense
+from pipeline.solve.factorization import SolverFactorization, factorize
 from pipeline.solve.pcg import pcg
 
 log = logging.getLogger(__name__)
@@ -157,8 +158,8 @@ class TwoGrid:
         """The float32 form of :meth:`_smooth` for Rh = D^-1 R, with B = D^-1 A: every
         step is D = c1 D + c2 (Rh - B Z), Z += D, i.e. one axpby, one sparse product
         accumulated into D (beta = 1) and one axpy, threaded and without temporaries
-        (six passes over (n, k) blocks, in numpy's single thread, before: 0.1 s a step
-        of 0.33 s for K of 1M DOFs times 25 vectors)."""
+        (numpy's form makes six passes over (n, k) blocks on one thread: a third of a
+        step for K of 1M DOFs times 25 vectors)."""
         B, _ = self._operator(True)
         theta, delta, sigma = self._chebyshev()
         rho = 1.0 / sigma
@@ -270,7 +271,7 @@ class TwoGrid:
         """This solver as a :class:`Factorization` of A (``solve`` by PCG), which the
         static correction uses like a direct factor; ``release()`` frees the coarse
         factor."""
-        return Factorization(solve=self.solve, backend="multigrid", n=self.A.shape[0],
-                             release=self.release,
-                             info={"coarse_dofs": self.coarse_n,
-                                   "factor_bytes": self.coarse.info.get("factor_bytes", 0)})
+        return SolverFactorization(self.solve, backend="multigrid", n=self.A.shape[0],
+                                   release=self.release,
+                                   info={"coarse_dofs": self.coarse_n,
+                                         "factor_bytes": self.coarse.memory_bytes})

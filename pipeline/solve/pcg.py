@@ -30,7 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.factorize import column_norms, scaled_inf_norm, sparse_times_dense
+from pipeline.solve.blas import column_norms, scaled_inf_norm, sparse_times_dense
 
 RTOL = 1e-12
 MAX_ITER = 500

@@ -227,7 +227,7 @@ def static_modes(K: sp.spmatrix, M: sp.spmatrix, Psi: np.ndarray, F: np.ndarray,
     """(n_dofs, k <= n_u) static modes of the supported body: K_ff^-1 F_f per input (zero on
     the ``fixed`` DOFs), M-orthogonalised against the M-orthonormal ``Psi`` and among
     themselves, M-normalised; a load already in span(Psi) adds none."""
-    from pipeline.solve.factorize import factorize
+    from pipeline.solve.factorization import factorize
 
     n = K.shape[0]
     free = np.setdiff1d(np.arange(n), fixed)
