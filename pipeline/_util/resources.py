@@ -80,6 +80,24 @@ def release_free_heap() -> None:
         lib.malloc_trim(0)
 
 
+@contextlib.contextmanager
+def thread_pools_kept():
+    """Put every native thread pool (BLAS, OpenMP) loaded at entry back to the size it had,
+    in the calling thread, when the block ends.
+
+    A library we call may resize a pool it shares with the host: gmsh sets the OpenMP thread
+    count (``General.NumThreads``) through whichever OpenMP runtime the process loaded first,
+    MKL's included. threadpoolctl finds the pools on every platform and reads and writes
+    their sizes through their public C APIs; without it the block runs unchanged."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency; kept optional for minimal installs
+        yield
+        return
+    with threadpool_limits(limits=None):  # records every pool's size, restores it on exit
+        yield
+
+
 def resident_bytes() -> int:
     """This process's resident memory now (bytes; the peak so far where /proc is absent)."""
     try:

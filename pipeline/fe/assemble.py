@@ -113,7 +113,7 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     ``progress``, if given, is called with the number of elements done after each chunk.
     ``on_layout(indptr, indices)``, if given, is called with K's CSR structure as soon as
     it is known, before any value is summed (the solver can analyse the pattern
-    meanwhile: :class:`pipeline.solve.factorize.PatternAnalysis`).
+    meanwhile: :class:`pipeline.solve.backends.pardiso.PatternAnalysis`).
 
     Per chunk of ``chunk_size`` elements: the element factors F_e (9 x 9), one batched
     GEMM R (nb^2 x 9) @ F_e giving each (element, pair) row its 9 values (i, j), and one
