@@ -80,7 +80,7 @@ def test_D_P_equals_tau_formula_and_the_analytic_box(beam):
     np.testing.assert_allclose(rp.center_of_mass, G, rtol=1e-10)
     np.testing.assert_allclose(rp.inertia_G, I_G, rtol=1e-10, atol=1e-10 * I_G.max())
     # D_P = R_P^T M R_P (as computed) equals tau_GP^T diag(m I, I_G) tau_GP
-    tau = twist_transform(P, rp.center_of_mass)  # METHODS' tau_GP
+    tau = twist_transform(P, rp.center_of_mass)  # tau_GP of theory.md §5
     np.testing.assert_allclose(tau[0:3, 3:6], skew(P - rp.center_of_mass))
     D_formula = tau.T @ sla.block_diag(m * np.eye(3), rp.inertia_G) @ tau
     np.testing.assert_allclose(rp.D_P, D_formula, rtol=0, atol=1e-10 * np.abs(D_formula).max())

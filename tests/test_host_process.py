@@ -138,3 +138,44 @@ def test_a_host_that_limits_mkl_to_one_thread_gets_the_same_modes(tmp_path):
     # the same factorisation path on 1 or 2 threads: frequencies agree far inside the
     # 1e-8 relative eigenvalue tolerance the block Lanczos solve converges to
     assert runs[0] == pytest.approx(runs[1], rel=1e-8)
+
+
+_FORKING_HOST = r"""
+import os, sys, time
+from pathlib import Path
+import pipeline
+
+out = Path(sys.argv[1])
+overrides = ["mesh.size=0.02", "modes.count=4"]
+pipeline.run_config(Path("configs/cantilever.yaml"), output=out / "parent.h5", overrides=overrides)
+pid = os.fork()
+if pid == 0:
+    pipeline.run_config(Path("configs/cantilever.yaml"), output=out / "child.h5",
+                        overrides=overrides)
+    os._exit(0)
+deadline = time.monotonic() + 120
+while time.monotonic() < deadline:
+    got, status = os.waitpid(pid, os.WNOHANG)
+    if got:
+        print("exit", os.waitstatus_to_exitcode(status))
+        break
+    time.sleep(0.1)
+else:
+    os.kill(pid, 9)
+    print("hung")
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_of_a_host_that_ran_the_pipeline_runs_it_too(tmp_path):
+    """A batch case runs in a forked child of a process that has already factorised: MKL
+    must run on a threading layer whose pool survives fork (gmsh loads GNU OpenMP, which
+    MKL took when it came first, and whose pool hangs a forked child's first parallel
+    PARDISO call)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MKL_THREADING_LAYER",)}
+    env["PYTHONPATH"] = str(ROOT)
+    proc = subprocess.run([sys.executable, "-c", _FORKING_HOST, str(tmp_path)], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip().splitlines()[-1] == "exit 0"
+    assert (tmp_path / "child.h5").is_file()

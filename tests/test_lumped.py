@@ -1,6 +1,6 @@
-"""Tests of the lumped-parameter beam model (pipeline.reduce.lumped, METHODS sections 7 and 8).
+"""Tests of the lumped-parameter beam model (pipeline.reduce.lumped, theory.md §7 and §8).
 
-Reference body: the aluminium cantilever of METHODS section 1 (L = 0.5 m, height 20 mm
+Reference body: the aluminium cantilever of theory.md §1 (L = 0.5 m, height 20 mm
 along y, depth 50 mm along z, E = 69 GPa, nu = 0.33, rho = 2700 kg/m^3).
 """
 
@@ -194,7 +194,7 @@ def test_refined_frequencies_against_euler_bernoulli():
     assert m.frequencies_of("torsion")[0] == pytest.approx(
         lp.beam_theory_frequencies_hz(SEC, E, RHO, L, 1, "torsion", nu=NU)[0], rel=1e-3)
     # axial: the chain is exactly the clamped-free chain of n masses rho A l and n springs
-    # E A / l (no end correction in METHODS), omega_r = 2 sqrt(k/m) sin((2r-1) pi / (2(2n+1))):
+    # E A / l (no end correction in theory.md §7), omega_r = 2 sqrt(k/m) sin((2r-1) pi / (2(2n+1))):
     # an exact check of the mass matrix (round-off only, 1e-9). It converges like 1/n
     # (-2.5 % at n = 20) towards (2r-1)/(4L) sqrt(E/rho).
     n = 20

@@ -143,7 +143,7 @@ def test_in_plane_constraint_stiffens_bending(tmp_path):
     fp = solve_modes(plane.K, plane.M, 1).frequencies_hz[0]
     assert plane.free.size < free3d.free.size
     ratio = fp / f3
-    # METHODS section 1: stiffer by roughly 1/sqrt(1 - nu^2) = 1.0595
+    # theory.md §1: stiffer by roughly 1/sqrt(1 - nu^2) = 1.0595
     assert 1.03 < ratio < 1.07, ratio
 
 

@@ -28,7 +28,7 @@ from pipeline.reduce.modal import (
 from pipeline.reduce.statics import static_compliance
 from pipeline.store.schema import statespace_datasets
 
-L, H, W = 0.5, 0.02, 0.05  # m: the reference cantilever (METHODS section 1)
+L, H, W = 0.5, 0.02, 0.05  # m: the reference cantilever (theory.md §1)
 E, NU, RHO = 69e9, 0.33, 2700.0
 N_COMPUTED = 12
 INPUTS = ["tip_force_y", "tip_force_z"]
@@ -274,7 +274,7 @@ def test_uncorrected_dc_gain_is_too_stiff_and_converges(beam):
         assert abs(dc[0, 0]) < abs(beam.G[0, 0]) and abs(dc[1, 1]) < abs(beam.G[1, 1])
         errors.append(abs(dc[0, 0] / beam.G[0, 0] - 1))
     assert all(a > b for a, b in zip(errors, errors[1:])), errors
-    # one mode is a few per cent too stiff (METHODS section 3)
+    # one mode is a few per cent too stiff (theory.md §3)
     assert 0.005 < errors[0] < 0.1
 
 

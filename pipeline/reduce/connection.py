@@ -1,4 +1,4 @@
-"""Connection points of a flexible body: the hybrid-cantilever (6x6) model of METHODS
+"""Connection points of a flexible body: the hybrid-cantilever (6x6) model of theory.md
 section 5 at a parent point, with optional child points.
 
 Notation (SI; twist order [v; omega], wrench order [F; T]; ``R_P``, ``D_P``): as in
@@ -30,7 +30,7 @@ states [eta; eta']):
 D_P0 = D_P - L_P^T L_P is the residual (interface) mass. W_P is the wrench the parent
 exerts on the body at P (the body exerts -W_P on the parent); at zero frequency
 W_P = D_P a_P: the body moves as a rigid body. Without child points this is exactly
-METHODS section 5.
+theory.md §5.
 
 Effective modal masses: m_eff[i, d] = L_P[i, d]^2 (kg for d = x, y, z translations,
 kg m^2 for rotations about P). Summed over all modes they reach D_P - D_P0, where D_P0

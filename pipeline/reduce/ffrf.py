@@ -1,4 +1,4 @@
-"""Floating-frame-of-reference (FFRF) data: the inertia invariants of METHODS section 6.
+"""Floating-frame-of-reference (FFRF) data: the inertia invariants of theory.md §6.
 
 A multibody code moves the body with a reference frame (origin O, rotation A) plus a
 small elastic deflection in that frame, u(x) = Psi(x) q, q the n elastic coordinates.

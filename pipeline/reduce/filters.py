@@ -1,6 +1,6 @@
 """Output filters that break the algebraic loop of a force-in, motion-out model.
 
-METHODS section 4. The plant's acceleration output depends on its force input at the
+theory.md §4. The plant's acceleration output depends on its force input at the
 same instant (D != 0); coupling it to a joint whose reaction force is fed back forms an
 algebraic loop. A low-pass filter with cutoff K (rad/s) in series removes the direct
 feedthrough:
@@ -15,7 +15,7 @@ python-control at run time):
     x' = [[A_p, 0], [B_f C_p, A_f]] x + [[B_p], [B_f D_p]] u
     y  = [D_f C_p, C_f] x + D_f D_p u          (D_f = 0, so D = 0)
 
-Realisation of the third-order filter (one per port). METHODS writes it as
+Realisation of the third-order filter (one per port). theory.md §4 writes it as
 w''' = -3K w'' - 3K^2 w' - K^3 w + y, (p, v, a) = K^3 (w, w', w''). Here the states are
 that realisation scaled by diag(K^3, K^2, K): z = (K^3 w, K^2 w', K w'') = (p, v/K, a/K^2),
 all in the unit of the position output, so
@@ -76,7 +76,7 @@ def third_order_position_filter(n_ports: int, cutoff_rad_s: float) -> StateSpace
 
     Inputs: the n_ports position signals y. Outputs (3 n_ports): all filtered
     positions p, then velocities v = p', then accelerations a = p'' (same order as the
-    plant's outputs). States: per port (z1, z2, z3) = (K^3 w, K^2 w', K w'') of METHODS'
+    plant's outputs). States: per port (z1, z2, z3) = (K^3 w, K^2 w', K w'') of theory.md §4's
     w''' = -3K w'' - 3K^2 w' - K^3 w + y (see the module docstring). Shapes: A (3n x 3n),
     B (3n x n), C (3n x 3n), D = 0 (3n x n). DC gain: 1 on positions, 0 on v and a.
     """

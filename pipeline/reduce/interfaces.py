@@ -1,6 +1,6 @@
 """Interfaces of a flexible body: rigid-body properties at a point, the RBE2 / RBE3
 couplings of a boundary region to a point, and the change of coordinates that clamps
-interface points (METHODS section 5). Used by the connection-point model
+interface points (theory.md §5). Used by the connection-point model
 (:mod:`pipeline.reduce.connection`) and Craig-Bampton (:mod:`pipeline.reduce.craig_bampton`).
 
 Notation (SI; twist order [v; omega], wrench order [F; T]):
@@ -98,7 +98,7 @@ def twist_transform(from_point, to_point) -> np.ndarray:
     """tau (6, 6) moving a twist [v; omega] from ``from_point`` A to ``to_point`` B:
     v_B = v_A + omega x (B - A), i.e. tau = [[I, skew(A - B)], [0, I]].
 
-    ``twist_transform(P, G)`` is METHODS' tau_GP. Its transpose moves a wrench from B to A.
+    ``twist_transform(P, G)`` is tau_GP of theory.md §5. Its transpose moves a wrench from B to A.
     """
     a = np.asarray(from_point, dtype=float)
     b = np.asarray(to_point, dtype=float)

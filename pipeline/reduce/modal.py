@@ -1,6 +1,6 @@
 """Reduction stage: modal damping, static correction and the modal state-space model.
 
-Pure functions on plain arrays (METHODS sections 2 and 3). Inputs come from the FE
+Pure functions on plain arrays (theory.md §2 and §3). Inputs come from the FE
 stages, already restricted to the free degrees of freedom:
 
 - ``K``, ``M``: scipy.sparse (n_s x n_s), symmetric; K in N/m, M in kg.
@@ -293,7 +293,7 @@ def output_names_for(ports: Sequence[str]) -> tuple[str, ...]:
 
 def modal_statespace(omega2, xi, Sigma, Theta, residual=None, input_names=None,
                      output_names=None, n_retained: int | None = None) -> StateSpaceModel:
-    """The modal state-space model of METHODS section 3.
+    """The modal state-space model of theory.md §3.
 
     omega2 (n_m,) rad^2/s^2; xi (n_m,) damping ratios; Sigma = Phi^T F (n_m x n_u);
     Theta = T Phi (n_y x n_m); ``residual`` (n_y x n_u), if given, is added to the

@@ -11,7 +11,7 @@ rows of C (outputs) and the rows of A (states); units, when known, are per name.
 
 Structural models name their outputs ``<port>/position``, ``<port>/velocity`` and
 ``<port>/acceleration`` and, when modal, their states ``eta_k`` and ``eta_dot_k``
-(METHODS section 3). Every model the pipeline builds or reads (the modal plant and its
+(theory.md §3). Every model the pipeline builds or reads (the modal plant and its
 filtered twin, the lumped chain, the connection-point model, the systems a simulation
 steps) is a StateSpace; the DC gain and the frequency response are computed here, once.
 

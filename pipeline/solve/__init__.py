@@ -29,3 +29,6 @@ True
 >>> bool(np.allclose(modes.omega2, exact, rtol=1e-8)), modes.stats["method"]
 (True, 'arpack')
 """
+
+# the built-in factorisation backends register themselves with pipeline.solve.factorization
+from pipeline.solve import backends  # noqa: E402,F401

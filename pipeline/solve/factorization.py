@@ -181,8 +181,8 @@ def register_backend(name: str, factor: FactorFunction, *, installed: Callable[[
 
 
 def _registry() -> dict[str, Backend]:
-    import pipeline.solve.backends  # noqa: F401  (the built-in backends register themselves)
-
+    # the built-in backends register themselves when pipeline.solve is imported (its
+    # __init__ imports pipeline.solve.backends), which Python does before this module
     return _REGISTRY
 
 

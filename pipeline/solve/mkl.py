@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 #: MKL's interface layers (``mkl_set_interface_layer``): bit 0 set means ILP64
 INTERFACE_LP64 = 0
 INTERFACE_ILP64 = 1
+#: MKL's threading layers (``mkl_set_threading_layer``): Intel OpenMP
+THREADING_INTEL = 0
 
 
 def _candidates() -> list[str]:
@@ -77,6 +79,26 @@ def interface_is_lp64(lib: Any) -> bool:
     return (int(setter(INTERFACE_LP64)) & INTERFACE_ILP64) == 0
 
 
+def pin_threading_layer(lib: Any) -> int | None:
+    """Select MKL's Intel OpenMP threading layer, unless ``MKL_THREADING_LAYER`` names one.
+
+    ``libmkl_rt`` picks its threading layer at its first threaded call, and takes GNU
+    OpenMP (``libgomp``) when that runtime is already in the process: gmsh loads it. GNU
+    OpenMP's thread pool does not survive ``fork``: a forked child (a batch case run in its
+    own process) then hangs in its first parallel PARDISO call. Intel's runtime does. The
+    layer can be chosen only before MKL's first use; once the host has used MKL, its
+    choice stands and this returns it. Returns the layer in effect, or None where the
+    library cannot tell."""
+    setter = getattr(lib, "MKL_Set_Threading_Layer", None)
+    if setter is None:
+        return None
+    setter.restype = ctypes.c_int
+    setter.argtypes = [ctypes.c_int]
+    if os.environ.get("MKL_THREADING_LAYER"):
+        return None
+    return int(setter(THREADING_INTEL))
+
+
 @functools.lru_cache(maxsize=1)
 def mkl_library() -> Any | None:
     """The MKL runtime library (``libmkl_rt``) with its PARDISO signature declared, or None
@@ -88,6 +110,7 @@ def mkl_library() -> Any | None:
             lib.MKL_Set_Num_Threads_Local  # noqa: B018
         except (OSError, AttributeError):
             continue
+        pin_threading_layer(lib)
         if not interface_is_lp64(lib):
             log.warning("MKL at %s runs the ILP64 interface; its 32-bit calls are not used "
                         "(scipy instead)", path)

@@ -48,7 +48,7 @@ import scipy.sparse as sp
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
 from pipeline.solve.blas import axpby, sparse_times_dense
-from pipeline.solve.factorization import SolverFactorization, factorize
+from pipeline.solve.factorization import Factorization, SolverFactorization, factorize
 from pipeline.solve.pcg import pcg
 
 log = logging.getLogger(__name__)

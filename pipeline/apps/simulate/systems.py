@@ -6,7 +6,7 @@ This module derives new ones from the file's plant (SI units throughout):
 
 - :func:`undamped`: the modal plant without its modal damping (A[eta_dot, eta_dot] = 0);
 - :func:`refilter`: the plant in series with a position/output filter at another cutoff
-  (METHODS section 4);
+  (theory.md §4);
 - :func:`filtered_for` / :func:`lumped_for`: the FE model or lumped chain a scenario uses;
 - :func:`step_system`: one force input -> one port's motion;
 - :func:`coupled_system`: a rigid mass welded to a port (the algebraic loop broken by a
@@ -52,7 +52,7 @@ def derived_rows(em: StateSpace, port: str, j: int, check: bool) -> dict[str, An
     """Position row of ``port`` and its derivatives through A and B.
 
     Y = cp x + dp u;  Y' = cp A x + cp b u (+ dp u');  Y'' = cp A^2 x + cp A b u + dp u''
-    when cp b = 0 (true for every model of METHODS section 3). With ``check``, the file's
+    when cp b = 0 (true for every model of theory.md §3). With ``check``, the file's
     velocity/acceleration rows must equal these (the exact coupling relies on it).
     """
     ip, iv, ia = em.rows(port)
@@ -113,7 +113,7 @@ def fe_band_hz(mf: ModelFile) -> float:
 
 
 def refilter(plant: StateSpace, kind: str, cutoff_hz: float) -> StateSpace:
-    """filter * plant with pipeline.reduce.filters' realisation (METHODS section 4), D = 0."""
+    """filter * plant with pipeline.reduce.filters' realisation (theory.md §4), D = 0."""
     K = 2.0 * math.pi * float(cutoff_hz)
     ports = plant.ports
     if kind == "third_order":

@@ -1,4 +1,4 @@
-"""Lumped-parameter beam model: rigid elements joined by springs (METHODS sections 7, 8).
+"""Lumped-parameter beam model: rigid elements joined by springs (theory.md §7, §8).
 
 Modules: :mod:`.section` (cross-sections, beam check), :mod:`.chain` (spring constants,
 the chain and its state space), :mod:`.theory` (beam theory, comparison table).
@@ -19,7 +19,7 @@ Conventions (SI units throughout: m, kg, s, N, Pa, rad):
   ``q`` is joint-major: ``[joint 1 dofs, joint 2 dofs, ...]``.
 - Mode labels: ``axial``, ``torsion``, ``bending_y`` (rotation about y: deflection along
   z) and ``bending_z`` (rotation about z: deflection along y, the x-y plane).
-- Constants (METHODS section 7):
+- Constants (theory.md §7):
   ``refined``: joints at x = (i - 1) l, joint 1 at the clamp; extension E A / l,
   torsion 2 G J / l at joint 1 and G J / l after, bending (E I / l) 6n / (3n - 1) at
   joint 1 and E I / l after. All four joint DOFs exist.
@@ -33,7 +33,7 @@ Conventions (SI units throughout: m, kg, s, N, Pa, rad):
   ``omega_ref`` the chain's lowest natural frequency (or a given reference). Because ``K``
   is diagonal in joint coordinates, this is one damper per joint DOF,
   ``c_j = beta k_j`` (what a rigid-body code can model), and it is classical damping,
-  so the modal state-space form of METHODS section 3 is exact: mode i gets the ratio
+  so the modal state-space form of theory.md §3 is exact: mode i gets the ratio
   ``xi_i = xi omega_i / omega_ref`` (the reference mode gets ``xi``, higher modes more;
   modes with ``xi_i >= 1`` are overdamped, which the state-space form still represents).
 

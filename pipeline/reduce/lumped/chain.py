@@ -1,4 +1,4 @@
-"""The linearised rigid-element chain and its modal state space (METHODS sections 7, 8):
+"""The linearised rigid-element chain and its modal state space (theory.md §7, §8):
 spring constants (simple | refined), bodies, joints, M q'' + C q' + K q = F u, y = T q,
 and the :class:`~pipeline.reduce.statespace.StateSpace` of the tip response. Conventions
 (joint DOFs, units, damping rule): :mod:`pipeline.reduce.lumped`.
@@ -63,7 +63,7 @@ class SpringConstants:
 
 def spring_constants(section: SectionProperties, E: float, nu: float, length: float, n: int,
                      kind: str = "refined") -> SpringConstants:
-    """Spring constants of METHODS section 7 for ``n`` elements (E in Pa, length in m).
+    """Spring constants of theory.md §7 for ``n`` elements (E in Pa, length in m).
 
     simple: joints at x = (i - 1/2) l, K_bend = E I / l, axial and torsion rigid (inf).
     refined: joints at x = (i - 1) l; K_axial = E A / l; K_torsion = G J / l with 2 G J / l
@@ -123,8 +123,8 @@ class LumpedModel:
     output_direction per unit q. tip_compliance: m/N, tip displacement along the force per
     newton. tip_force: N. tip_deflection: (3,) m, the tip displacement under ``tip_force``
     N along input_direction. statespace: a :class:`StateSpace` (also read as A, B, C, D and
-    the names), A (2n_q, 2n_q), B (2n_q, 1), C (3, 2n_q), D (3, 1): METHODS
-    section 3 with all modes; state [eta; eta'], output [position; velocity; acceleration]
+    the names), A (2n_q, 2n_q), B (2n_q, 1), C (3, 2n_q), D (3, 1): theory.md
+    §3 with all modes; state [eta; eta'], output [position; velocity; acceleration]
     of the tip along output_direction.
     """
 

@@ -1,4 +1,4 @@
-"""Beam cross-sections for the lumped chain (METHODS section 7): area, second moments,
+"""Beam cross-sections for the lumped chain (theory.md §7): area, second moments,
 torsion constant (m^2, m^4) of a box or of a meshed section, the beam check
 (principal axes along y and z, slenderness), and the checks of raw values shared by the
 package (:mod:`pipeline.reduce.lumped`; conventions there).

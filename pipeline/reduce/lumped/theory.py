@@ -1,5 +1,5 @@
 """Euler-Bernoulli beam theory of the clamped beam (natural frequencies, tip deflection)
-and the comparison table lumped chain vs beam theory vs FE (METHODS section 8).
+and the comparison table lumped chain vs beam theory vs FE (theory.md §8).
 
 Frequencies in Hz, deflections in m per the given load (N); ``axis`` is a mode family
 (``bending_z``: deflection along y, ``bending_y``, ``axial``, ``torsion``).
@@ -73,7 +73,7 @@ def cantilever_beta_l(count: int) -> np.ndarray:
 def beam_theory_frequencies_hz(section: SectionProperties, E: float, rho: float, length: float,
                                count: int = 3, axis: str = "bending_z", nu: float | None = None
                                ) -> np.ndarray:
-    """(count,) Hz: the lowest cantilever frequencies of METHODS section 8.
+    """(count,) Hz: the lowest cantilever frequencies of theory.md §8.
 
     bending_z (x-y plane, I_z) / bending_y (x-z plane, I_y): Euler-Bernoulli,
     omega_k = (beta_k L)^2 sqrt(E I / (rho A L^4)). axial: (2k - 1)/(4L) sqrt(E / rho).
@@ -100,7 +100,7 @@ def beam_theory_frequencies_hz(section: SectionProperties, E: float, rho: float,
 def beam_theory_tip_deflection(section: SectionProperties, E: float, length: float,
                                load: float = 1.0, axis: str = "bending_z",
                                nu: float | None = None) -> float:
-    """Static tip response of a cantilever under a tip load (METHODS section 8).
+    """Static tip response of a cantilever under a tip load (theory.md §8).
 
     bending_z / bending_y: P L^3 / (3 E I) (m, P the tip force in N, I = I_z / I_y).
     axial: P L / (E A) (m). torsion (needs nu): T L / (G J) (rad, T the tip torque N m).
