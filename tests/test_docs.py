@@ -31,9 +31,9 @@ LOGGER = re.compile(r"getLogger\(\s*[\"'](pipeline(?:\.\w+)+)[\"']")
 FENCE = re.compile(r"^```.*?^```", re.S | re.M)
 
 
-# Names a doc is known to get wrong while another change rewrites that doc (issue 34: the
-# reader's rewrite of hdf5-format.md moves read_csr's mention); drop each entry with it.
-KNOWN_DRIFT = {("docs/hdf5-format.md", "pipeline.exports.read_csr")}
+# (doc, name) pairs a doc may name although the package lacks them, each with its reason
+# in a comment; none today.
+KNOWN_DRIFT: set[tuple[str, str]] = set()
 
 
 def _logger_names() -> set[str]:

@@ -81,21 +81,23 @@ def release_free_heap() -> None:
 
 
 @contextlib.contextmanager
-def thread_pools_kept():
-    """Put every native thread pool (BLAS, OpenMP) loaded at entry back to the size it had,
-    in the calling thread, when the block ends.
+def openmp_pools_kept():
+    """Put every OpenMP runtime loaded at entry back to the thread count it had, in the
+    calling thread, when the block ends.
 
-    A library we call may resize a pool it shares with the host: gmsh sets the OpenMP thread
-    count (``General.NumThreads``) through whichever OpenMP runtime the process loaded first,
-    MKL's included. threadpoolctl finds the pools on every platform and reads and writes
-    their sizes through their public C APIs; without it the block runs unchanged."""
+    gmsh sets the OpenMP thread count (``General.NumThreads``) through whichever OpenMP
+    runtime the process loaded first, MKL's included, which would leave the host's pool
+    resized. threadpoolctl finds the runtimes on every platform and reads and writes
+    their counts through their public C APIs. Only OpenMP pools are touched: restoring a
+    BLAS pool would pin it (MKL's restore is thread-local), which is a change of its own.
+    Without threadpoolctl the block runs unchanged."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover - a dependency; kept optional for minimal installs
         yield
         return
-    with threadpool_limits(limits=None):  # records every pool's size, restores it on exit
-        yield
+    with ThreadpoolController().select(user_api="openmp").limit(limits=None):
+        yield  # records each runtime's count; restores it on exit
 
 
 def resident_bytes() -> int:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from pipeline.fe.mesh.estimate import check_mesh_fits
 from pipeline._util.atomic import atomic_path
-from pipeline._util.resources import thread_pools_kept
+from pipeline._util.resources import openmp_pools_kept
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError, OutputError
 from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, gmsh_threads, signals_kept
@@ -40,7 +40,7 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
 
     path = Path(path)
     threads = gmsh_threads()
-    with thread_pools_kept(), signals_kept() as restore:
+    with openmp_pools_kept(), signals_kept() as restore:
         if gmsh.isInitialized():
             gmsh.finalize()
         gmsh.initialize(interruptible=False)

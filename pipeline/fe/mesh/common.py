@@ -30,7 +30,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from pipeline._util.atomic import atomic_path
-from pipeline._util.resources import thread_pools_kept
+from pipeline._util.resources import openmp_pools_kept
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError
 
@@ -223,7 +223,7 @@ def gmsh_threads() -> int:
 def gmsh_session(name: str):
     import gmsh
 
-    with thread_pools_kept(), signals_kept() as restore:
+    with openmp_pools_kept(), signals_kept() as restore:
         if gmsh.isInitialized():
             gmsh.finalize()
         gmsh.initialize(interruptible=False)
