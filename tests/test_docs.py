@@ -111,7 +111,7 @@ def test_no_doc_points_outside_the_repository(doc):
 
 
 def test_theory_keeps_the_section_numbers_the_code_cites():
-    # docstrings cite "theory.md §N" for sections 1-8 (METHODS.md's numbering, kept)
+    # docstrings cite "theory.md §N" for sections 1-8, whose numbers are kept stable
     titles = re.findall(r"^## (\d+)\. ", (ROOT / "docs" / "theory.md").read_text(), re.M)
     assert [int(t) for t in titles[:8]] == list(range(1, 9)), titles
     cited = {int(n) for p in (ROOT / "pipeline").rglob("*.py")
