@@ -392,3 +392,50 @@ def test_read_mesh_renumbers_for_locality_and_keeps_the_body(tmp_path, monkeypat
     K = K.tocoo()
     spread = np.median(np.abs(K.row - K.col))
     assert spread <= 0.1 * K.shape[0] / 3, (spread, K.shape[0])
+
+
+def test_every_gmsh_option_the_package_sets_is_put_back_for_a_host():
+    """A guest session restores the options of GMSH_OPTIONS: none may be set outside it."""
+    import re
+
+    from pipeline.fe.mesh.common import GMSH_OPTIONS
+
+    ROOT = Path(__file__).resolve().parents[1]
+    set_here = set()
+    for source in (ROOT / "pipeline").rglob("*.py"):
+        set_here |= set(re.findall(r"option\.set(?:Number|String)\(\s*\"([\w.]+)\"",
+                                   source.read_text(encoding="utf-8")))
+    assert set_here and set_here <= set(GMSH_OPTIONS), sorted(set_here - set(GMSH_OPTIONS))
+
+
+def test_meshing_inside_a_host_gmsh_session_leaves_it_as_it_was(tmp_path):
+    """A host program with its own gmsh model and options: the box is meshed as in a fresh
+    session (the same file, bit for bit), and the host's model, current model, options and
+    initialisation are as before."""
+    import gmsh
+
+    from pipeline.fe.mesh.box import generate_mesh
+
+    geometry = Geometry(kind="box", length=0.1, height=0.02, depth=0.03)
+    spec = MeshSpec(order=2, size=0.01)
+    fresh = generate_mesh(geometry, spec, tmp_path / "fresh.msh")
+    assert not gmsh.isInitialized()
+    gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("host")
+        gmsh.model.occ.addSphere(0, 0, 0, 1.0)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+        gmsh.option.setNumber("General.NumThreads", 3)
+        models = gmsh.model.list()
+        guest = generate_mesh(geometry, spec, tmp_path / "guest.msh")
+        assert gmsh.isInitialized()
+        assert gmsh.model.list() == models and gmsh.model.getCurrent() == "host"
+        assert gmsh.model.getEntities(3) == [(3, 1)]
+        assert gmsh.option.getNumber("Mesh.MeshSizeMax") == 0.5
+        assert gmsh.option.getNumber("General.NumThreads") == 3
+        assert gmsh.option.getNumber("General.Terminal") == 0
+    finally:
+        gmsh.finalize()
+    assert guest.read_bytes() == fresh.read_bytes()

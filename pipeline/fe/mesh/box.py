@@ -9,10 +9,9 @@ from pathlib import Path
 
 from pipeline.fe.mesh.estimate import check_mesh_fits
 from pipeline._util.atomic import atomic_path
-from pipeline._util.resources import openmp_pools_kept
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError, OutputError
-from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, gmsh_threads, signals_kept
+from pipeline.fe.mesh.common import ALGORITHM_3D, BodyMesh, gmsh_error, gmsh_session
 from pipeline.fe.mesh.read import read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
@@ -36,25 +35,13 @@ def generate_mesh(geometry: Geometry, spec: MeshSpec, path: str | Path) -> Path:
     reproducible (the same config gives the same mesh, so cached results stay valid);
     ``PIPELINE_GMSH_THREADS=N`` trades that for threads.
     """
-    import gmsh  # deferred: heavy, loaded only when meshing
-
     path = Path(path)
-    threads = gmsh_threads()
-    with openmp_pools_kept(), signals_kept() as restore:
-        if gmsh.isInitialized():
-            gmsh.finalize()
-        gmsh.initialize(interruptible=False)
-        restore()
-        return _generate(gmsh, geometry, spec, path, threads)
+    with gmsh_session("body") as gmsh:
+        return _generate(gmsh, geometry, spec, path)
 
 
-def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path, threads: int) -> Path:
+def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path) -> Path:
     try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.Verbosity", 2)
-        gmsh.option.setNumber("General.NumThreads", threads)
-        gmsh.logger.start()
-        gmsh.model.add("body")
         L, H, D = geometry.length, geometry.height, geometry.depth
         volume = gmsh.model.occ.addBox(0.0, 0.0, 0.0, L, H, D)
         gmsh.model.occ.synchronize()
@@ -89,16 +76,8 @@ def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path, threads: int
     except (MeshError, OutputError):
         raise
     except Exception as exc:  # gmsh raises plain Exception with its own message
-        messages = [m for m in gmsh.logger.get() if "rror" in m]
-        detail = messages[-1] if messages else str(exc)
         raise MeshError(f"gmsh could not mesh geometry.kind '{geometry.kind}' with mesh.size = "
-                        f"{spec.size:g} m: {detail}") from None
-    finally:
-        for line in gmsh.logger.get() if gmsh.isInitialized() else []:
-            log.debug("gmsh: %s", line)
-        if gmsh.isInitialized():
-            gmsh.logger.stop()
-            gmsh.finalize()
+                        f"{spec.size:g} m: {gmsh_error(gmsh, exc)}") from None
     return path
 
 

@@ -219,36 +219,83 @@ def gmsh_threads() -> int:
     return max(1, int(os.environ.get("PIPELINE_GMSH_THREADS", "1")))
 
 
+#: every gmsh option the package sets, by kind; a session inside the host's own gmsh puts
+#: them back afterwards (tests/test_geometry.py checks that no other option is set)
+GMSH_OPTIONS = {
+    "General.Terminal": "number", "General.Verbosity": "number",
+    "General.NumThreads": "number", "Mesh.Algorithm3D": "number", "Mesh.Binary": "number",
+    "Mesh.ElementOrder": "number", "Mesh.MeshSizeExtendFromBoundary": "number",
+    "Mesh.MeshSizeFromCurvature": "number", "Mesh.MeshSizeFromPoints": "number",
+    "Mesh.MeshSizeMax": "number", "Mesh.MeshSizeMin": "number",
+    "Mesh.ScalingFactor": "number", "Geometry.OCCTargetUnit": "string",
+}
+
+
 @contextlib.contextmanager
 def gmsh_session(name: str):
+    """gmsh, ready for one model named ``name``, quiet, on :func:`gmsh_threads` threads.
+
+    When this process has not initialised gmsh, the session initialises and finalises it.
+    When the host program already has (its own models and options), the session is a
+    guest: it adds a model of its own, and on exit removes it, makes the host's model
+    current again and puts back every option of :data:`GMSH_OPTIONS`; the host's logger is
+    left alone (error messages then come from gmsh's exception alone). Options the host
+    set that this package does not set (a random seed, an optimiser) still apply to the
+    guest's mesh. Either way, OpenMP pools that gmsh resizes are put back
+    (:func:`pipeline._util.resources.openmp_pools_kept`)."""
     import gmsh
 
     with openmp_pools_kept(), signals_kept() as restore:
-        if gmsh.isInitialized():
-            gmsh.finalize()
-        gmsh.initialize(interruptible=False)
-        restore()
-        with _gmsh_session(gmsh, name):
+        owned = not gmsh.isInitialized()
+        if owned:
+            gmsh.initialize(interruptible=False)
+            restore()
+        with _gmsh_session(gmsh, name, owned):
             yield gmsh
 
 
+def _get_option(gmsh, option: str):
+    kind = GMSH_OPTIONS[option]
+    return gmsh.option.getString(option) if kind == "string" else gmsh.option.getNumber(option)
+
+
+def _set_option(gmsh, option: str, value) -> None:
+    if GMSH_OPTIONS[option] == "string":
+        gmsh.option.setString(option, value)
+    else:
+        gmsh.option.setNumber(option, value)
+
+
 @contextlib.contextmanager
-def _gmsh_session(gmsh, name: str):
+def _gmsh_session(gmsh, name: str, owned: bool):
+    saved = {} if owned else {option: _get_option(gmsh, option) for option in GMSH_OPTIONS}
+    host_model = None if owned else gmsh.model.getCurrent()
+    model = name if owned else f"{name}-pipeline-{os.getpid()}-{threading.get_ident()}"
     quiet = quiet_fd1()
     quiet.__enter__()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 2)
         gmsh.option.setNumber("General.NumThreads", gmsh_threads())
-        gmsh.logger.start()
-        gmsh.model.add(name)
+        if owned:
+            gmsh.logger.start()
+        gmsh.model.add(model)
         yield gmsh
     finally:
-        if gmsh.isInitialized():
+        if owned and gmsh.isInitialized():
             for line in gmsh.logger.get():
                 log.debug("gmsh: %s", line)
             gmsh.logger.stop()
             gmsh.finalize()
+        elif not owned:
+            with contextlib.suppress(Exception):  # the guest's model, if it was made
+                if model in gmsh.model.list():
+                    gmsh.model.setCurrent(model)
+                    gmsh.model.remove()
+            with contextlib.suppress(Exception):
+                gmsh.model.setCurrent(host_model)
+            for option, value in saved.items():
+                _set_option(gmsh, option, value)
         quiet.__exit__(None, None, None)
 
 
