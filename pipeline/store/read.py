@@ -376,7 +376,8 @@ def read_stored_mesh(path: str | Path) -> StoredMesh:
         return StoredMesh(str(h5.attrs.get(L.ROOT.name, Path(path).stem)), points, kind, cells,
                           shapes, freqs, labels, fixed, regions, damping,
                           L.STATESPACE.path in h5,
-                          str(h5.attrs.get(L.ROOT.config_yaml, "")))
+                          str(h5.attrs.get(L.ROOT.config_yaml, "")),
+                          L.FE.mass_matrix in h5 and L.FE.stiffness_matrix in h5)
 
 
 # --------------------------------------------------------------------------- stress modes
