@@ -221,11 +221,11 @@ def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:
     return stress_modes_datasets(fields.stress, fields.strain, reduced, models.input_units)
 
 
-def stored_fe_data(path: str | Path, assemble: bool = True):
+def stored_fe_data(path: str | Path, assemble: bool | None = None):
     """What ``export --to exudyn`` needs beyond a result file, rebuilt on its stored mesh
     with its stored config (never re-meshing): :class:`pipeline.fe.stored.StoredFE` with
-    K and M of the unsupported body (when ``assemble``; for a file without ``/fe``) and
-    the input-port loads F (for the exporter's static modes)."""
+    K and M of the unsupported body (when ``assemble``; None: when the file has no ``/fe``)
+    and the input-port loads F (for the exporter's static modes)."""
     import yaml
 
     from pipeline.config.parse import config_from_dict
@@ -234,6 +234,11 @@ def stored_fe_data(path: str | Path, assemble: bool = True):
     from pipeline.store.read import read_stored_mesh
 
     mesh = read_stored_mesh(path)
+    if assemble is None:
+        assemble = not mesh.has_fe
+        if assemble:
+            log.info("%s has no /fe: re-assembling M and K from its stored config and mesh",
+                     path)
     raw = yaml.safe_load(mesh.config_yaml) or {}
     if not isinstance(raw, dict):
         raw = {}

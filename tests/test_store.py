@@ -202,3 +202,41 @@ def test_connection_only_file_loads_its_connection_and_craig_bampton_models(tmp_
     np.testing.assert_allclose(cb.M, cb.M.T, rtol=0, atol=1e-12 * np.abs(cb.M).max())
     with pytest.raises(FileFormatError, match="no plant model"):
         load_model(out, require_plant=True)
+
+
+def test_summary_reader_agrees_with_the_model_loader(result):
+    """read_summary (inspect, JSON export, batch cache) reads what load_model reads."""
+    from pipeline.store.summary import read_summary
+
+    s = read_summary(result.output)
+    lm = load_model(result.output)
+    np.testing.assert_array_equal(s.modes.frequencies_hz, lm.frequencies_hz)
+    assert s.modes.labels == lm.labels and s.body.mass == lm.mass
+    assert list(s.models) == ["statespace", "statespace_filtered", "lumped"]
+    for summary, model in ((s.plant, lm.plant), (s.filtered, lm.filtered),
+                           (s.lumped, lm.lumped)):
+        assert summary.n_states == model.A.shape[0]
+        assert summary.input_names == model.input_names
+        assert summary.output_names == model.output_names
+    for k, m in zip("ABCD", s.plant.matrices):
+        np.testing.assert_array_equal(m, getattr(lm.plant, k))
+    assert s.filtered.filter_kind == lm.filtered.filter_kind
+    assert s.mesh.n_dofs == 3 * s.mesh.n_points and s.run.times_s
+
+
+def test_summary_of_a_modes_only_file(tmp_path):
+    """A config without reduction, filter, lumped chain or ports: every reader of the
+    summary takes the file (no models), as before the summary reader."""
+    from pipeline.apps.exports.summary_json import summary
+    from pipeline.store.summary import read_summary
+
+    cfg = load_config(ROOT / "configs/cantilever.yaml",
+                      ["mesh.size=0.025", "modes.count=3", "reduction=null", "filter=null",
+                       "lumped=null", "ports=null"])
+    path = run_pipeline(cfg, tmp_path / "m.h5", mesh_dir=tmp_path).output
+    s = read_summary(path)
+    assert s.models == {} and s.plant is None and s.modes.frequencies_hz.size == 3
+    assert "models    none (modes only)" in summarize(path)
+    data = summary(path)
+    assert data["reduced_model"] is None and data["lumped_model"] is None
+    assert [m["mode"] for m in data["modes"]] == [1, 2, 3]

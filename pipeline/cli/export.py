@@ -36,15 +36,8 @@ def exudyn_fe_data(h5_path: str | Path):
     """The port loads and, for a file without ``/fe``, M and K re-assembled on its stored
     mesh with its stored config (:func:`pipeline.run.stored_fe_data`)."""
     from pipeline.run import stored_fe_data
-    from pipeline.store.layout import FE
-    from pipeline.store.read import open_verified
 
-    with open_verified(h5_path) as h5:
-        has_fe = FE.mass_matrix in h5 and FE.stiffness_matrix in h5
-    if not has_fe:
-        log.info("%s has no /fe: re-assembling M and K from its stored config and mesh",
-                 h5_path)
-    return stored_fe_data(h5_path, assemble=not has_fe)
+    return stored_fe_data(h5_path)
 
 
 def cmd_export(args: argparse.Namespace) -> int:

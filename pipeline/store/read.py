@@ -10,10 +10,14 @@ Each reader opens the file once (verified: schema, version, checksums, through
                            and the Craig-Bampton M and K
 :func:`read_model_file`    :class:`ModelFile`: the models plus what a simulation needs (ports
                            from the stored config, region centroids, body inertia)
-:func:`read_stored_mesh`          :class:`StoredMesh`: the mesh, the mode shapes, the regions
+:func:`read_stored_mesh`   :class:`StoredMesh`: the mesh, the mode shapes, the regions
 :func:`read_stress_modes`  :class:`StressModes`, or None for a file without them
 :func:`read_csr`           a sparse matrix of ``/fe`` (from an open file)
 =========================  ===================================================================
+
+:func:`pipeline.store.summary.read_summary` gives a file's
+:class:`~pipeline.store.summary.FileSummary` (what ``inspect``, ``export --to json`` and
+the batch cache read), on the same verified open.
 
 Paths come from :mod:`pipeline.store.layout`. No mesh or finite-element code runs on the
 way (this module never imports :mod:`pipeline.fe`, gmsh, meshio or scikit-fem), so a
@@ -372,7 +376,8 @@ def read_stored_mesh(path: str | Path) -> StoredMesh:
         return StoredMesh(str(h5.attrs.get(L.ROOT.name, Path(path).stem)), points, kind, cells,
                           shapes, freqs, labels, fixed, regions, damping,
                           L.STATESPACE.path in h5,
-                          str(h5.attrs.get(L.ROOT.config_yaml, "")))
+                          str(h5.attrs.get(L.ROOT.config_yaml, "")),
+                          L.FE.mass_matrix in h5 and L.FE.stiffness_matrix in h5)
 
 
 # --------------------------------------------------------------------------- stress modes

@@ -214,7 +214,8 @@ class StoredMesh:
     shapes (n_p, 3, n_m) kg^-1/2; frequencies_hz (n_m,); labels (n_m,); fixed_dofs (n_c,)
     (DOF 3 node + component); regions: boundary triangles (n_f, 3) by name;
     retained_damping: damping ratios of the modes in ``/statespace`` (empty without it);
-    config_yaml: the stored config (YAML text, empty when absent).
+    config_yaml: the stored config (YAML text, empty when absent); has_fe: the file holds
+    the full M and K (``/fe``).
     """
 
     name: str
@@ -229,6 +230,7 @@ class StoredMesh:
     retained_damping: np.ndarray
     has_statespace: bool
     config_yaml: str = ""
+    has_fe: bool = False
 
     @property
     def fixed_nodes(self) -> np.ndarray:

@@ -27,15 +27,12 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from pipeline._version import __version__
 from pipeline._util.atomic import write_text
 from pipeline.apps.batch.cases import RECORD_VERSION, Case, portable_config
 from pipeline.config import config_to_yaml
 from pipeline.errors import FileFormatError
-from pipeline.store.layout import BODY, MESH, MODES, ROOT, RUN
-from pipeline.store.read import open_verified, read_strings
+from pipeline.store.summary import read_summary
 
 log = logging.getLogger(__name__)
 
@@ -159,36 +156,33 @@ def read_record(cases_dir: Path, key: str) -> CaseRecord | None:
 def record_from_file(path: Path, case: Case, verify: bool = True) -> CaseRecord:
     """A case record rebuilt from its HDF5 file (verified); FileFormatError if unusable
     (not ours, corrupt, another config or version, a dataset missing)."""
-    with open_verified(path, verify_checksum=verify) as h5:
-        stored = h5.attrs.get(ROOT.config_yaml)
-        if stored is not None and str(stored) != config_to_yaml(portable_config(case.config)):
-            raise FileFormatError(f"file '{path}': its config differs from case {case.index}'s",
-                                  key=str(path))
-        written_by = h5.attrs.get(ROOT.pipeline_version)
-        if str(written_by) != __version__:
-            raise FileFormatError(f"file '{path}': written by pipeline "
-                                  f"{written_by}, not {__version__}",
-                                  key=str(path))
-        try:
-            mesh = h5[MESH.path].attrs
-            run = dict(h5[RUN.path].attrs) if RUN.path in h5 else {}
-            return CaseRecord(
-                status="ok",
-                n_dofs=int(mesh[MESH.attr.n_dofs]),
-                n_free_dofs=int(mesh[MESH.attr.n_free_dofs]),
-                n_elements=int(sum(len(c) for c in h5[MESH.cells].values())),
-                frequencies_hz=tuple(float(f) for f in
-                                     np.atleast_1d(h5[MODES.frequencies_hz][()])),
-                mode_labels=tuple(read_strings(h5[MODES.labels])),
-                mass_kg=float(h5[BODY.mass][()]),
-                times_s={k[:-2]: float(x) for k, x in run.items() if k.endswith("_s")},
-                peak_memory_mb=float(run.get(RUN.attr.peak_memory_mb, math.nan)),
-                solver=str(run.get(RUN.attr.solver, "")),
-                rebuilt_from_file=True)
-        except (KeyError, IndexError, ValueError, TypeError, OSError) as exc:
-            text = " ".join(str(exc).split())[:200]
-            raise FileFormatError(f"file '{path}': not a case result of this pipeline "
-                                  f"({type(exc).__name__}: {text})", key=str(path)) from None
+    s = read_summary(path, verify_checksum=verify)
+    if s.config_yaml is not None and s.config_yaml != config_to_yaml(portable_config(case.config)):
+        raise FileFormatError(f"file '{path}': its config differs from case {case.index}'s",
+                              key=str(path))
+    if s.pipeline_version != __version__:
+        raise FileFormatError(f"file '{path}': written by pipeline "
+                              f"{s.pipeline_version}, not {__version__}", key=str(path))
+    mesh, modes = s.mesh, s.modes
+    missing = [name for name, ok in (
+        ("mesh", mesh is not None and mesh.cells is not None and mesh.n_dofs is not None
+         and mesh.n_free_dofs is not None),
+        ("modes", modes is not None and modes.labels is not None),
+        ("body", s.body is not None)) if not ok]
+    if missing:
+        raise FileFormatError(f"file '{path}': not a case result of this pipeline (no "
+                              f"complete {', '.join(missing)})", key=str(path))
+    run = s.run
+    return CaseRecord(
+        status="ok", n_dofs=mesh.n_dofs, n_free_dofs=mesh.n_free_dofs,
+        n_elements=sum(mesh.cells.values()),
+        frequencies_hz=tuple(float(f) for f in modes.frequencies_hz),
+        mode_labels=modes.labels, mass_kg=s.body.mass,
+        times_s=dict(run.times_s) if run is not None else {},
+        peak_memory_mb=(run.peak_memory_mb if run is not None
+                        and run.peak_memory_mb is not None else math.nan),
+        solver=(run.solver or "") if run is not None else "",
+        rebuilt_from_file=True)
 
 
 def finish_record(record: CaseRecord, case: Case, h5: Path | None) -> CaseRecord:

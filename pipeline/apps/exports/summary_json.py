@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 
 from pipeline._util.atomic import write_text
-from pipeline.store.layout import (BODY, LUMPED, LUMPED_STATESPACE, MESH, MODES, ROOT,
-                                   STATESPACE, STATESPACE_FILTERED)
-from pipeline.store.read import open_verified, read_names, read_strings
+from pipeline.store.layout import MESH, MODES, STATESPACE, STATESPACE_FILTERED
+from pipeline.store.read import LAYOUT_ERRORS, layout_error
+from pipeline.store.summary import ModelSummary, read_summary
 
 log = logging.getLogger(__name__)
 
@@ -62,14 +62,9 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def _names(grp, key: str) -> list[str]:
-    return list(read_names(grp, key))
-
-
-def _dc_gain(h5, group) -> np.ndarray | None:
-    """D - C A^-1 B of the state-space ``group`` (a layout Group), None when A is singular."""
-    A, B, C, D = (np.atleast_2d(np.array(h5[group.dataset(k)][()], dtype=float))
-                  for k in "ABCD")
+def _dc_gain(model: ModelSummary) -> np.ndarray | None:
+    """D - C A^-1 B of ``model``, None when A is singular."""
+    A, B, C, D = model.matrices
     try:
         if np.linalg.cond(A) > 1e14:
             return None
@@ -110,78 +105,80 @@ def _ports(config_yaml: str | None, units: tuple[list[str], list[str]]) -> dict:
 def summary(h5_path: str | Path) -> dict:
     """The summary of ``h5_path`` (verified read) as a dict of plain JSON types."""
     h5_path = Path(h5_path)
-    with open_verified(h5_path) as h5:
-        a = h5.attrs
-        freqs = np.array(h5[MODES.frequencies_hz][()], dtype=float)
-        labels = read_strings(h5[MODES.labels])
-        cells_group = h5[MESH.cells]
-        kind = next(iter(cells_group))
-        mesh_attrs = h5[MESH.path].attrs
-        units: tuple[list[str], list[str]] = ([], [])
-        reduced = filtered = lumped = None
-        if STATESPACE.path in h5:
-            ss = h5[STATESPACE.path]
-            at = STATESPACE.attr
-            units = (read_strings(ss.attrs[at.input_units]) if at.input_units in ss.attrs else [],
-                     read_strings(ss.attrs[at.output_units]) if at.output_units in ss.attrs
-                     else [])
-            inputs, outputs = _names(ss, "input_names"), _names(ss, "output_names")
-            damping = (np.array(h5[STATESPACE.damping_ratios][()])
-                       if STATESPACE.damping_ratios in h5 else [])
-            compliance = (np.atleast_2d(np.array(h5[STATESPACE.static_compliance][()]))
-                          if STATESPACE.static_compliance in h5 else None)
-            fe_gain = None
-            if compliance is not None:
-                pos = [o for o in outputs if o.endswith("/position")] or outputs
-                fe_gain = {inp: {pos[o]: compliance[o, c] for o in range(min(len(pos),
-                                                                             compliance.shape[0]))}
-                           for c, inp in enumerate(inputs) if c < compliance.shape[1]}
-            reduced = {
-                "states": int(h5[STATESPACE.A].shape[0]),
-                "retained_modes": int(len(damping)),
-                "damping_ratios": damping,
-                "static_correction": str(ss.attrs.get(at.static_correction, "")),
-                "inputs": inputs,
-                "outputs": outputs,
-                "dc_gain": _gain_table(_dc_gain(h5, STATESPACE), inputs, outputs),
-                "dc_gain_full_fe": fe_gain,
-            }
-            if STATESPACE_FILTERED.path in h5:
-                fs = h5[STATESPACE_FILTERED.path]
-                at = STATESPACE_FILTERED.attr
-                f_out = _names(fs, "output_names")
-                filtered = {
-                    "states": int(h5[STATESPACE_FILTERED.A].shape[0]),
-                    "filter_kind": str(fs.attrs.get(at.filter_kind, "")),
-                    "cutoff_hz": float(fs.attrs[at.cutoff_hz]) if at.cutoff_hz in fs.attrs
-                    else None,
-                    "dc_gain": _gain_table(_dc_gain(h5, STATESPACE_FILTERED),
-                                           _names(fs, "input_names"), f_out),
-                }
-        if LUMPED_STATESPACE.path in h5:
-            lumped = {"states": int(h5[LUMPED_STATESPACE.A].shape[0])}
-            if LUMPED.frequencies_hz in h5:
-                lumped["frequencies_hz"] = np.array(h5[LUMPED.frequencies_hz][()])[:10]
-        data = {
-            "format": FORMAT,
-            "version": VERSION,
-            "name": str(a.get(ROOT.name, h5_path.stem)),
-            "source_file": str(h5_path),
-            "created_utc": str(a.get(ROOT.created_utc, "")),
-            "pipeline_version": str(a.get(ROOT.pipeline_version, "")),
-            "body": {"mass_kg": float(h5[BODY.mass][()]),
-                     "center_of_mass_m": np.array(h5[BODY.center_of_mass][()])},
-            "mesh": {"points": int(h5[MESH.points].shape[0]),
-                     "cells": int(cells_group[kind].shape[0]), "cell_type": kind,
-                     "dofs": int(mesh_attrs.get(MESH.attr.n_dofs, 3 * h5[MESH.points].shape[0]))},
-            "modes": [{"mode": i + 1, "frequency_hz": f,
-                       "label": labels[i] if i < len(labels) else ""} for i, f in enumerate(freqs)],
-            "ports": _ports(a.get(ROOT.config_yaml), units),
-            "reduced_model": reduced,
-            "filtered_model": filtered,
-            "lumped_model": lumped,
+    s = read_summary(h5_path).require("modes", "mesh", "body")
+    try:
+        return _clean(_data(s))
+    except LAYOUT_ERRORS as exc:
+        raise layout_error(h5_path, exc) from None
+
+
+def _data(s) -> dict:
+    """The summary of the FileSummary ``s`` (numpy values kept)."""
+    freqs, labels = s.modes.frequencies_hz, s.modes.labels
+    if labels is None:
+        raise KeyError(f"/{MODES.labels} missing")
+    kind, n_cells = next(iter(s.mesh.cells.items())) if s.mesh.cells else (None, None)
+    if kind is None:
+        raise KeyError(f"/{MESH.cells} missing")
+    units: tuple[list[str], list[str]] = ([], [])
+    reduced = filtered = lumped = None
+    ss = s.plant
+    if ss is not None:
+        if ss.n_states is None:
+            raise KeyError(f"/{STATESPACE.A} missing")
+        units = (list(ss.input_units), list(ss.output_units))
+        inputs, outputs = list(ss.input_names), list(ss.output_names)
+        damping = ss.damping_ratios if ss.damping_ratios is not None else []
+        compliance = ss.static_compliance
+        fe_gain = None
+        if compliance is not None:
+            pos = [o for o in outputs if o.endswith("/position")] or outputs
+            fe_gain = {inp: {pos[o]: compliance[o, c] for o in range(min(len(pos),
+                                                                         compliance.shape[0]))}
+                       for c, inp in enumerate(inputs) if c < compliance.shape[1]}
+        reduced = {
+            "states": ss.n_states,
+            "retained_modes": int(len(damping)),
+            "damping_ratios": damping,
+            "static_correction": ss.static_correction or "",
+            "inputs": inputs,
+            "outputs": outputs,
+            "dc_gain": _gain_table(_dc_gain(ss), inputs, outputs),
+            "dc_gain_full_fe": fe_gain,
         }
-    return _clean(data)
+        fs = s.filtered
+        if fs is not None:
+            if fs.n_states is None:
+                raise KeyError(f"/{STATESPACE_FILTERED.A} missing")
+            filtered = {
+                "states": fs.n_states,
+                "filter_kind": fs.filter_kind or "",
+                "cutoff_hz": fs.cutoff_hz,
+                "dc_gain": _gain_table(_dc_gain(fs), list(fs.input_names),
+                                       list(fs.output_names)),
+            }
+    chain = s.lumped
+    if chain is not None and chain.n_states is not None:
+        lumped = {"states": chain.n_states}
+        if s.lumped_frequencies_hz is not None:
+            lumped["frequencies_hz"] = s.lumped_frequencies_hz[:10]
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "name": s.name if s.name is not None else s.path.stem,
+        "source_file": str(s.path),
+        "created_utc": s.created_utc or "",
+        "pipeline_version": s.pipeline_version or "",
+        "body": {"mass_kg": s.body.mass, "center_of_mass_m": s.body.center_of_mass},
+        "mesh": {"points": s.mesh.n_points, "cells": n_cells, "cell_type": kind,
+                 "dofs": s.mesh.n_dofs if s.mesh.n_dofs is not None else 3 * s.mesh.n_points},
+        "modes": [{"mode": i + 1, "frequency_hz": f,
+                   "label": labels[i] if i < len(labels) else ""} for i, f in enumerate(freqs)],
+        "ports": _ports(s.config_yaml, units),
+        "reduced_model": reduced,
+        "filtered_model": filtered,
+        "lumped_model": lumped,
+    }
 
 
 def export(h5_path: str | Path, out_path: str | Path) -> Path:
