@@ -183,10 +183,17 @@ def test_load_model_gives_every_model_as_one_statespace_type(result):
     assert exc.value.value == "craig_bampton" and exc.value.exit_code == 7
 
 
-def test_connection_only_file_loads_its_connection_and_craig_bampton_models(tmp_path):
+@pytest.fixture(scope="module")
+def connection_file(tmp_path_factory):
+    """A connection-only run: /fe, /connections and /craig_bampton, no /statespace."""
+    tmp = tmp_path_factory.mktemp("conn")
     cfg = load_config(ROOT / "configs/cantilever_connection.yaml", ["mesh.size=0.02",
                                                                    "craig_bampton.modes=4"])
-    out = run_pipeline(cfg, tmp_path / "conn.h5", mesh_dir=tmp_path).output
+    return run_pipeline(cfg, tmp / "conn.h5", mesh_dir=tmp).output
+
+
+def test_connection_only_file_loads_its_connection_and_craig_bampton_models(connection_file):
+    out = connection_file
     model = load_model(out)
     assert model.plant is None and model.ss is None
     assert set(model.models) == {"connection/root", "craig_bampton"}
@@ -240,3 +247,45 @@ def test_summary_of_a_modes_only_file(tmp_path):
     data = summary(path)
     assert data["reduced_model"] is None and data["lumped_model"] is None
     assert [m["mode"] for m in data["modes"]] == [1, 2, 3]
+
+
+def test_fe_model_reader_agrees_with_the_mesh_reader_and_read_csr(result, connection_file):
+    """read_fe_model (the Exudyn export's reader) gives the mesh read_stored_mesh gives,
+    /fe's M and K as read_csr reads them, and the basis asked for."""
+    from pipeline.store.read import read_csr, read_fe_model, read_stored_mesh
+
+    for path, has_fe in ((result.output, False), (connection_file, True)):
+        mesh, body = read_stored_mesh(path), read_fe_model(path, "modes")
+        assert body.has_fe == mesh.has_fe == has_fe
+        assert (body.name, body.cell_type) == (mesh.name, mesh.cell_type)
+        for got, ref in ((body.points, mesh.points), (body.cells, mesh.cells),
+                         (body.fixed_dofs, mesh.fixed_dofs)):
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
+        assert list(body.regions) == list(mesh.regions)
+        for name, tris in mesh.regions.items():
+            np.testing.assert_array_equal(body.regions[name], tris)
+        assert body.basis.kind == "modes" and body.n_dofs == 3 * mesh.points.shape[0]
+        np.testing.assert_array_equal(body.basis.shapes,
+                                      mesh.shapes.reshape(body.n_dofs, -1))
+        with h5py.File(path, "r") as h5:
+            assert body.basis.n_rigid == int(h5["modes"].attrs.get("n_rigid", 0))
+            if has_fe:
+                for got, key in ((body.M, "fe/mass_matrix"), (body.K, "fe/stiffness_matrix")):
+                    ref = read_csr(h5, key)
+                    assert got.shape == ref.shape and (got != ref).nnz == 0
+    assert body.M is not None and body.K is not None  # the connection file holds /fe
+
+    # auto: the Craig-Bampton basis where the file has one, as load_model names it
+    cb_body, cb = read_fe_model(connection_file), load_model(connection_file).craig_bampton
+    assert cb_body.basis.kind == "craig_bampton" and cb_body.basis.n_rigid == 0
+    assert cb_body.basis.names == cb.coordinate_names
+    assert cb_body.basis.interface_names == cb.interface_names
+    with h5py.File(connection_file, "r") as h5:
+        np.testing.assert_array_equal(cb_body.basis.shapes,
+                                      h5["craig_bampton/shapes"][()].reshape(cb_body.n_dofs, -1))
+    assert read_fe_model(result.output).basis.kind == "modes"
+    with pytest.raises(FileFormatError, match="no /craig_bampton/shapes"):
+        read_fe_model(result.output, "craig_bampton")
+    with pytest.raises(ValueError, match="not one of auto, modes, craig_bampton"):
+        read_fe_model(result.output, "nope")

@@ -65,6 +65,39 @@ def test_no_hdf5_path_literal_outside_store():
                        "or a reader of pipeline.store.read):\n" + "\n".join(found))
 
 
+#: what opens or indexes one of our files, kept to pipeline/store's readers
+STORE_INTERNALS = {"open_verified", "read_csr", "read_strings"}
+
+
+def _opens_a_file_to_read(node: ast.AST) -> bool:
+    """``h5py.File(...)`` in read mode (no mode given, or ``"r"``)."""
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "File"):
+        return False
+    modes = [a for a in node.args[1:2]] + [k.value for k in node.keywords if k.arg == "mode"]
+    return not modes or any(isinstance(m, ast.Constant) and m.value == "r" for m in modes)
+
+
+def test_no_app_opens_a_result_file_itself():
+    """The apps and the CLI read our files through the typed readers of pipeline.store: no
+    h5py.File opened for reading, no open_verified/read_csr of their own (writing an
+    export's own file with h5py is fine)."""
+    found = []
+    for path in sorted((ROOT / "pipeline").rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        if rel.parts[:2] not in (("pipeline", "apps"), ("pipeline", "cli")):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ({a.name for a in node.names} if isinstance(node, ast.ImportFrom)
+                     and (node.module or "").startswith("pipeline.store") else set())
+            if names & STORE_INTERNALS or _opens_a_file_to_read(node):
+                found.append(f"{rel}:{node.lineno}")
+    assert not found, ("an app reads our HDF5 file itself (use a reader of "
+                       "pipeline.store.read):\n" + "\n".join(found))
+    assert _opens_a_file_to_read(ast.parse("h5py.File(p, 'r')").body[0].value)
+    assert not _opens_a_file_to_read(ast.parse("h5py.File(p, 'w')").body[0].value)
+
+
 def test_the_scan_sees_a_path_literal():
     assert _is_path("statespace/A") and _is_path("mesh/cells/") and _is_path("statespace")
     assert not _is_path("mesh") and not _is_path("tip_y/position") and not _is_path("a b/c")

@@ -11,6 +11,8 @@ Each reader opens the file once (verified: schema, version, checksums, through
 :func:`read_model_file`    :class:`ModelFile`: the models plus what a simulation needs (ports
                            from the stored config, region centroids, body inertia)
 :func:`read_stored_mesh`   :class:`StoredMesh`: the mesh, the mode shapes, the regions
+:func:`read_fe_model`      :class:`StoredFEModel`: the mesh, ``/fe``'s M and K and one mode
+                           basis (what the Exudyn export reads)
 :func:`read_stress_modes`  :class:`StressModes`, or None for a file without them
 :func:`read_csr`           a sparse matrix of ``/fe`` (from an open file)
 =========================  ===================================================================
@@ -40,11 +42,12 @@ from pipeline.reduce.statespace import StateSpace
 from pipeline.store import h5file
 from pipeline.store import layout as L
 from pipeline.store.h5file import read_strings
-from pipeline.store.records import (ModelFile, StoredCraigBampton, StoredMesh, StoredModels,
-                                    StressModes)
+from pipeline.store.records import (ModelFile, StoredBasis, StoredCraigBampton, StoredFEModel,
+                                    StoredMesh, StoredModels, StressModes)
 
 __all__ = ["load_model", "StoredModels", "StoredCraigBampton", "ModelFile", "read_model_file",
-           "StoredMesh", "read_stored_mesh", "open_verified", "read_strings", "StressModes",
+           "StoredMesh", "read_stored_mesh", "StoredFEModel", "StoredBasis", "read_fe_model",
+           "open_verified", "read_strings", "StressModes",
            "read_stress_modes", "read_csr", "read_names", "LAYOUT_ERRORS", "layout_error"]
 
 
@@ -348,18 +351,36 @@ def _lumped_chain(h5, chain: StateSpace | None) -> dict[str, Any] | None:
 
 
 # --------------------------------------------------------------------------- mesh and modes
+def _file_name(h5, path: str | Path) -> str:
+    """The config's name (root attribute), or the file's stem without one."""
+    name = h5.attrs.get(L.ROOT.name, Path(path).stem)
+    return name.decode() if isinstance(name, bytes) else str(name)
+
+
+def _mesh(h5, path: str | Path) -> tuple[np.ndarray, str, np.ndarray, np.ndarray,
+                                        dict[str, np.ndarray]]:
+    """(points (n_p, 3), cell type, cells, fixed DOFs, regions by name) of the open file,
+    each dtype and shape checked, the cells' node indices inside the points."""
+    points = _array(h5, L.MESH.points, "f", (None, 3))
+    kinds = [k for k in L.CELL_TYPES if k in h5[L.MESH.cells]] or list(h5[L.MESH.cells])
+    kind = kinds[0]
+    key = f"{L.MESH.cells}/{kind}"
+    cells = _array(h5, key, "i", (None, 10 if kind == "tetra10" else 4))
+    if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
+        raise FileFormatError(f"file '{path}': {key} refers to nodes outside "
+                              f"0..{points.shape[0] - 1}", key=key)
+    fixed = (_array(h5, L.MESH.fixed_dofs, "i", (None,)) if L.MESH.fixed_dofs in h5
+             else np.zeros(0, np.int64))
+    regions = {name: _array(h5, L.region(name), "i", (None, 3))
+               for name in (h5[L.MESH.regions] if L.MESH.regions in h5 else [])}
+    return points, kind, cells, fixed, regions
+
+
 def read_stored_mesh(path: str | Path) -> StoredMesh:
     """The mesh, modes, labels, supports and regions of a result file (verified, with
     every array's dtype and shape checked against the others)."""
     with open_verified(path) as h5:
-        points = _array(h5, L.MESH.points, "f", (None, 3))
-        kinds = [k for k in L.CELL_TYPES if k in h5[L.MESH.cells]] or list(h5[L.MESH.cells])
-        kind = kinds[0]
-        key = f"{L.MESH.cells}/{kind}"
-        cells = _array(h5, key, "i", (None, 10 if kind == "tetra10" else 4))
-        if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
-            raise FileFormatError(f"file '{path}': {key} refers to nodes outside "
-                                  f"0..{points.shape[0] - 1}", key=key)
+        points, kind, cells, fixed, regions = _mesh(h5, path)
         freqs = _array(h5, L.MODES.frequencies_hz, "f", (None,))
         shapes = _array(h5, L.MODES.shapes, "f", (points.shape[0], 3, freqs.size))
         labels = tuple(read_strings(h5[L.MODES.labels]))
@@ -367,17 +388,53 @@ def read_stored_mesh(path: str | Path) -> StoredMesh:
             raise FileFormatError(f"file '{path}': {len(labels)} mode labels for {freqs.size} "
                                   "modes", key=L.MODES.labels, value=len(labels),
                                   expected=str(freqs.size))
-        fixed = (_array(h5, L.MESH.fixed_dofs, "i", (None,)) if L.MESH.fixed_dofs in h5
-                 else np.zeros(0, np.int64))
-        regions = {name: _array(h5, L.region(name), "i", (None, 3))
-                   for name in (h5[L.MESH.regions] if L.MESH.regions in h5 else [])}
         damping = (_array(h5, L.STATESPACE.damping_ratios, "f", (None,))
                    if L.STATESPACE.damping_ratios in h5 else np.zeros(0))
-        return StoredMesh(str(h5.attrs.get(L.ROOT.name, Path(path).stem)), points, kind, cells,
-                          shapes, freqs, labels, fixed, regions, damping,
-                          L.STATESPACE.path in h5,
-                          str(h5.attrs.get(L.ROOT.config_yaml, "")),
-                          L.FE.mass_matrix in h5 and L.FE.stiffness_matrix in h5)
+        return StoredMesh(_file_name(h5, path), points, kind, cells, shapes, freqs, labels,
+                          fixed, regions, damping, L.STATESPACE.path in h5,
+                          str(h5.attrs.get(L.ROOT.config_yaml, "")), _has_fe(h5))
+
+
+def _has_fe(h5) -> bool:
+    return L.FE.mass_matrix in h5 and L.FE.stiffness_matrix in h5
+
+
+#: the mode bases :func:`read_fe_model` reads (``auto``: Craig-Bampton where the file has it)
+BASES = ("auto", "modes", "craig_bampton")
+
+
+def read_fe_model(path: str | Path, basis: str = "auto") -> StoredFEModel:
+    """The full FE body of a result file in one verified open: mesh, regions, fixed DOFs,
+    ``/fe``'s M and K (None without it) and the mode basis ``basis`` (one of
+    :data:`BASES`). FileFormatError when the file lacks the basis asked for."""
+    if basis not in BASES:
+        raise ValueError(f"basis {basis!r} is not one of {', '.join(BASES)}")
+    with open_verified(path) as h5:
+        points, kind, cells, fixed, regions = _mesh(h5, path)
+        M = K = None
+        if _has_fe(h5):
+            M, K = read_csr(h5, L.FE.mass_matrix), read_csr(h5, L.FE.stiffness_matrix)
+        return StoredFEModel(_file_name(h5, path), points, kind, cells, fixed, regions, M, K,
+                             _basis(h5, basis, 3 * points.shape[0]))
+
+
+def _basis(h5, basis: str, n_dofs: int) -> StoredBasis:
+    """The mode basis ``basis`` of the open file on all ``n_dofs`` DOFs."""
+    cb = L.CRAIG_BAMPTON
+    if basis == "auto":
+        basis = "craig_bampton" if cb.shapes in h5 else "modes"
+    if basis == "craig_bampton":
+        if cb.shapes not in h5:
+            raise FileFormatError(f"file '{h5.filename}': has no /craig_bampton/shapes; expected "
+                                  "a run with a craig_bampton section (or use basis='modes')")
+        shapes = _array(h5, cb.shapes, "f", (n_dofs // 3, 3, None))
+        return StoredBasis("craig_bampton", shapes.reshape(n_dofs, -1),
+                           tuple(read_strings(h5[cb.coordinate_names])),
+                           interface_names=tuple(read_strings(h5[cb.interface_names])))
+    n_modes = h5[L.MODES.omega2].shape[0]
+    shapes = _array(h5, L.MODES.shapes, "f", (n_dofs // 3, 3, n_modes))
+    return StoredBasis("modes", shapes.reshape(n_dofs, -1), (),
+                       int(h5[L.MODES.path].attrs.get(L.MODES.attr.n_rigid, 0)))
 
 
 # --------------------------------------------------------------------------- stress modes

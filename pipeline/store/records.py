@@ -8,6 +8,8 @@ One record per question a tool asks of a result file:
                              :class:`pipeline.reduce.craig_bampton.CraigBamptonModel`)
 :class:`ModelFile`           the models plus what a simulation needs: ports, supports, body
 :class:`StoredMesh`          the mesh and the mode shapes: pictures and mesh exports
+:class:`StoredFEModel`       the mesh, the full M and K (``/fe``) and one mode basis: what
+                             an export of the full FE body (Exudyn) needs
 :class:`StressModes`         stress and strain per unit coordinate at the mesh points
 ===========================  ================================================================
 
@@ -28,8 +30,8 @@ import numpy as np
 from pipeline.errors import FileFormatError
 from pipeline.reduce.statespace import StateSpace
 
-__all__ = ["StoredModels", "StoredCraigBampton", "ModelFile", "StoredMesh", "StressModes",
-           "to_control"]
+__all__ = ["StoredModels", "StoredCraigBampton", "ModelFile", "StoredMesh", "StoredBasis",
+           "StoredFEModel", "StressModes", "to_control"]
 
 
 def to_control(model: StateSpace):
@@ -236,6 +238,55 @@ class StoredMesh:
     def fixed_nodes(self) -> np.ndarray:
         """Nodes with at least one constrained DOF."""
         return np.unique(self.fixed_dofs // 3)
+
+
+@dataclass(frozen=True, eq=False)
+class StoredBasis:
+    """One mode basis of a file, on every DOF of the mesh (DOF 3 node + component).
+
+    kind: ``"modes"`` (``/modes/shapes``, M-orthonormal, kg^-1/2) or ``"craig_bampton"``
+    (``/craig_bampton/shapes``, per unit coordinate); shapes (n_dofs, n); names (n,): the
+    Craig-Bampton coordinate names (empty for modes); n_rigid: the leading rigid-body
+    modes (0 for a Craig-Bampton basis); interface_names: the Craig-Bampton interfaces in
+    stored order (empty for modes).
+    """
+
+    kind: str
+    shapes: np.ndarray
+    names: tuple[str, ...]
+    n_rigid: int = 0
+    interface_names: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class StoredFEModel:
+    """The full finite-element body of a file: what an export of it (Exudyn) reads.
+
+    name: the config's name (the file's stem when absent); points (n_p, 3) m; cells
+    (n_t, 4 | 10) node indices in meshio order, of ``cell_type``; fixed_dofs (n_c,);
+    regions: boundary triangles (n_f, 3) by name; M, K (3 n_p, 3 n_p) CSR of the
+    unsupported body in kg and N/m from ``/fe``, or None in a file without it (then
+    :class:`pipeline.fe.stored.StoredFE` re-assembles them); basis: the mode basis asked for.
+    """
+
+    name: str
+    points: np.ndarray
+    cell_type: str
+    cells: np.ndarray
+    fixed_dofs: np.ndarray
+    regions: dict[str, np.ndarray]
+    M: Any
+    K: Any
+    basis: StoredBasis
+
+    @property
+    def has_fe(self) -> bool:
+        """The file holds the full M and K (``/fe``)."""
+        return self.M is not None and self.K is not None
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * self.points.shape[0]
 
 
 @dataclass(frozen=True)

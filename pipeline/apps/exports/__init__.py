@@ -6,8 +6,8 @@ writes ``out_path``; ``suffix`` is the default file ending. :func:`export` is wh
 CLI calls (``python -m pipeline export FILE.h5 --to FORMAT [-o OUT]``). To add a format,
 write its module here and add one line to :data:`EXPORTERS`.
 
-Exporters read the file through :mod:`pipeline.store.read` (a sparse matrix of ``/fe``:
-:func:`pipeline.store.read.read_csr`).
+Exporters read the file through the typed readers of :mod:`pipeline.store.read` (the
+full FE body with ``/fe``'s M and K: :func:`pipeline.store.read.read_fe_model`).
 """
 
 from __future__ import annotations

@@ -33,9 +33,10 @@ The mode basis (``basis`` argument of :func:`export_exudyn`):
   interface (Exudyn's ``excludeRigidBodyMotion``: the frame follows that interface).
 - ``auto`` (default): ``craig_bampton`` when the file has it, else ``modes``.
 
-Exudyn computes everything else it needs (reduced M and K, the FFRF inertia invariants)
-from these entries. The file format is HDF5 tagged the way Exudyn's loader expects:
-every group and dataset carries ``datatype`` (``dict``, ``list``, ``csr_matrix``,
+The export reads our file in one open, through :func:`pipeline.store.read.read_fe_model`
+(a :class:`~pipeline.store.records.StoredFEModel`). Exudyn computes everything else it
+needs (reduced M and K, the FFRF inertia invariants) from these entries. The file format
+is HDF5 tagged the way Exudyn's loader expects: every group and dataset carries ``datatype`` (``dict``, ``list``, ``csr_matrix``,
 ``ndarray``, ``str``, ``int``); lists are groups of ``item_<i>``; and the file name must end
 in ``.hdf5``.
 
@@ -62,16 +63,13 @@ import scipy.sparse as sp
 
 from pipeline._util.atomic import atomic_path
 from pipeline.errors import FileFormatError
-from pipeline.store.layout import CRAIG_BAMPTON, FE, MESH, MODES, ROOT, region
-from pipeline.store.layout import cells as cells_path
-from pipeline.store.read import open_verified, read_csr, read_strings
+from pipeline.store.read import BASES, StoredBasis, read_fe_model
 
 log = logging.getLogger(__name__)
 
 __all__ = ["export_exudyn", "boundary_faces", "region_node_weights",
            "write_tagged_hdf5"]
 
-BASES = ("auto", "modes", "craig_bampton")
 # local edges of a tetra10, in column order 4..9
 _TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
 
@@ -195,31 +193,18 @@ def write_tagged_hdf5(path: Path, data: dict[str, Any]) -> Path:
 
 
 # --------------------------------------------------------------------------- export
-def _basis(h5, basis: str, n_dofs: int) -> tuple[np.ndarray, str, str]:
-    """(matrix (n_dofs, n), Exudyn type, description)."""
-    if basis == "auto":
-        basis = "craig_bampton" if CRAIG_BAMPTON.shapes in h5 else "modes"
-    if basis == "craig_bampton":
-        if CRAIG_BAMPTON.shapes not in h5:
-            raise FileFormatError(f"file '{h5.filename}': has no /craig_bampton/shapes; expected "
-                                  "a run with a craig_bampton section (or use basis='modes')")
-        S = h5[CRAIG_BAMPTON.shapes][()].reshape(n_dofs, -1)
-        names = read_strings(h5[CRAIG_BAMPTON.coordinate_names])
-        first = read_strings(h5[CRAIG_BAMPTON.interface_names])[0]
-        keep = [i for i, nm in enumerate(names) if not nm.startswith(first + ".")]
-        return (S[:, keep], "HCBmodes",
+def _basis(stored: StoredBasis, fixed: np.ndarray) -> tuple[np.ndarray, str, str]:
+    """(matrix (n_dofs, n), Exudyn type, description) of the stored basis."""
+    if stored.kind == "craig_bampton":
+        first = stored.interface_names[0]
+        keep = [i for i, nm in enumerate(stored.names) if not nm.startswith(first + ".")]
+        return (stored.shapes[:, keep], "HCBmodes",
                 f"Craig-Bampton basis without the static modes of interface '{first}' "
-                "(the floating frame follows it): " + ", ".join(names[i] for i in keep))
-    if basis != "modes":
-        raise FileFormatError(f"exudyn export: basis {basis!r} is not one of {', '.join(BASES)}")
-    S = h5[MODES.shapes][()].reshape(n_dofs, -1)
-    omega2 = h5[MODES.omega2][()]
-    n_rigid = int(h5[MODES.path].attrs.get(MODES.attr.n_rigid, 0))
-    keep = np.arange(n_rigid, omega2.size)
-    fixed = h5[MESH.fixed_dofs][()] if MESH.fixed_dofs in h5 else np.zeros(0)
+                "(the floating frame follows it): " + ", ".join(stored.names[i] for i in keep))
+    keep = np.arange(stored.n_rigid, stored.shapes.shape[1])
     what = ("modes of the supported body (zero on its supports)" if fixed.size
             else "elastic free-free modes (rigid-body modes dropped)")
-    return S[:, keep], "NormalModes", what
+    return stored.shapes[:, keep], "NormalModes", what
 
 
 def static_modes(K: sp.spmatrix, M: sp.spmatrix, Psi: np.ndarray, F: np.ndarray,
@@ -267,33 +252,27 @@ def export_exudyn(h5_path: str | Path, out_path: str | Path, basis: str = "auto"
     if out.suffix.lower() != ".hdf5":
         raise FileFormatError(f"exudyn export: output '{out}' must end in '.hdf5' (Exudyn "
                               "loads HDF5 only from that ending; '.h5' is read as NumPy)")
-    with open_verified(h5_path) as h5:
-        points = h5[MESH.points][()].astype(float)
-        cell_key = "tetra10" if cells_path("tetra10") in h5 else "tetra"
-        cells = h5[cells_path(cell_key)][()].astype(np.int64)
-        n_dofs = 3 * points.shape[0]
-        if FE.mass_matrix in h5 and FE.stiffness_matrix in h5:
-            M = read_csr(h5, FE.mass_matrix)
-            K = read_csr(h5, FE.stiffness_matrix)
-            source = "M and K stored by the run (/fe)"
-        elif fe_data is not None and getattr(fe_data, "K_full", None) is not None:
-            K, M, source = fe_data.K_full, fe_data.M_full, fe_data.source
-        else:
-            raise FileFormatError(
-                f"file '{h5_path}': has no /fe (the full M and K Exudyn needs; a run stores "
-                "them only when the config has a 'connections' section); export it with "
-                "'python -m pipeline export FILE --to exudyn', which re-assembles them from "
-                "the stored config and mesh, or add 'connections:' to the config",
-                key="connections", value="absent", expected="/fe in the file")
-        if M.shape != (n_dofs, n_dofs) or K.shape != (n_dofs, n_dofs):
-            raise FileFormatError(f"file '{h5_path}': /fe matrices are {M.shape}, {K.shape}; "
-                                  f"expected ({n_dofs}, {n_dofs}) for {points.shape[0]} points")
-        Psi, kind, what = _basis(h5, basis, n_dofs)
-        fixed = h5[MESH.fixed_dofs][()].astype(np.int64) if MESH.fixed_dofs in h5 \
-            else np.zeros(0, np.int64)
-        regions = {name: h5[region(name)][()] for name in h5.get(MESH.regions, {})}
-        name = h5.attrs.get(ROOT.name, Path(h5_path).stem)
-        name = name.decode() if isinstance(name, bytes) else str(name)
+    if basis not in BASES:
+        raise FileFormatError(f"exudyn export: basis {basis!r} is not one of {', '.join(BASES)}")
+    body = read_fe_model(h5_path, basis)
+    points, cells, fixed, regions, name = (body.points, body.cells, body.fixed_dofs,
+                                           body.regions, body.name)
+    cell_key, n_dofs = body.cell_type, body.n_dofs
+    if body.has_fe:
+        M, K, source = body.M, body.K, "M and K stored by the run (/fe)"
+    elif fe_data is not None and getattr(fe_data, "K_full", None) is not None:
+        K, M, source = fe_data.K_full, fe_data.M_full, fe_data.source
+    else:
+        raise FileFormatError(
+            f"file '{h5_path}': has no /fe (the full M and K Exudyn needs; a run stores "
+            "them only when the config has a 'connections' section); export it with "
+            "'python -m pipeline export FILE --to exudyn', which re-assembles them from "
+            "the stored config and mesh, or add 'connections:' to the config",
+            key="connections", value="absent", expected="/fe in the file")
+    if M.shape != (n_dofs, n_dofs) or K.shape != (n_dofs, n_dofs):
+        raise FileFormatError(f"file '{h5_path}': /fe matrices are {M.shape}, {K.shape}; "
+                              f"expected ({n_dofs}, {n_dofs}) for {points.shape[0]} points")
+    Psi, kind, what = _basis(body.basis, fixed)
     F = getattr(fe_data, "F", None)
     n_modes = Psi.shape[1]
     if kind == "NormalModes" and F is not None and F.shape[1] and fixed.size:
