@@ -22,10 +22,9 @@ from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
-from pipeline.solve.eigen import factor_expected
 from pipeline.solve.backends.pardiso import PatternAnalysis
 from pipeline.solve.factorization import resolve_backend
-from pipeline.solve.stage import ModesInput, compute_modes
+from pipeline.solve.stage import ModesInput, compute_modes, expects_factor
 from pipeline.store.h5file import write_file
 from pipeline.store.layout import ROOT
 from pipeline.fe.strain import modal_stress_fields
@@ -131,9 +130,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     ahead: list[PatternAnalysis] = []
 
     def analyse_ahead(indptr, indices) -> None:
-        if factor_expected(indptr.size - 1, cfg.modes.count, supported=bool(cfg.supports),
-                           backend=cfg.modes.solver, method=cfg.modes.method,
-                           precision=cfg.modes.precision):
+        if expects_factor(indptr.size - 1, cfg.modes, supported=bool(cfg.supports)):
             ahead.append(PatternAnalysis(indptr, indices))
 
     try:

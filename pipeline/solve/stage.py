@@ -35,7 +35,7 @@ from pipeline.config.schema import ModesConfig
 from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import FEModel
-from pipeline.solve.eigen import solve_modes
+from pipeline.solve.eigen import factor_expected, solve_modes
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
 
@@ -77,6 +77,15 @@ class ModesInput:
                    node_weights=node_volume_weights(fe.space), supported=supported,
                    coarse=None if config.method == "factor"
                    else p1_prolongation(fe.space, fe.free))
+
+
+def expects_factor(n_free: int, config: ModesConfig, *, supported: bool) -> bool:
+    """Whether :func:`compute_modes` will factorise K itself with PARDISO at shift 0 for
+    ``n_free`` free DOFs under ``config`` (:func:`pipeline.solve.eigen.factor_expected`),
+    so that a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's pattern
+    started during the assembly will be used."""
+    return factor_expected(n_free, config.count, supported=supported, backend=config.solver,
+                           method=config.method, precision=config.precision)
 
 
 def full_shapes(shapes: np.ndarray, free: np.ndarray, n_points: int) -> np.ndarray:
