@@ -20,14 +20,11 @@ import numpy as np
 
 from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
-from pipeline.fe.body import node_volume_weights
-from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import build_fe_model
 from pipeline.reduce.build import build_connection_models, build_models
-from pipeline.solve.eigen import factor_expected
 from pipeline.solve.backends.pardiso import PatternAnalysis
 from pipeline.solve.factorization import resolve_backend
-from pipeline.solve.stage import compute_modes
+from pipeline.solve.stage import ModesInput, compute_modes, expects_factor
 from pipeline.store.h5file import write_file
 from pipeline.store.layout import ROOT
 from pipeline.fe.strain import modal_stress_fields
@@ -133,9 +130,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     ahead: list[PatternAnalysis] = []
 
     def analyse_ahead(indptr, indices) -> None:
-        if factor_expected(indptr.size - 1, cfg.modes.count, supported=bool(cfg.supports),
-                           backend=cfg.modes.solver, method=cfg.modes.method,
-                           precision=cfg.modes.precision):
+        if expects_factor(indptr.size - 1, cfg.modes, supported=bool(cfg.supports)):
             ahead.append(PatternAnalysis(indptr, indices))
 
     try:
@@ -144,15 +139,11 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress
-            modes = compute_modes(fe.K, fe.M, cfg.modes.count, fe.free,
-                                  fe.space.node_points, node_volume_weights(fe.space),
-                                  supported=bool(cfg.supports), backend=cfg.modes.solver,
-                                  tolerance=cfg.modes.tolerance,
-                                  keep=cfg.reduction is not None,
-                                  precision=cfg.modes.precision, method=cfg.modes.method,
-                                  coarse=None if cfg.modes.method == "factor"
-                                  else p1_prolongation(fe.space, fe.free),
-                                  analysis=ahead[0] if ahead else None)
+            # the input record is a temporary: it must not keep K alive past `del fe`
+            modes = compute_modes(
+                ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
+                cfg.modes, keep=cfg.reduction is not None,
+                analysis=ahead[0] if ahead else None)
     finally:
         for analysis in ahead:
             analysis.release()  # nothing to free when the factorisation took it

@@ -627,3 +627,17 @@ def test_factor_expected_follows_solve_modes_rules():
     assert not eigen.factor_expected(plan.MULTIGRID_AUTO_DOFS, 20)  # auto tries multigrid
     assert not eigen.factor_expected(plan.DENSE_MAX, 4)  # dense
     assert not eigen.factor_expected(n, 20, backend="superlu")
+
+
+def test_stage_expects_factor_reads_the_modes_config():
+    from pipeline.config.schema import ModesConfig
+    from pipeline.solve import eigen
+    from pipeline.solve.stage import expects_factor
+
+    n = 100_000
+    for cfg in (ModesConfig(count=20), ModesConfig(count=20, precision="mixed"),
+                ModesConfig(count=20, method="multigrid"), ModesConfig(solver="superlu")):
+        for supported in (True, False):
+            assert expects_factor(n, cfg, supported=supported) == eigen.factor_expected(
+                n, cfg.count, supported=supported, backend=cfg.solver, method=cfg.method,
+                precision=cfg.precision)
