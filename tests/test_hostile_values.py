@@ -68,6 +68,8 @@ CASES = [  # kind, overrides, None (a result) or (error class, pattern)
     ("spring_mount", dict(initial_angle=1e-300, gravity=False), None),
     ("spring_mount", dict(mass=TINY), (ConfigError, r"scenario\.mass'")),
     ("spring_mount", dict(cutoff_hz=1e300), (ConfigError, r"scenario\.cutoff_hz'")),
+    ("spring_mount", dict(joint=[1e300, 0, 0]), (ConfigError, r"scenario\.joint'")),
+    ("spring_mount", dict(joint=[1e6, 0, 0]), None),
 ]
 
 

@@ -75,6 +75,9 @@ SCENARIO_KEYS = {
 _REQUIRED = {"step_load": ("force",), "body_load": ("mass",), "mass_sweep": ("masses",),
              "spring_mount": ("mass", "stiffness")}
 _INTEGRATOR_KEYS = ("method", "rtol", "atol")
+#: Largest joint coordinate (m): the arm's inertia m r^2 overflows far beyond it, and a
+#: joint a thousand km from the body is no mount.
+MAX_JOINT_M = 1e6
 #: Largest |initial_angle| (rad): the mount is linearised about theta = 0.
 MAX_INITIAL_ANGLE = 0.1
 
@@ -268,6 +271,9 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         extra["stiffness"] = v.number(raw, "stiffness", path, lo=0.0, lo_open=True)
         extra["joint_damping"] = v.number(raw, "joint_damping", path, 0.0, lo=0.0)
         extra["joint"] = v.vector(raw, "joint", path, None)
+        if extra["joint"] is not None and max(map(abs, extra["joint"])) > MAX_JOINT_M:
+            raise v.fail(f"{path}.joint", list(extra["joint"]), f"a point within "
+                         f"{MAX_JOINT_M:g} m of the origin (m; null: the support's centroid)")
         extra["initial_angle"] = v.number(raw, "initial_angle", path, 0.0)
         if abs(extra["initial_angle"]) > MAX_INITIAL_ANGLE:
             raise v.fail(f"{path}.initial_angle", extra["initial_angle"],
