@@ -382,8 +382,8 @@ _MOUNT = {"kind": "spring_mount", "mass": 1.0, "stiffness": 1e4, "duration": 1.0
     (_BODY, "mass", False, "a number"),
     (_BODY, "gravity", [True, 0, 0], "three finite numbers"),
     # out of range
-    (_STEP, "duration", -1.0, "> 0"),
-    (_STEP, "duration", 0, "> 0"),
+    (_STEP, "duration", -1.0, ">= 1e-06"),
+    (_STEP, "duration", 0, ">= 1e-06"),
     (_STEP, "output_rate", -5000, "> 0"),
     (_STEP, "t_on", -0.1, ">= 0"),
     (_STEP, "force", 0.0, "non-zero"),

@@ -41,7 +41,7 @@ from pipeline.apps.mode_drawing import (DEFORMATION_FRACTION, DPI, Surface, boun
                                         colour_bar, draw_mode, draw_mode_2d, is_slender,
                                         mode_title)
 from pipeline.apps.response_plots import plot_bode, plot_step, save_figure
-from pipeline.store.read import StoredMesh, read_stored_mesh
+from pipeline.store.read import StoredMesh, load_model, read_stored_mesh
 
 log = logging.getLogger(__name__)
 
@@ -199,8 +199,10 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
     ``mode_NN.gif`` (and ``.mp4`` with ffmpeg) per mode (:mod:`pipeline.apps.animate`)."""
     path = Path(path)
     out_dir = Path(out_dir) if out_dir else path.with_name(f"{path.stem}_plots")
-    out_dir.mkdir(parents=True, exist_ok=True)
     data = read_stored_mesh(path)
+    if data.has_statespace:
+        load_model(path)  # refuse a bad model (FileFormatError) before writing any picture
+    out_dir.mkdir(parents=True, exist_ok=True)
     n = data.frequencies_hz.size if modes is None else min(modes, data.frequencies_hz.size)
     surface = boundary_surface(data.points, data.cells)
     written = []

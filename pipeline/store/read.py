@@ -134,9 +134,18 @@ def _statespace(h5, group: L.Group, label: str, **kw) -> StateSpace:
         if mats[k].shape != shape:
             raise FileFormatError(f"file '{h5.filename}': {group.dataset(k)} has shape "
                                   f"{mats[k].shape}, expected {shape}")
+    if n == 0 and group is not None and group.path in _DYNAMIC_GROUPS:
+        raise FileFormatError(f"file '{h5.filename}': {group.dataset('A')} has 0 states, "
+                              "expected a model with at least one state (the pipeline writes "
+                              "one per kept mode); the file was edited", key=group.dataset("A"),
+                              value=0, expected="at least one state")
     names = {k: _strings(h5, group, k) for k in ("input_names", "output_names", "state_names")}
     # a ValueError (non-finite values) becomes the reader's FileFormatError
     return StateSpace(mats["A"], mats["B"], mats["C"], mats["D"], **names, label=label, **kw)
+
+
+#: Model groups that always have states (modes, filter, lumped joints): 0 is an edited file.
+_DYNAMIC_GROUPS = (L.STATESPACE.path, L.STATESPACE_FILTERED.path, L.LUMPED_STATESPACE.path)
 
 
 # --------------------------------------------------------------------------- every model

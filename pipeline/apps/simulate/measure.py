@@ -141,7 +141,7 @@ def fft_peak_frequency(t: np.ndarray, y: np.ndarray, fmin: float | None = None,
     k = int(band[np.argmax(X[band])])
     top = float(X[f >= 2.0 / (n * dt)].max())
     if k <= 0 or k >= X.size - 1 or X[k] <= 0:
-        return float(f[k]), float(X[k] / top)
+        return float(f[k]), (float(X[k] / top) if top > 0 else math.nan)
     a, b, c = np.log(np.maximum(X[k - 1:k + 2], 1e-300))
     den = a - 2 * b + c
     p = 0.5 * (a - c) / den if den != 0 else 0.0
@@ -174,8 +174,19 @@ def modes_in(sys: SteppedSystem, dz: np.ndarray, signal_rows: Sequence[int]
 
 def fit_sweep(masses: np.ndarray, freqs: np.ndarray) -> dict[str, float]:
     """T^2 = a + b m fitted with relative residuals (weights 1/T^4: a period measurement's
-    error is relative). Also the ordinary least-squares intercept, for comparison."""
+    error is relative). Also the ordinary least-squares intercept, for comparison.
+
+    Every value is NaN when fewer than three masses have a measured frequency (a run too
+    short or a filter too slow to show a period) or when their periods do not differ (masses
+    too light to change the body's period at double precision): no line fits then."""
+    masses, freqs = np.asarray(masses, float), np.asarray(freqs, float)
+    ok = np.isfinite(freqs) & (freqs > 0)
+    masses, freqs = masses[ok], freqs[ok]
     T2 = 1.0 / freqs**2
+    if T2.size < 3 or not np.all(np.isfinite(T2)) or np.ptp(T2) <= 1e-12 * T2.max() \
+            or np.ptp(masses) == 0:
+        return dict.fromkeys(("a_s2", "b_s2_per_kg", "r2", "r2_weighted", "f0_hz",
+                              "effective_mass_kg", "f0_ols_hz", "r2_ols"), math.nan)
     X = np.column_stack([np.ones_like(masses), masses])
     w = 1.0 / T2
     (a, b), *_ = np.linalg.lstsq(X * w[:, None], T2 * w, rcond=None)

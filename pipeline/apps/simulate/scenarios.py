@@ -46,6 +46,15 @@ STEPS_PER_PERIOD = 20
 MAX_LOAD_N = 1e12
 MAX_GRAVITY = 1e7
 MAX_MASS_KG = 1e12
+#: Lightest non-zero mass (kg), a microgram: lighter ones change nothing a run can show
+#: and their gravity loads reach the subnormal range where the integrator stalls.
+MIN_MASS_KG = 1e-9
+#: Shortest duration (s): a microsecond holds no period of any structure's mode, and far
+#: shorter runs put the integrator's steps below the clock's resolution (it hangs).
+MIN_DURATION_S = 1e-6
+#: Highest cutoff_hz: beyond it the filter's K^3 gains overflow double precision long
+#: before the run, and already far beyond it the step budget refuses the run.
+MAX_CUTOFF_HZ = 1e9
 #: Largest duration x max|lambda| (time scales spanned by one run): beyond ~1/(4500 eps)
 #: the fast states swamp the slow ones in A y at double precision and even an implicit
 #: integrator stalls (a 1e30 kg body load gives 1e36 1/s next to 2e-6 1/s). The shipped
@@ -66,6 +75,9 @@ SCENARIO_KEYS = {
 _REQUIRED = {"step_load": ("force",), "body_load": ("mass",), "mass_sweep": ("masses",),
              "spring_mount": ("mass", "stiffness")}
 _INTEGRATOR_KEYS = ("method", "rtol", "atol")
+#: Largest joint coordinate (m): the arm's inertia m r^2 overflows far beyond it, and a
+#: joint a thousand km from the body is no mount.
+MAX_JOINT_M = 1e6
 #: Largest |initial_angle| (rad): the mount is linearised about theta = 0.
 MAX_INITIAL_ANGLE = 0.1
 
@@ -181,8 +193,9 @@ def _masses(raw: Mapping, path: str) -> tuple[float, ...]:
 def _mass(raw: Mapping, key: str, path: str) -> float:
     """A mass >= 0 (kg), at most MAX_MASS_KG."""
     mass = v.number(raw, key, path, lo=0.0)
-    if mass > MAX_MASS_KG:
-        raise v.fail(f"{path}.{key}", mass, f"a mass of at most {MAX_MASS_KG:g} kg")
+    if mass > MAX_MASS_KG or 0.0 < mass < MIN_MASS_KG:
+        raise v.fail(f"{path}.{key}", mass, f"0 or a mass of {MIN_MASS_KG:g} to "
+                     f"{MAX_MASS_KG:g} kg")
     return mass
 
 
@@ -193,7 +206,7 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
     kind = v.choice(raw, "kind", path, KINDS)
     name = v.name(raw, "name", path, kind)
     v.mapping(raw, path, SCENARIO_KEYS[kind], _REQUIRED[kind] + ("duration",))
-    duration = v.number(raw, "duration", path, lo=0.0, lo_open=True)
+    duration = v.number(raw, "duration", path, lo=MIN_DURATION_S)
     rate = v.number(raw, "output_rate", path, 5000.0, lo=0.0, lo_open=True)
     samples = duration * rate
     if not MIN_SAMPLES <= samples <= MAX_SAMPLES:
@@ -242,7 +255,8 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
     extra: dict[str, Any] = dict(
         gravity=gravity, preload=v.number(raw, "preload", path, 0.0, lo=-MAX_LOAD_N,
                                           hi=MAX_LOAD_N), loop=loop,
-        cutoff_hz=_optional_number(raw, "cutoff_hz", path, lo=0.0, lo_open=True))
+        cutoff_hz=_optional_number(raw, "cutoff_hz", path, lo=0.0, lo_open=True,
+                                   hi=MAX_CUTOFF_HZ))
     if extra["cutoff_hz"] is not None and loop != "filtered":
         raise v.fail(f"{path}.cutoff_hz", extra["cutoff_hz"], "no cutoff with loop: exact "
                      "(a cutoff re-filters the plant for loop: filtered)")
@@ -257,6 +271,9 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         extra["stiffness"] = v.number(raw, "stiffness", path, lo=0.0, lo_open=True)
         extra["joint_damping"] = v.number(raw, "joint_damping", path, 0.0, lo=0.0)
         extra["joint"] = v.vector(raw, "joint", path, None)
+        if extra["joint"] is not None and max(map(abs, extra["joint"])) > MAX_JOINT_M:
+            raise v.fail(f"{path}.joint", list(extra["joint"]), f"a point within "
+                         f"{MAX_JOINT_M:g} m of the origin (m; null: the support's centroid)")
         extra["initial_angle"] = v.number(raw, "initial_angle", path, 0.0)
         if abs(extra["initial_angle"]) > MAX_INITIAL_ANGLE:
             raise v.fail(f"{path}.initial_angle", extra["initial_angle"],

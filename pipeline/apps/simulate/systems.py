@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import ConfigError, FileFormatError
+from pipeline.errors import ConfigError, FileFormatError, SolverError
 from pipeline.reduce.filters import (CUTOFF_MARGIN, first_order_filter,
                                      third_order_position_filter)
 from pipeline.reduce.statespace import StateSpace
@@ -229,8 +229,25 @@ class SteppedSystem:
     units = property(lambda self: self.model.output_units)
 
     def equilibrium(self, w: np.ndarray) -> np.ndarray:
-        """Steady state z with constant inputs w: -A^-1 B w."""
-        return -np.linalg.solve(self.A, self.B @ w)
+        """Steady state z with constant inputs w: -A^-1 B w. SolverError (one line) when A
+        is singular or nearly so: a stiffness or mass of ~0 leaves no static equilibrium."""
+        bw = self.B @ w
+        scale = float(np.abs(bw).max(initial=0.0))
+        if scale == 0.0:
+            return np.zeros(self.A.shape[0])
+        bw = bw / scale  # linear: solved for a unit load (a 1e-320 N load is no subnormal)
+        try:
+            z = np.linalg.solve(self.A, bw)
+        except np.linalg.LinAlgError:
+            z = np.full(self.A.shape[0], np.nan)
+        with np.errstate(all="ignore"):  # the residual of a singular solve may overflow
+            resid = float(np.abs(self.A @ z - bw).max(initial=0.0))
+        if not (np.all(np.isfinite(z)) and resid <= 1e-6):
+            raise SolverError("scenario: the coupled system has no static equilibrium (its A "
+                              "is singular to double precision: a stiffness, mass or cutoff "
+                              "far from the body's own); use values of the order of the "
+                              "body's own")
+        return -z * scale
 
     def signal(self, name: str) -> int:
         return self.signals.index(name)
