@@ -6,7 +6,6 @@ code 7, nothing written."""
 
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +16,7 @@ import pytest
 
 from pipeline.apps.simulate import simulate
 from pipeline.config import load_config
-from pipeline.errors import ConfigError, FileFormatError, PipelineError, SolverError
+from pipeline.errors import ConfigError, FileFormatError, SolverError
 from pipeline.run import run_pipeline
 from pipeline.store.h5file import sign
 from pipeline._util.yamlio import parse_yaml

@@ -494,7 +494,6 @@ def test_gpu_backend_takes_the_factor_path_with_arpack_and_no_multigrid_trial(
     size, no precision switch by host memory, ARPACK (no forward/backward) on the factor,
     and the factor kept for the static correction."""
     from pipeline.fe.coarse import p1_prolongation
-    from pipeline.solve import eigen
 
     _cpu_stand_in_for_cudss(monkeypatch)
     K, M = beam["K"], beam["M"]
