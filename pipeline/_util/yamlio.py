@@ -25,30 +25,56 @@ MAX_ALIASES = 1000
 
 def read_text_bounded(path: str | Path, what: str = "file",
                       limit: int = MAX_YAML_BYTES) -> str:
-    """The UTF-8 text of the regular file ``path``, at most ``limit`` bytes.
+    """The UTF-8 text of ``path``, at most ``limit`` bytes.
 
-    A FIFO, a device (``/dev/zero``), a socket or a larger file is refused with one
-    :class:`ConfigError` line before anything is read (a FIFO is opened non-blocking, so
-    the check itself cannot hang). ``FileNotFoundError``, other ``OSError`` and
-    ``UnicodeDecodeError`` propagate for the caller's own message.
+    ``path`` is a regular file, or a pipe or character device such as ``/dev/stdin``,
+    ``<(envsubst < cfg.yaml)`` (``/dev/fd/63``) or a named FIFO: those are read as a
+    stream, at most ``limit`` + 1 bytes, so ``/dev/zero`` or an endless writer is refused
+    as too large rather than filling memory. A FIFO is opened non-blocking (opening a named
+    FIFO without a writer would wait forever) and then read blocking: a FIFO with no writer
+    reads as empty. A socket or a block device is refused with one :class:`ConfigError`
+    line before anything is read; so is a larger file. ``FileNotFoundError``, other
+    ``OSError`` and ``UnicodeDecodeError`` propagate for the caller's own message.
     """
     import os
     import stat
 
     path = Path(path)
-    if path.exists() and not path.is_dir() and not stat.S_ISREG(path.stat().st_mode):
-        raise ConfigError(f"{what} '{path}': not a regular file (a FIFO, device or socket); "
-                          "expected a YAML file", key=str(path))
+    if path.exists() and not path.is_dir() and not _readable_kind(path.stat().st_mode):
+        raise ConfigError(f"{what} '{path}': not a regular file, pipe or character device "
+                          "(a socket or block device); expected a YAML file", key=str(path))
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     with os.fdopen(fd, "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
-            raise ConfigError(f"{what} '{path}': not a regular file; expected a YAML file",
-                              key=str(path))
+        mode = os.fstat(fh.fileno()).st_mode
+        if not _readable_kind(mode):
+            raise ConfigError(f"{what} '{path}': not a regular file, pipe or character "
+                              "device; expected a YAML file", key=str(path))
+        if not stat.S_ISREG(mode):
+            os.set_blocking(fh.fileno(), True)  # a stream: wait for its writer's data
         data = fh.read(limit + 1)
     if len(data) > limit:
         raise ConfigError(f"{what} '{path}': larger than {limit >> 20} MiB; expected a YAML "
                           "file of a few kB", key=str(path))
     return data.decode("utf-8")
+
+
+def _readable_kind(mode: int) -> bool:
+    """A regular file, a FIFO/pipe or a character device (``/dev/stdin`` on a terminal)."""
+    import stat
+
+    return stat.S_ISREG(mode) or stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)
+
+
+def is_stream(path: str | Path) -> bool:
+    """Whether ``path`` is a pipe or device rather than a file in a folder (a config read
+    from ``<(...)`` or ``/dev/stdin``: its relative paths resolve against the current
+    directory, as the folder it names, /dev/fd, holds no input files)."""
+    import stat
+
+    try:
+        return not stat.S_ISREG(Path(path).stat().st_mode)
+    except (OSError, ValueError):
+        return False
 
 
 def safe_loader():

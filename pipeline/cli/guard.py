@@ -89,7 +89,9 @@ def add_force_flags(subparsers) -> None:
 def _run(args) -> None:
     from pipeline.api import check_run_destinations, resolve_config
 
-    check_run_destinations(resolve_config(args.config, args.set or []), args.output or None,
+    # kept for cmd_run: a config from a pipe (<(...), /dev/stdin) can be read only once
+    args.resolved_config = resolve_config(args.config, args.set or [])
+    check_run_destinations(args.resolved_config, args.output or None,
                            config_path=args.config, mesh_dir=getattr(args, "mesh_dir", None),
                            force=args.force)
 

@@ -103,7 +103,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     # the destinations were checked before (pipeline.cli.guard): pipeline.api.run_config
     # without its second check
-    cfg = resolve_config(args.config, args.set or [])
+    cfg = getattr(args, "resolved_config", None) or resolve_config(args.config, args.set or [])
     output = Path(args.output) if args.output else default_output(cfg)
     result = run_pipeline(cfg, output, mesh_dir=args.mesh_dir, progress=tqdm_progress)
     print("\n".join(run_summary(result, verbose=args.verbose > 0)))

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
-from pipeline._util.yamlio import parse_yaml, read_text_bounded
+from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
@@ -299,7 +299,10 @@ def _section(raw: Mapping, key: str) -> Any:
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
     raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
-    geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
+    # relative paths: against the config's folder; a config read from a pipe or
+    # /dev/stdin has none, so against the current directory
+    base_dir = str(Path(source).parent) if source and not is_stream(source) else ""
+    geometry = _geometry(raw["geometry"], base_dir)
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
     modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",

@@ -42,6 +42,7 @@ from pipeline.reduce.statespace import StateSpace
 from pipeline.store import h5file
 from pipeline.store import layout as L
 from pipeline.store.h5file import read_strings
+from pipeline.store.physics import check_physics
 from pipeline.store.records import (ModelFile, StoredBasis, StoredCraigBampton, StoredFEModel,
                                     StoredMesh, StoredModels, StressModes)
 
@@ -70,12 +71,15 @@ def open_verified(path: str | Path, verify_checksum: bool = True) -> Iterator[An
     """Open one of our files read-only, verified (schema, version, checksums: see
     :func:`pipeline.store.h5file.open_verified`), for reading in a ``with`` block.
 
-    Whatever the block raises while reading content that does not have the documented
+    Then the physics a checksum cannot vouch for
+    (:func:`pipeline.store.physics.check_physics`: mesh indices, signs, symmetry, a stable
+    A). Whatever the block raises while reading content that does not have the documented
     layout (a missing dataset, a wrong shape or type) becomes one FileFormatError line
     naming the file; a PipelineError raised in the block passes through unchanged.
     """
     h5 = h5file.open_verified(path, verify_checksum)
     try:
+        check_physics(h5, path, remember=verify_checksum)  # what a re-signed file can hide
         yield h5
     except PipelineError:
         raise
