@@ -166,3 +166,51 @@ def test_bad_supports_name_the_key(support, key):
         config([support])
     assert info.value.key == key, str(info.value)
     assert "\n" not in str(info.value)
+
+
+BLOCK = (0.1, 0.05, 0.1)  # x, y, z in m: a steel block, ~1e4 Hz first elastic mode
+
+
+def test_block_on_vertical_springs_bounces_and_rocks_as_a_rigid_body(tmp_path):
+    """Springs normal to the bottom face only (total 1e6 N/m, as N/m^3 per area or in the
+    face frame, the same K): x, z and rotation about y stay rigid; the bounce is
+    sqrt(k/m) / (2 pi), the rocking about the centre of mass sqrt(k I_area / J) / (2 pi)
+    (I_area = L^3 D / 12 of the base, J = m (L^2 + H^2) / 12)."""
+    L, H, D = BLOCK
+    area = L * D
+    found = []
+    for spring in ({"region": "bottom", "spring": {"total": [0, 1e6, 0]}},
+                   {"region": "bottom", "spring": {"per_area": [0, 1e6 / area, 0]}},
+                   {"region": "bottom", "spring": {"total": [1e6, 0]},
+                    "frame": {"kind": "face"}}):
+        cfg = config([spring], geometry=BLOCK, size=0.02, order=2, count=6)
+        fe, modes = solve(cfg, tmp_path)
+        assert fe.n_rigid == 3 and modes.labels[:3] == (
+            "rigid_translation_x", "rigid_translation_z", "rigid_rotation_y")
+        found.append(modes.frequencies_hz)
+    m = fe.props.mass
+    bounce = np.sqrt(1e6 / m) / (2 * np.pi)
+    rock = np.sqrt(1e6 / area * L**3 * D / 12 / (m * (L**2 + H**2) / 12)) / (2 * np.pi)
+    f = found[0]
+    assert abs(f[5] / bounce - 1) < 1e-3 and modes.labels[5] == "translation_y_1"
+    assert np.abs(f[3:5] / rock - 1).max() < 1e-3
+    for other in found[1:]:
+        assert np.abs(other[3:] / f[3:] - 1).max() < 1e-10
+
+
+def test_block_on_a_grounded_bushing_at_its_centre_of_mass(tmp_path):
+    """A 6x6 diagonal bushing at the centre of mass, tied to the top face by a
+    distributing coupling (exact for rigid motion): six rigid-body modes at
+    sqrt(k_i / m) and sqrt(k_rot_i / I_i) / (2 pi); no rigid mode left."""
+    kb = [1e6, 2e6, 3e6, 1e3, 2e3, 3e3]
+    cfg0 = config([{"region": "top", "spring": {"total": [1, 1, 1]}}], geometry=BLOCK,
+                  size=0.02, order=2)
+    com = build_fe_model(cfg0, tmp_path).props.center_of_mass
+    cfg = config([{"region": "top", "bushing": {"stiffness": kb, "point": list(com)}}],
+                 geometry=BLOCK, size=0.02, order=2, count=7)
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 0 and modes.n_rigid == 0
+    I = np.diag(fe.props.inertia)
+    ref = np.sort(np.r_[np.sqrt(np.array(kb[:3]) / fe.props.mass),
+                        np.sqrt(np.array(kb[3:]) / I)]) / (2 * np.pi)
+    assert np.abs(modes.frequencies_hz[:6] / ref - 1).max() < 1e-3
