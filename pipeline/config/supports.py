@@ -180,7 +180,7 @@ def parse_support(item: Any, path: str) -> dict[str, Any]:
     frame, comps = _components(item.get("fix", "all"), frame, path)
     if frame.kind == "global":
         return dict(region=region, fix=comps)
-    if frame.kind == "face" and comps == ("normal", "tangential"):
+    if comps == FRAME_COMPONENTS[frame.kind]:
         return dict(region=region, fix=("x", "y", "z"))  # every component: global
     return dict(region=region, fix=(), frame=frame, local_fix=comps)
 

@@ -49,7 +49,7 @@ from pipeline.config import Support
 from pipeline.errors import RegionError
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
-from pipeline.fe.space import FESpace, surface_region, triangle_nodes
+from pipeline.fe.space import FESpace, region_nodes, surface_region, triangle_nodes
 
 log = logging.getLogger(__name__)
 
@@ -197,8 +197,8 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
         if s.bushing is not None:
             springs.append(_bushing_matrix(space, region, s, f"{key}.bushing"))
             continue
-        axes = frame_axes(space, tris, region.nodes, s.frame, f"{key}.frame")
         if s.spring is not None:
+            axes = frame_axes(space, tris, region.nodes, s.frame, f"{key}.frame")
             k = np.asarray(s.spring.values, dtype=float)
             if s.spring.kind == "total":
                 k = k / region.area
@@ -207,14 +207,17 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
             blocks = np.einsum("n,c,nci,ncj->nij", region.weights, k, axes, axes)
             springs.append(_node_blocks(region.nodes, blocks, n_dofs))
             continue
+        # every node of the region is held (a P2 vertex has zero area weight, but is on it)
+        nodes = region_nodes(space, tris)
+        axes = frame_axes(space, tris, nodes, s.frame, f"{key}.frame")
         names = ("normal", "tangential") if s.frame.kind == "face" else \
             ("radial", "tangential", "axial")
         held = [c for c in range(3) if names[min(c, len(names) - 1)] in s.local_fix]
         e = axes[:, held, :]  # (n, h, 3)
-        d = k_diagonal.reshape(-1, 3)[region.nodes].mean(axis=1)
+        d = k_diagonal.reshape(-1, 3)[nodes].mean(axis=1)
         blocks = PENALTY * np.einsum("n,nhi,nhj->nij", d, e, e)
-        penalty.append(_node_blocks(region.nodes, blocks, n_dofs))
-        dofs = 3 * region.nodes[:, None, None] + np.arange(3)
+        penalty.append(_node_blocks(nodes, blocks, n_dofs))
+        dofs = 3 * nodes[:, None, None] + np.arange(3)
         dofs = np.broadcast_to(dofs, e.shape)
         row = np.broadcast_to(np.arange(e.shape[0] * e.shape[1]).reshape(e.shape[:2])[..., None],
                               e.shape)
@@ -258,7 +261,9 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
         N = _null_space(R.T @ (stiffness @ R), N)
     names, twists = [], []
     for _ in range(N.shape[1]):
-        k = int(np.argmax(np.linalg.norm(N, axis=1)))  # the unit twist closest to the span
+        # the unit twist closest to the span (ties to round-off: the first in TWIST_NAMES)
+        score = np.linalg.norm(N, axis=1)
+        k = int(np.flatnonzero(score >= score.max() - 1e-6)[0])
         t = N @ N[k]
         t /= np.linalg.norm(t)
         name = TWIST_NAMES[k]
@@ -310,6 +315,18 @@ def check_rigid_reduction(cfg, fe) -> None:
             "towards (hold those motions too, or set reduction.static_correction: none)")
 
 
+def model_penalty_bound(fe, modes) -> np.ndarray | None:
+    """(n_m,) :func:`penalty_bound` of every mode of ``modes`` on the FE model ``fe``
+    (:class:`pipeline.fe.model.FEModel`), or None without local-frame supports."""
+    extra = fe.support_stiffness
+    if extra is None or extra.penalty is None:
+        return None
+    from pipeline.fe.assemble import restrict
+
+    return penalty_bound(fe.K, fe.M, restrict(extra.penalty, fe.free),
+                         extra.constraint[:, fe.free], modes.shapes, modes.omega2)
+
+
 def support_summary(fe, modes) -> list[str]:
     """Summary lines of the supports: the rigid-body modes they leave and, for
     components held in a local frame, the computed bound of the penalty's eigenvalue
@@ -318,13 +335,8 @@ def support_summary(fe, modes) -> list[str]:
     if fe.n_rigid:
         lines.append(f"supports leave {fe.n_rigid} rigid-body mode(s) at 0 Hz: "
                      + ", ".join(fe.rigid.names))
-    extra = fe.support_stiffness
-    if extra is not None and extra.penalty is not None:
-        from pipeline.fe.assemble import restrict
-
-        free = fe.free
-        bound = penalty_bound(fe.K, fe.M, restrict(extra.penalty, free),
-                              extra.constraint[:, free], modes.shapes, modes.omega2)
+    bound = model_penalty_bound(fe, modes)
+    if bound is not None:
         worst = float(bound.max(initial=0.0))
         lines.append(f"local-frame supports held by a penalty ({PENALTY:g} x diag K): "
                      f"eigenvalue error <= {worst:.1e} relative (frequency <= "

@@ -125,7 +125,8 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
     modes = solve_modes(body.K, body.M, config.count, supported=body.supported,
                         backend=config.solver, tolerance=config.tolerance,
                         progress=progress, keep=keep, precision=config.precision,
-                        method=config.method, coarse=body.coarse, analysis=analysis)
+                        method=config.method, coarse=body.coarse, analysis=analysis,
+                        expected_rigid=0 if body.rigid is None else body.rigid.shape[1])
     try:
         names = ()
         if body.rigid is not None:
