@@ -351,3 +351,57 @@ def test_face_normal_hold_equals_the_global_component_on_a_flat_face(tmp_path):
     bound = model_penalty_bound(fe, modes)
     assert modes.labels[:3] == exact.labels[:3]
     assert np.all(np.abs(modes.omega2[3:] / exact.omega2[3:] - 1) <= bound[3:] + ROUND_OFF)
+
+
+def run_cli(tmp_path, supports, **extra):
+    import yaml
+
+    raw = {"name": "cli", "geometry": {"kind": "box", "length": 0.2, "height": 0.01,
+                                       "depth": 0.1},
+           "mesh": {"order": 1, "size": 0.02}, "material": STEEL, "supports": supports,
+           "modes": {"count": 8}, **extra}
+    path = tmp_path / "cli.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "cli.h5"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o", str(out)],
+                          capture_output=True, text=True)
+    return proc, out
+
+
+def test_springs_too_soft_to_hold_leave_a_free_body(tmp_path):
+    """Springs of 1e-300 N/m^3 (accepted: > 0) cannot hold the body to working precision:
+    it runs as a free body with a warning instead of a singular factorisation."""
+    proc, out = run_cli(tmp_path, [{"region": "bottom",
+                                    "spring": {"per_area": [1e-300, 1e-300, 1e-300]}}])
+    assert proc.returncode == 0, proc.stderr
+    assert "softer than" in proc.stderr and "6 rigid-body mode(s)" in proc.stdout
+    assert out.exists()
+
+
+def test_a_node_on_the_cylindrical_axis_is_refused_in_one_line(tmp_path):
+    proc, out = run_cli(tmp_path, [{"region": "root", "fix": ["radial"],
+                                    "frame": {"kind": "cylindrical", "axis": [1, 0, 0],
+                                              "point": [0, 0.005, 0.05]}}])
+    assert proc.returncode == 4
+    err = [line for line in proc.stderr.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "supports[0].frame" in err[0] and not out.exists()
+
+
+def test_more_zero_modes_than_the_supports_leave_is_a_mechanism():
+    """The singular-stiffness message is kept for what the supports analysis cannot
+    predict: more zero-frequency modes than rigid motions (a mechanism inside the mesh)."""
+    import scipy.sparse as sp
+
+    from pipeline.errors import SolverError
+    from pipeline.solve.modes import Modes
+    from pipeline.solve.stage import with_rigid_motions
+
+    n = 6
+    modes = Modes(omega2=np.array([0.0, 0.0, 5.0]), frequencies_hz=np.zeros(3),
+                  shapes=np.eye(n)[:, :3], residuals=np.zeros(3), n_rigid=2, backend="test",
+                  shift=-1.0, seconds=0.0)
+    with pytest.raises(SolverError, match="the stiffness system is singular"):
+        with_rigid_motions(modes, sp.identity(n), np.eye(n)[:, :1], ("translation_x",))
+    out = with_rigid_motions(modes, sp.identity(n), np.eye(n)[:, :2] @ [[1.0, 1], [1, -1]],
+                             ("translation_x", "rotation_y"))
+    assert out.n_rigid == 2 and np.allclose(out.shapes.T @ out.shapes, np.eye(3))

@@ -29,7 +29,7 @@ from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (RigidFreedoms, SupportStiffness, rigid_freedoms,
-                                  support_stiffness)
+                                  support_stiffness, with_penalty)
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -108,6 +108,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        extra = support_stiffness(space, regions, cfg.supports)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
@@ -138,13 +139,13 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
             full = (None, None)
             if K.shape[0] != free.size:
                 K, M = restrict(K, free, overwrite=True), restrict(M, free, overwrite=True)
-        extra = SupportStiffness()
+        diagonal = np.zeros(space.n_dofs)
+        diagonal[free] = K.diagonal()
         if grounded:
-            diagonal = np.zeros(space.n_dofs)
-            diagonal[free] = K.diagonal()
-            extra = support_stiffness(space, regions, cfg.supports, diagonal)
+            extra = with_penalty(extra, diagonal)
             K = (K + restrict(extra.total, free)).tocsr()
-        rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.total)
+        rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.total,
+                               reference=float(np.median(diagonal[free])) if free.size else 1.0)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free; %d rigid-body mode(s) left "
                  "free%s", props.mass, fixed.size, free.size, rigid.count,
                  f" ({', '.join(rigid.names)})" if 0 < rigid.count < 6 else "")

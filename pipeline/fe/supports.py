@@ -38,6 +38,7 @@ q = W u, and the bushing adds W^T K_b W (a dense block on the region's DOFs).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -57,9 +58,15 @@ log = logging.getLogger(__name__)
 #: the eigenvalue error it leaves is bounded by :func:`penalty_bound` (about 1e-6
 #: relative on the test shaft)
 PENALTY = 1e6
+#: the most nodes a bushing's region may have: it couples all of their DOFs, a dense
+#: (3 n)^2 block of K (3000 nodes: 81M entries, 1.3 GB with the CSR indices)
+MAX_BUSHING_NODES = 3000
 #: a twist is free when the conditions hold to this relative accuracy (round-off of
 #: exact zeros is ~1e-16; the weakest real constraint is far above)
 RIGID_TOL = 1e-9
+#: springs that resist a rigid motion with less than this fraction of a node's
+#: stiffness (per node moved) leave K singular to working precision: the motion is free
+SOFT_SUPPORT = 1e-10
 #: names of the six unit twists, in the column order of the rigid-body modes
 TWIST_NAMES = ("translation_x", "translation_y", "translation_z",
                "rotation_x", "rotation_y", "rotation_z")
@@ -180,13 +187,11 @@ def _bushing_matrix(space: FESpace, region, support: Support, key: str) -> sp.cs
 
 
 def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
-                      supports: Sequence[Support], k_diagonal: np.ndarray | None = None
-                      ) -> SupportStiffness:
-    """Springs, bushings and local-frame penalties of ``supports`` (module docstring).
-
-    k_diagonal: (n_dofs,) the diagonal of K (N/m; needed only for local-frame supports:
-    the penalty scale)."""
-    springs, penalty, rows = [], [], []
+                      supports: Sequence[Support]) -> SupportStiffness:
+    """Springs and bushings of ``supports``, and the directions C of the components held
+    in a local frame (module docstring); the penalty follows from K's diagonal
+    (:func:`with_penalty`). Needs no K: every error is found before the assembly."""
+    springs, rows = [], []
     n_dofs = space.n_dofs
     for i, s in enumerate(supports):
         key = f"supports[{i}]"
@@ -195,6 +200,11 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
         tris = get_region(regions, s.region, f"{key}.region")
         region = surface_region(space, s.region, tris)
         if s.bushing is not None:
+            if region.nodes.size > MAX_BUSHING_NODES:
+                raise RegionError(
+                    f"config key '{key}.region': region '{s.region}' has "
+                    f"{region.nodes.size} nodes; a bushing couples all of them (a dense "
+                    f"block of K), expected at most {MAX_BUSHING_NODES} (a smaller region)")
             springs.append(_bushing_matrix(space, region, s, f"{key}.bushing"))
             continue
         if s.spring is not None:
@@ -213,42 +223,52 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
         names = ("normal", "tangential") if s.frame.kind == "face" else \
             ("radial", "tangential", "axial")
         held = [c for c in range(3) if names[min(c, len(names) - 1)] in s.local_fix]
-        e = axes[:, held, :]  # (n, h, 3)
-        d = k_diagonal.reshape(-1, 3)[nodes].mean(axis=1)
-        blocks = PENALTY * np.einsum("n,nhi,nhj->nij", d, e, e)
-        penalty.append(_node_blocks(nodes, blocks, n_dofs))
-        dofs = 3 * nodes[:, None, None] + np.arange(3)
-        dofs = np.broadcast_to(dofs, e.shape)
-        row = np.broadcast_to(np.arange(e.shape[0] * e.shape[1]).reshape(e.shape[:2])[..., None],
-                              e.shape)
-        rows.append((row.ravel(), dofs.ravel(), e.ravel(), e.shape[0] * e.shape[1]))
+        e = axes[:, held, :]  # (n, h, 3): one constraint row per node and held direction
+        dofs = np.broadcast_to(3 * nodes[:, None, None] + np.arange(3), e.shape)
+        rows.append((dofs.reshape(-1, 3), e.reshape(-1, 3)))
     constraint = None
     if rows:
-        offsets = np.cumsum([0] + [r[3] for r in rows])
-        constraint = sp.csr_matrix(
-            (np.concatenate([r[2] for r in rows]),
-             (np.concatenate([r[0] + o for r, o in zip(rows, offsets)]),
-              np.concatenate([r[1] for r in rows]))), shape=(int(offsets[-1]), n_dofs))
+        dofs = np.concatenate([r[0] for r in rows])
+        values = np.concatenate([r[1] for r in rows])
+        constraint = sp.csr_matrix((values.ravel(), dofs.ravel(), 3 * np.arange(dofs.shape[0] + 1)),
+                                   shape=(dofs.shape[0], n_dofs))
     return SupportStiffness(sum(springs[1:], springs[0]).tocsr() if springs else None,
-                            sum(penalty[1:], penalty[0]).tocsr() if penalty else None,
-                            constraint)
+                            None, constraint)
 
 
-def _null_space(G: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def with_penalty(extra: SupportStiffness, k_diagonal: np.ndarray) -> SupportStiffness:
+    """``extra`` with its penalty C^T D C: row j of C (a held unit direction at node i)
+    weighted by :data:`PENALTY` times the mean of ``k_diagonal`` ((n_dofs,) N/m, K's
+    diagonal) over node i's three DOFs."""
+    if extra.constraint is None:
+        return extra
+    C = extra.constraint
+    node = C.indices[C.indptr[:-1]] // 3
+    d = PENALTY * k_diagonal.reshape(-1, 3)[node].mean(axis=1)
+    return dataclasses.replace(extra, penalty=(C.T @ sp.diags(d) @ C).tocsr())
+
+
+def _null_space(G: np.ndarray, basis: np.ndarray, floor: float = 0.0) -> np.ndarray:
     """Orthonormal columns spanning {basis y : y^T basis^T G basis y ~ 0} (G symmetric
-    positive semi-definite, relative tolerance :data:`RIGID_TOL`)."""
+    positive semi-definite; ~0: below :data:`RIGID_TOL` of its largest eigenvalue, or
+    below ``floor``)."""
     if basis.shape[1] == 0:
         return basis
     Gb = basis.T @ G @ basis
     lam, vec = np.linalg.eigh(0.5 * (Gb + Gb.T))
     scale = max(float(np.abs(np.linalg.eigvalsh(0.5 * (G + G.T))).max()), 1e-300)
-    return basis @ vec[:, lam <= RIGID_TOL * scale]
+    return basis @ vec[:, lam <= max(RIGID_TOL * scale, floor)]
 
 
 def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarray,
-                   stiffness: sp.spmatrix | None = None) -> RigidFreedoms:
+                   stiffness: sp.spmatrix | None = None, reference: float = 0.0
+                   ) -> RigidFreedoms:
     """The rigid-body motions that move no DOF of ``fixed`` and strain no spring of
-    ``stiffness`` ((n_dofs, n_dofs) N/m, or None), named (module docstring)."""
+    ``stiffness`` ((n_dofs, n_dofs) N/m, or None), named (module docstring).
+
+    ``reference``: a node's stiffness (N/m, e.g. the median diagonal of K): springs
+    whose stiffness against a rigid motion is below :data:`SOFT_SUPPORT` of it per node
+    do not hold that motion to working precision; it counts as free (with a warning)."""
     x = np.asarray(node_points, dtype=float)
     L = float(np.sqrt(((x - center) ** 2).sum(axis=1).mean())) or 1.0
     R = rigid_body_modes(x, center)
@@ -258,7 +278,13 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
         A = R[fixed]
         N = _null_space(A.T @ A, N)
     if stiffness is not None and N.shape[1]:
-        N = _null_space(R.T @ (stiffness @ R), N)
+        held = N.shape[1]
+        N = _null_space(R.T @ (stiffness @ R), N, SOFT_SUPPORT * reference * x.shape[0])
+        soft = N.shape[1] - _null_space(R.T @ (stiffness @ R), N).shape[1]
+        if soft:
+            log.warning("%d rigid-body motion(s) of %d left by the held components meet "
+                        "springs softer than %.0e of the body's own stiffness: treated as "
+                        "free (0 Hz)", soft, held, SOFT_SUPPORT)
     names, twists = [], []
     for _ in range(N.shape[1]):
         # the unit twist closest to the span (ties to round-off: the first in TWIST_NAMES)
