@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
 from pipeline.fe.model import build_fe_model
+from pipeline.fe.supports import check_rigid_reduction, support_summary
 from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.backends.pardiso import PatternAnalysis
 from pipeline.solve.factorization import resolve_backend
@@ -106,6 +107,7 @@ class RunResult:
     peak_memory_mb: float
     backend: str
     extras: dict[str, Any] = field(default_factory=dict)
+    n_rigid: int = 0
 
 
 def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = None,
@@ -136,6 +138,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     try:
         fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
                             on_stiffness_pattern=analyse_ahead)
+        check_rigid_reduction(cfg, fe)
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress
@@ -157,6 +160,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     space, regions, fixed, free, props, mesh_path = (fe.space, fe.regions, fe.fixed,
                                                      fe.free, fe.props, fe.mesh_path)
     mesh_sha256 = fe.mesh_sha256
+    support_lines = support_summary(fe, modes) if cfg.supports else []
     body = space.body
     K, M = fe.K, fe.M
     full = (fe.K_full, fe.M_full) if fe.K_full is not None else None
@@ -192,14 +196,14 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend))
         write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
                                                ROOT.config_yaml: config_to_yaml(cfg)})
-    extras: dict[str, Any] = {}
+    extras: dict[str, Any] = {"summary": support_lines} if support_lines else {}
     if models is not None:
-        extras["summary"] = list(models.summary)
+        extras["summary"] = support_lines + list(models.summary)
         if models.reduced is not None:
             extras.update(reduced=models.reduced, filtered=models.filtered)
     return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
                      modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
-                     modes.backend, extras)
+                     modes.backend, extras, modes.n_rigid)
 
 
 def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:

@@ -17,6 +17,7 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
+from pipeline.config.supports import parse_support
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
                                     PRECISIONS, SOLVERS,
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
@@ -95,21 +96,9 @@ def _supports(raw: Any) -> tuple[Support, ...]:
     if raw is None:
         return ()
     if not isinstance(raw, list):
-        raise v.fail("supports", raw, "a list of {region: NAME, fix: all | [x, y, z]}")
-    out = []
-    for i, item in enumerate(raw):
-        path = f"supports[{i}]"
-        item = v.mapping(item, path, ("region", "fix"), ("region",))
-        region = v.name(item, "region", path)
-        fix = item.get("fix", "all")
-        if fix == "all":
-            comps = ("x", "y", "z")
-        elif (isinstance(fix, list) and fix and all(c in ("x", "y", "z") for c in fix)
-              and len(set(fix)) == len(fix)):
-            comps = tuple(sorted(fix))
-        else:
-            raise v.fail(f"{path}.fix", fix, "'all' or a list of distinct components from x, y, z")
-        out.append(Support(region=region, fix=comps))
+        raise v.fail("supports", raw, "a list of {region: NAME, fix: all | [x, y, z]} (or "
+                     "fix in a frame, spring or bushing: docs/config.md)")
+    out = [Support(**parse_support(item, f"supports[{i}]")) for i, item in enumerate(raw)]
     return tuple(out)
 
 

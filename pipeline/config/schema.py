@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, get_args
 
+from pipeline.config.supports import BushingSpec, SpringSpec, SupportFrame
+
 GeometryKind = Literal["box", "step", "geo", "mesh"]
 MeshAlgorithm = Literal["delaunay", "hxt", "frontal"]
 Component = Literal["x", "y", "z"]
@@ -81,10 +83,16 @@ class Material:
 
 @dataclass(frozen=True)
 class Support:
-    """Fix the displacement components ``fix`` (subset of x, y, z) on a region."""
+    """Fix the displacement components ``fix`` (subset of x, y, z) on a region; or the
+    components ``local_fix`` of a local ``frame``; or ground the region through a
+    ``spring`` or a ``bushing`` (:mod:`pipeline.config.supports`)."""
 
     region: str
     fix: tuple[Component, ...] = ("x", "y", "z")
+    frame: SupportFrame | None = None
+    local_fix: tuple[str, ...] = ()
+    spring: SpringSpec | None = None
+    bushing: BushingSpec | None = None
 
 
 @dataclass(frozen=True)

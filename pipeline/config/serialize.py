@@ -8,6 +8,7 @@ from dataclasses import asdict, fields
 from typing import Any
 
 from pipeline.config.schema import Config
+from pipeline.config.supports import support_dict
 
 
 #: the keys each region selector kind takes (the parser refuses the others)
@@ -44,8 +45,7 @@ def config_to_dict(cfg: Config) -> dict:
         elif f.name == "connections":
             value = [asdict(c) for c in value]
         elif f.name == "supports":
-            value = [{"region": s.region, "fix": "all" if s.fix == ("x", "y", "z") else list(s.fix)}
-                     for s in value]
+            value = [support_dict(s) for s in value]
         elif f.name == "ports":
             value = {side: [_port_dict(p) for p in getattr(value, side)]
                      for side in ("inputs", "outputs")}

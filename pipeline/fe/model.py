@@ -28,6 +28,8 @@ from pipeline.fe.pattern import block_pattern
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.supports import (RigidFreedoms, SupportStiffness, rigid_freedoms,
+                                  support_stiffness, with_penalty)
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -46,10 +48,13 @@ class FEModel:
     space: the FE space (mesh points, elements, DOF numbering).
     regions: region name -> (n_f, 3) boundary triangles (vertex indices).
     fixed, free: sorted DOF indices (int64), fixed + free = all 3 * n_points DOFs.
-    K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs.
+    K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs; K holds
+    the elastic supports and the local-frame penalties (``support_stiffness``).
     K_full, M_full: (n_dofs, n_dofs) unsupported matrices, or None (kept only when
     connection points need them).
     props: mass, centre of mass, inertia and rigid mass matrix from M.
+    rigid: the rigid-body motions the supports leave free; support_stiffness: the
+    springs, bushings and local-frame penalties on all DOFs (:mod:`pipeline.fe.supports`).
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
     """
@@ -66,6 +71,14 @@ class FEModel:
     K_full: sp.csr_matrix | None = None
     M_full: sp.csr_matrix | None = None
     mesh_sha256: str = ""
+    rigid: RigidFreedoms | None = None
+    support_stiffness: SupportStiffness | None = None
+
+    @property
+    def n_rigid(self) -> int:
+        """Rigid-body modes the supports leave (6 for a free body), known before the
+        eigen solve (:func:`pipeline.fe.supports.rigid_freedoms`)."""
+        return 6 if self.rigid is None else self.rigid.count
 
 
 @contextlib.contextmanager
@@ -95,6 +108,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        extra = support_stiffness(space, regions, cfg.supports)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
@@ -106,11 +120,14 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         # and restricted to a copy; else straight onto the free DOFs when the supports
         # clamp whole nodes (the full K is never built), or restricted in place
         nodes = None if cfg.connections else whole_nodes(free, space.n_nodes)
+        # springs and penalties change K after its assembly: no pattern analysis ahead
+        grounded = any(s.spring or s.bushing or s.local_fix for s in cfg.supports)
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
             assembled = assemble_on_nodes(
                 space, cfg.material, nodes, pattern=pattern, progress=update,
-                on_layout=on_stiffness_pattern if nodes is not None else None)
+                on_layout=on_stiffness_pattern if nodes is not None and not grounded
+                else None)
         del pattern
         props = body_properties(assembled.node_mass, space.node_points)
         K, M = assembled.K, assembled.M
@@ -122,7 +139,16 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
             full = (None, None)
             if K.shape[0] != free.size:
                 K, M = restrict(K, free, overwrite=True), restrict(M, free, overwrite=True)
-        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+        diagonal = np.zeros(space.n_dofs)
+        diagonal[free] = K.diagonal()
+        if grounded:
+            extra = with_penalty(extra, diagonal)
+            K = (K + restrict(extra.total, free)).tocsr()
+        rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.total,
+                               reference=float(np.median(diagonal[free])) if free.size else 1.0)
+        log.info("body mass %.6g kg; %d DOFs fixed, %d free; %d rigid-body mode(s) left "
+                 "free%s", props.mass, fixed.size, free.size, rigid.count,
+                 f" ({', '.join(rigid.names)})" if 0 < rigid.count < 6 else "")
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
-                   K_full=full[0], M_full=full[1])
+                   K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra)

@@ -196,3 +196,13 @@ def region_nodes(space: FESpace, triangles: np.ndarray) -> np.ndarray:
         return verts
     eid = _edge_ids(space, triangles[:, TRI_EDGES].reshape(-1, 2))
     return np.concatenate([verts, space.body.n_vertices + np.unique(eid[eid >= 0])])
+
+
+def triangle_nodes(space: FESpace, triangles: np.ndarray) -> np.ndarray:
+    """(n_f, 3 | 6) node indices of every triangle: its vertices, then (order 2) the
+    nodes of its edges 01, 12, 02; -1 where an edge is not an edge of the mesh."""
+    if space.order == 1:
+        return np.asarray(triangles)
+    eid = _edge_ids(space, triangles[:, TRI_EDGES].reshape(-1, 2)).reshape(-1, 3)
+    return np.concatenate([triangles, np.where(eid >= 0, space.body.n_vertices + eid, -1)],
+                          axis=1)

@@ -123,7 +123,7 @@ def factor_expected(n: int, count: int, *, supported: bool = True, backend: str 
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", shift: float | None = None,
                 coarse: sp.spmatrix | None = None, analysis=None, progress=None,
-                **options) -> Modes:
+                expected_rigid: int = 0, **options) -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
@@ -133,7 +133,9 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     ``analysis``: a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's
     pattern started during the assembly; the factor path at shift 0 takes it; the caller
     releases what is left (its ``with`` block). ``progress``, if given, is called with
-    the number of right-hand sides of every solve.
+    the number of right-hand sides of every solve. ``expected_rigid``: the rigid-body
+    modes the supports leave (:func:`pipeline.fe.supports.rigid_freedoms`): the first
+    that many count as rigid when they are far below the next one.
 
     ``options``: the fields of :class:`pipeline.solve.plan.EigenProblem`: ``method``
     (auto, lanczos, arpack, dense, factor, multigrid), ``precision`` (double, mixed,
@@ -178,6 +180,11 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         rigid = np.zeros(w.size, dtype=bool)
         if not supported:
             rigid = np.abs(w) < 1e-6 * abs(plan.shift)
+        r = int(expected_rigid)
+        if 0 < r < w.size:
+            # the rigid modes the supports leave: zero to the round-off of a penalised K
+            # (PENALTY x its diagonal), far below the first elastic eigenvalue
+            rigid[:r] |= np.abs(w[:r]) < 1e-6 * abs(w[r])
         w = np.where(rigid, 0.0, w)
         if (w < 0).any():
             raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness "

@@ -35,6 +35,7 @@ from pipeline.config.schema import ModesConfig
 from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import FEModel
+from pipeline.errors import SolverError
 from pipeline.solve.eigen import factor_expected, solve_modes
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
@@ -55,6 +56,10 @@ class ModesInput:
     coarse: (n_free, n_coarse) prolongation from a coarse space onto the free DOFs
     (:func:`pipeline.fe.coarse.p1_prolongation`), which the multigrid solver needs, or
     None.
+    rigid: (n_free, n_rigid) the rigid-body motions a partly held body keeps (exact null
+    vectors of K, :func:`pipeline.fe.supports.rigid_freedoms`) and ``rigid_names`` theirs,
+    or None: they replace the eigensolver's zero-frequency modes, M-orthonormalised, and
+    name them.
     """
 
     K: sp.spmatrix
@@ -64,19 +69,27 @@ class ModesInput:
     node_weights: np.ndarray | None = None
     supported: bool = True
     coarse: sp.spmatrix | None = None
+    rigid: np.ndarray | None = None
+    rigid_names: tuple[str, ...] = ()
 
     @classmethod
     def from_fe(cls, fe: FEModel, config: ModesConfig, *, supported: bool) -> ModesInput:
         """The input of the modes stage for ``fe``: the volume weights of its points and,
         unless ``config.method`` is ``factor``, the P1 prolongation of a P2 space.
 
-        ``supported``: whether the config names supports (``bool(cfg.supports)``).
+        ``supported``: whether the config names supports (``bool(cfg.supports)``); the
+        body is solved as a free one when they leave rigid-body modes (``fe.n_rigid``),
+        and a partly held body's rigid motions are passed on (``rigid``).
         Hold the record no longer than the call it is built for: it keeps K alive.
         """
+        partly = supported and fe.n_rigid > 0 and fe.rigid is not None
         return cls(K=fe.K, M=fe.M, free=fe.free, node_points=fe.space.node_points,
-                   node_weights=node_volume_weights(fe.space), supported=supported,
+                   node_weights=node_volume_weights(fe.space),
+                   supported=supported and fe.n_rigid == 0,
                    coarse=None if config.method == "factor"
-                   else p1_prolongation(fe.space, fe.free))
+                   else p1_prolongation(fe.space, fe.free),
+                   rigid=fe.rigid.fields[fe.free] if partly else None,
+                   rigid_names=fe.rigid.names if partly else ())
 
 
 def expects_factor(n_free: int, config: ModesConfig, *, supported: bool) -> bool:
@@ -112,13 +125,55 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
     modes = solve_modes(body.K, body.M, config.count, supported=body.supported,
                         backend=config.solver, tolerance=config.tolerance,
                         progress=progress, keep=keep, precision=config.precision,
-                        method=config.method, coarse=body.coarse, analysis=analysis)
+                        method=config.method, coarse=body.coarse, analysis=analysis,
+                        expected_rigid=0 if body.rigid is None else body.rigid.shape[1])
     try:
+        names = ()
+        if body.rigid is not None:
+            modes = with_rigid_motions(modes, body.M, body.rigid, body.rigid_names)
+            names = tuple(f"rigid_{n}" for n in body.rigid_names)
         shapes = full_shapes(modes.shapes, body.free, body.node_points.shape[0])
         labels = label_modes(body.node_points, shapes, modes.n_rigid, body.node_weights)
+        labels[:len(names)] = names
     except BaseException:
         modes.release_factorization()
         raise
     for f, lab in zip(modes.frequencies_hz, labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
     return dataclasses.replace(modes, shapes_full=shapes, labels=tuple(labels))
+
+
+def with_rigid_motions(modes: Modes, M: sp.spmatrix, rigid: np.ndarray,
+                       names: tuple[str, ...]) -> Modes:
+    """``modes`` with its first r = rigid.shape[1] modes replaced by the rigid motions
+    ``rigid`` (n_free, r), M-orthonormalised in their order (Gram-Schmidt keeps the
+    first ones pure), at omega^2 = 0, and the elastic modes projected M-orthogonal to
+    them and renormalised.
+
+    Refuses (SolverError) more zero-frequency modes than r: a mechanism inside the mesh
+    that the supports analysis cannot see; and fewer than r modes clearly below the
+    first elastic one (the predicted motions are not null vectors of K).
+    """
+    r = rigid.shape[1]
+    w = modes.omega2
+    if modes.n_rigid > r:
+        raise SolverError(
+            f"the stiffness system is singular: {modes.n_rigid} zero-frequency modes where "
+            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}): a mechanism "
+            "inside the mesh (parts joined only at an edge or a point?)")
+    if w.size <= r or (r and w[r - 1] > 1e-6 * w[r]):
+        raise SolverError(
+            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}), but the "
+            f"eigensolver found {int(np.count_nonzero(w <= 1e-6 * w[-1]))} modes at ~0 Hz "
+            f"among {w.size}; expected modes.count > {r} and the first {r} at ~0 Hz")
+    R = np.array(rigid, dtype=float)
+    MR = M @ R
+    G = R.T @ MR
+    L = np.linalg.cholesky(0.5 * (G + G.T))
+    R = np.linalg.solve(L, R.T).T  # R L^-T: M-orthonormal, Gram-Schmidt order
+    phi = np.array(modes.shapes[:, r:], dtype=float)
+    phi -= R @ (R.T @ (M @ phi))
+    phi /= np.sqrt(np.einsum("ij,ij->j", phi, M @ phi))
+    omega2 = np.concatenate([np.zeros(r), w[r:]])
+    return dataclasses.replace(modes, shapes=np.hstack([R, phi]), omega2=omega2,
+                               frequencies_hz=np.sqrt(omega2) / (2 * np.pi), n_rigid=r)

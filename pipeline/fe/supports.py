@@ -1,0 +1,372 @@
+"""Supports beyond held global components: what the supports leave free, components held
+in a local frame, and elastic supports (springs and bushings to ground).
+
+**Rigid freedoms.** With R (n_dofs x 6) the rigid-body motions at the centre of mass G
+(:func:`pipeline.fe.body.rigid_body_modes`, rotation columns divided by the body's rms
+radius L so that the six columns move the body by comparable amounts), a twist t is a
+motion the supports leave free when it moves no held DOF and strains no support spring:
+
+    R_c t = 0 (c: the fixed DOFs),   t^T R^T S R t = 0 (S: the support stiffness below),
+
+so the number of rigid-body modes of the supported body is n_rigid = 6 - rank of those
+conditions, known before any eigen solve. The free twists are named greedily by the
+unit twist (translation along or rotation about x, y, z) closest to what is left of
+them, and their displacement fields R t are exact null vectors of the supported K.
+
+**Components held in a local frame** (cylindrical: radial, tangential, axial about a
+line; face: normal and tangential from the region's triangles) are held by a penalty:
+a held unit direction e at node i adds k_i e e^T to that node's 3x3 block of K, with
+k_i = :data:`PENALTY` times the mean diagonal of K at node i. The penalised eigenvalues
+lie below the exactly constrained ones, lambda_p,k <= lambda_c,k (a penalty is a
+constraint relaxed), and the Rayleigh-Ritz values of the penalised modes projected onto
+the constraint, theta_k, lie above them (min-max on a constrained subspace), so
+:func:`penalty_bound` brackets every constrained eigenvalue:
+lambda_p,k <= lambda_c,k <= theta_k, a computed error bound, not an estimate.
+
+**Springs to ground** on a region: per unit area, k (N/m^3) per frame component c with
+unit vector e_c at node i, node i gets w_i sum_c k_c e_c e_c^T with w_i the integral of
+its shape function over the region (:func:`pipeline.fe.space.surface_region`: sum of
+w_i = area), so a uniform displacement u meets the force k A u, exactly as the
+continuous spring bed; a total stiffness K_c (N/m) is k_c = K_c / A.
+
+**Bushing**: a 6x6 stiffness K_b at a point P tied to the region by a distributing
+coupling (as a port's load, :mod:`pipeline.fe.ports`): the twist of P is
+q = [u_bar + theta x (P - c); theta] with u_bar = sum w_i u_i / A and
+theta = J^-1 sum w_i (r_i x u_i), r_i = x_i - c, J = sum w_i (|r_i|^2 I - r_i r_i^T);
+q = W u, and the bushing adds W^T K_b W (a dense block on the region's DOFs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.config import Support
+from pipeline.errors import RegionError
+from pipeline.fe.body import rigid_body_modes, skew
+from pipeline.fe.regions import get_region
+from pipeline.fe.space import FESpace, region_nodes, surface_region, triangle_nodes
+
+log = logging.getLogger(__name__)
+
+#: penalty stiffness of a held local component, relative to the node's diagonal of K;
+#: the eigenvalue error it leaves is bounded by :func:`penalty_bound` (about 1e-6
+#: relative on the test shaft)
+PENALTY = 1e6
+#: the most nodes a bushing's region may have: it couples all of their DOFs, a dense
+#: (3 n)^2 block of K (3000 nodes: 81M entries, 1.3 GB with the CSR indices)
+MAX_BUSHING_NODES = 3000
+#: a twist is free when the conditions hold to this relative accuracy (round-off of
+#: exact zeros is ~1e-16; the weakest real constraint is far above)
+RIGID_TOL = 1e-9
+#: springs that resist a rigid motion with less than this fraction of a node's
+#: stiffness (per node moved) leave K singular to working precision: the motion is free
+SOFT_SUPPORT = 1e-10
+#: names of the six unit twists, in the column order of the rigid-body modes
+TWIST_NAMES = ("translation_x", "translation_y", "translation_z",
+               "rotation_x", "rotation_y", "rotation_z")
+
+
+@dataclass(frozen=True)
+class RigidFreedoms:
+    """The rigid-body motions the supports leave free.
+
+    names: (r,) ``translation_x`` ... ``rotation_z``, the unit twist each is closest to.
+    fields: (n_dofs, r) nodal displacements of each motion (m), zero on the held DOFs.
+    """
+
+    names: tuple[str, ...]
+    fields: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.names)
+
+
+@dataclass(frozen=True)
+class SupportStiffness:
+    """The supports that add stiffness instead of removing DOFs, on all n_dofs DOFs.
+
+    springs: (n_dofs, n_dofs) CSR N/m of the springs and bushings, or None.
+    penalty: (n_dofs, n_dofs) CSR N/m of the components held in a local frame, or None.
+    constraint: (n_c, n_dofs) CSR, one unit direction per held local component (the rows
+    C of C u = 0 that the penalty enforces), or None.
+    """
+
+    springs: sp.csr_matrix | None = None
+    penalty: sp.csr_matrix | None = None
+    constraint: sp.csr_matrix | None = None
+
+    @property
+    def total(self) -> sp.csr_matrix | None:
+        parts = [m for m in (self.springs, self.penalty) if m is not None]
+        return None if not parts else sum(parts[1:], parts[0]).tocsr()
+
+
+def frame_axes(space: FESpace, triangles: np.ndarray, nodes: np.ndarray, frame,
+               key: str) -> np.ndarray:
+    """(n, 3, 3): at every node of ``nodes``, the unit vectors of ``frame``'s components
+    as rows: global (x, y, z); cylindrical (radial, tangential, axial); face (normal and
+    two tangents; the normal is the principal direction of the area-weighted sum of
+    n n^T over the region's triangles at that node, which needs no consistent
+    orientation of the triangles)."""
+    x = space.node_points[nodes]
+    if frame is None or frame.kind == "global":
+        return np.broadcast_to(np.eye(3), (nodes.size, 3, 3)).copy()
+    if frame.kind == "cylindrical":
+        a = np.asarray(frame.axis, dtype=float)
+        a = a / np.linalg.norm(a)
+        r = x - np.asarray(frame.point, dtype=float)
+        r -= np.outer(r @ a, a)
+        dist = np.linalg.norm(r, axis=1)
+        if dist.min() <= 1e-9 * max(dist.max(), 1e-300):
+            raise RegionError(f"config key '{key}': a node of the region lies on the "
+                              "cylindrical frame's axis, where radial and tangential are "
+                              "undefined; expected a region away from the axis (check "
+                              "frame.point and frame.axis)")
+        er = r / dist[:, None]
+        return np.stack([er, np.cross(a, er), np.broadcast_to(a, er.shape)], axis=1)
+    v = space.body.vertices
+    a, b, c = (v[triangles[:, i]] for i in range(3))
+    n2 = np.cross(b - a, c - a)  # twice the area times the unit normal
+    area = 0.5 * np.linalg.norm(n2, axis=1)
+    outer = 0.25 * n2[:, :, None] * n2[:, None, :] / np.maximum(area, 1e-300)[:, None, None]
+    tri_nodes = triangle_nodes(space, triangles)
+    pos = {int(n): i for i, n in enumerate(nodes)}
+    acc = np.zeros((nodes.size, 3, 3))
+    for j in range(tri_nodes.shape[1]):
+        idx = np.array([pos.get(int(n), -1) for n in tri_nodes[:, j]])
+        ok = idx >= 0
+        np.add.at(acc, idx[ok], outer[ok])
+    _, vec = np.linalg.eigh(acc)  # ascending: the normal is the last eigenvector
+    return np.stack([vec[:, :, 2], vec[:, :, 1], vec[:, :, 0]], axis=1)
+
+
+def _node_blocks(nodes: np.ndarray, blocks: np.ndarray, n_dofs: int) -> sp.csr_matrix:
+    """(n_dofs, n_dofs) CSR with the (3, 3) ``blocks`` on the diagonal blocks of ``nodes``."""
+    dofs = 3 * nodes[:, None] + np.arange(3)
+    rows = np.repeat(dofs, 3, axis=1).ravel()
+    cols = np.tile(dofs, (1, 3)).ravel()
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n_dofs, n_dofs))
+
+
+def _bushing_matrix(space: FESpace, region, support: Support, key: str) -> sp.csr_matrix:
+    """W^T K_b W on the region's DOFs (module docstring)."""
+    Kb = np.asarray(support.bushing.stiffness, dtype=float)
+    w, c = region.weights, region.centroid
+    P = c if support.bushing.point is None else np.asarray(support.bushing.point, dtype=float)
+    r = space.node_points[region.nodes] - c
+    n = region.nodes.size
+    W = np.zeros((6, n, 3))
+    W[0:3] = (np.eye(3)[:, None, :] * (w / region.area)[None, :, None])
+    needs_rotation = np.abs(Kb[3:]).max() > 0 or np.linalg.norm(P - c) > 0
+    if needs_rotation:
+        J = (w * (r * r).sum(1)).sum() * np.eye(3) - np.einsum("i,ij,ik->jk", w, r, r)
+        eig = np.linalg.eigvalsh(J)
+        if eig[0] <= 1e-10 * max(eig[-1], 1e-300):
+            raise RegionError(f"config key '{key}': region '{region.name}' cannot carry a "
+                              "rotation about every axis (its nodes lie on a line or a "
+                              "point); expected a surface region, or 3 translational "
+                              "stiffnesses at its centroid")
+        Jinv = np.linalg.inv(J)
+        # theta = J^-1 sum_i w_i skew(r_i) u_i
+        W[3:6] = np.einsum("jk,i,ikl->jil", Jinv, w, np.stack([skew(ri) for ri in r]))
+        # u_P = u_bar + theta x (P - c) = u_bar - skew(P - c) theta
+        W[0:3] -= np.einsum("jk,kil->jil", skew(P - c), W[3:6])
+    Wd = W.reshape(6, 3 * n)
+    dofs = (3 * region.nodes[:, None] + np.arange(3)).ravel()
+    block = Wd.T @ Kb @ Wd
+    rows = np.repeat(dofs, dofs.size)
+    cols = np.tile(dofs, dofs.size)
+    return sp.csr_matrix((block.ravel(), (rows, cols)), shape=(space.n_dofs, space.n_dofs))
+
+
+def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
+                      supports: Sequence[Support]) -> SupportStiffness:
+    """Springs and bushings of ``supports``, and the directions C of the components held
+    in a local frame (module docstring); the penalty follows from K's diagonal
+    (:func:`with_penalty`). Needs no K: every error is found before the assembly."""
+    springs, rows = [], []
+    n_dofs = space.n_dofs
+    for i, s in enumerate(supports):
+        key = f"supports[{i}]"
+        if s.spring is None and s.bushing is None and not s.local_fix:
+            continue
+        tris = get_region(regions, s.region, f"{key}.region")
+        region = surface_region(space, s.region, tris)
+        if s.bushing is not None:
+            if region.nodes.size > MAX_BUSHING_NODES:
+                raise RegionError(
+                    f"config key '{key}.region': region '{s.region}' has "
+                    f"{region.nodes.size} nodes; a bushing couples all of them (a dense "
+                    f"block of K), expected at most {MAX_BUSHING_NODES} (a smaller region)")
+            springs.append(_bushing_matrix(space, region, s, f"{key}.bushing"))
+            continue
+        if s.spring is not None:
+            axes = frame_axes(space, tris, region.nodes, s.frame, f"{key}.frame")
+            k = np.asarray(s.spring.values, dtype=float)
+            if s.spring.kind == "total":
+                k = k / region.area
+            if k.size == 2:  # face frame: normal, then both tangents
+                k = k[[0, 1, 1]]
+            blocks = np.einsum("n,c,nci,ncj->nij", region.weights, k, axes, axes)
+            springs.append(_node_blocks(region.nodes, blocks, n_dofs))
+            continue
+        # every node of the region is held (a P2 vertex has zero area weight, but is on it)
+        nodes = region_nodes(space, tris)
+        axes = frame_axes(space, tris, nodes, s.frame, f"{key}.frame")
+        names = ("normal", "tangential") if s.frame.kind == "face" else \
+            ("radial", "tangential", "axial")
+        held = [c for c in range(3) if names[min(c, len(names) - 1)] in s.local_fix]
+        e = axes[:, held, :]  # (n, h, 3): one constraint row per node and held direction
+        dofs = np.broadcast_to(3 * nodes[:, None, None] + np.arange(3), e.shape)
+        rows.append((dofs.reshape(-1, 3), e.reshape(-1, 3)))
+    constraint = None
+    if rows:
+        dofs = np.concatenate([r[0] for r in rows])
+        values = np.concatenate([r[1] for r in rows])
+        constraint = sp.csr_matrix((values.ravel(), dofs.ravel(), 3 * np.arange(dofs.shape[0] + 1)),
+                                   shape=(dofs.shape[0], n_dofs))
+    return SupportStiffness(sum(springs[1:], springs[0]).tocsr() if springs else None,
+                            None, constraint)
+
+
+def with_penalty(extra: SupportStiffness, k_diagonal: np.ndarray) -> SupportStiffness:
+    """``extra`` with its penalty C^T D C: row j of C (a held unit direction at node i)
+    weighted by :data:`PENALTY` times the mean of ``k_diagonal`` ((n_dofs,) N/m, K's
+    diagonal) over node i's three DOFs."""
+    if extra.constraint is None:
+        return extra
+    C = extra.constraint
+    node = C.indices[C.indptr[:-1]] // 3
+    d = PENALTY * k_diagonal.reshape(-1, 3)[node].mean(axis=1)
+    return dataclasses.replace(extra, penalty=(C.T @ sp.diags(d) @ C).tocsr())
+
+
+def _null_space(G: np.ndarray, basis: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """Orthonormal columns spanning {basis y : y^T basis^T G basis y ~ 0} (G symmetric
+    positive semi-definite; ~0: below :data:`RIGID_TOL` of its largest eigenvalue, or
+    below ``floor``)."""
+    if basis.shape[1] == 0:
+        return basis
+    Gb = basis.T @ G @ basis
+    lam, vec = np.linalg.eigh(0.5 * (Gb + Gb.T))
+    scale = max(float(np.abs(np.linalg.eigvalsh(0.5 * (G + G.T))).max()), 1e-300)
+    return basis @ vec[:, lam <= max(RIGID_TOL * scale, floor)]
+
+
+def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarray,
+                   stiffness: sp.spmatrix | None = None, reference: float = 0.0
+                   ) -> RigidFreedoms:
+    """The rigid-body motions that move no DOF of ``fixed`` and strain no spring of
+    ``stiffness`` ((n_dofs, n_dofs) N/m, or None), named (module docstring).
+
+    ``reference``: a node's stiffness (N/m, e.g. the median diagonal of K): springs
+    whose stiffness against a rigid motion is below :data:`SOFT_SUPPORT` of it per node
+    do not hold that motion to working precision; it counts as free (with a warning)."""
+    x = np.asarray(node_points, dtype=float)
+    L = float(np.sqrt(((x - center) ** 2).sum(axis=1).mean())) or 1.0
+    R = rigid_body_modes(x, center)
+    R[:, 3:] /= L
+    N = np.eye(6)
+    if fixed.size:
+        A = R[fixed]
+        N = _null_space(A.T @ A, N)
+    if stiffness is not None and N.shape[1]:
+        held = N.shape[1]
+        N = _null_space(R.T @ (stiffness @ R), N, SOFT_SUPPORT * reference * x.shape[0])
+        soft = N.shape[1] - _null_space(R.T @ (stiffness @ R), N).shape[1]
+        if soft:
+            log.warning("%d rigid-body motion(s) of %d left by the held components meet "
+                        "springs softer than %.0e of the body's own stiffness: treated as "
+                        "free (0 Hz)", soft, held, SOFT_SUPPORT)
+    names, twists = [], []
+    for _ in range(N.shape[1]):
+        # the unit twist closest to the span (ties to round-off: the first in TWIST_NAMES)
+        score = np.linalg.norm(N, axis=1)
+        k = int(np.flatnonzero(score >= score.max() - 1e-6)[0])
+        t = N @ N[k]
+        t /= np.linalg.norm(t)
+        name = TWIST_NAMES[k]
+        names.append(name if name not in names else f"{name}_{names.count(name) + 1}")
+        twists.append(t)
+        N = N - np.outer(t, t @ N)
+        u, s, _ = np.linalg.svd(N, full_matrices=False)
+        N = u[:, s > 1e-8]
+    fields = R @ np.array(twists).T if twists else np.zeros((x.size, 0))
+    return RigidFreedoms(tuple(names), fields)
+
+
+def penalty_bound(K: sp.spmatrix, M: sp.spmatrix, penalty: sp.spmatrix,
+                  constraint: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray
+                  ) -> np.ndarray:
+    """(n_m,) relative upper bound of (lambda_c - lambda_p) / lambda_p for every mode of
+    the penalised pencil (K, M) (module docstring), 0 for the rigid ones.
+
+    K: (n, n) the penalised stiffness; penalty: its penalty part; constraint: (n_c, n)
+    the held directions; shapes: (n, n_m) M-orthonormal penalised modes; omega2: (n_m,)
+    their eigenvalues (rad^2/s^2). All on the same n DOFs.
+    """
+    from scipy.linalg import eigh
+    from scipy.sparse.linalg import splu
+
+    C = sp.csr_matrix(constraint)
+    keep = np.flatnonzero(np.abs(C).sum(axis=1).A1 > 0)
+    C = C[keep]
+    CCt = (C @ C.T).tocsc()
+    V = shapes - C.T @ splu(CCt).solve(np.asarray(C @ shapes))
+    Kc = K - penalty
+    Kr, Mr = V.T @ (Kc @ V), V.T @ (M @ V)
+    theta = eigh(0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T), eigvals_only=True)
+    w = np.asarray(omega2, dtype=float)
+    return np.where(w > 0, (theta - w) / np.where(w > 0, w, 1.0), 0.0).clip(min=0.0)
+
+
+def check_rigid_reduction(cfg, fe) -> None:
+    """Refuse, before the eigen solve, a static correction for a body that its supports
+    leave free to move (``fe.n_rigid`` rigid-body modes): it has no static compliance."""
+    from pipeline._util import validate
+
+    if (cfg.supports and fe.n_rigid and cfg.reduction is not None
+            and cfg.reduction.static_correction != "none"):
+        raise validate.fail(
+            "reduction.static_correction", cfg.reduction.static_correction,
+            f"none: the supports leave {fe.n_rigid} rigid-body motion(s) free "
+            f"({', '.join(fe.rigid.names)}), so the body has no static compliance to correct "
+            "towards (hold those motions too, or set reduction.static_correction: none)")
+
+
+def model_penalty_bound(fe, modes) -> np.ndarray | None:
+    """(n_m,) :func:`penalty_bound` of every mode of ``modes`` on the FE model ``fe``
+    (:class:`pipeline.fe.model.FEModel`), or None without local-frame supports."""
+    extra = fe.support_stiffness
+    if extra is None or extra.penalty is None:
+        return None
+    from pipeline.fe.assemble import restrict
+
+    return penalty_bound(fe.K, fe.M, restrict(extra.penalty, fe.free),
+                         extra.constraint[:, fe.free], modes.shapes, modes.omega2)
+
+
+def support_summary(fe, modes) -> list[str]:
+    """Summary lines of the supports: the rigid-body modes they leave and, for
+    components held in a local frame, the computed bound of the penalty's eigenvalue
+    error (:func:`penalty_bound`); logged as well."""
+    lines = []
+    if fe.n_rigid:
+        lines.append(f"supports leave {fe.n_rigid} rigid-body mode(s) at 0 Hz: "
+                     + ", ".join(fe.rigid.names))
+    bound = model_penalty_bound(fe, modes)
+    if bound is not None:
+        worst = float(bound.max(initial=0.0))
+        lines.append(f"local-frame supports held by a penalty ({PENALTY:g} x diag K): "
+                     f"eigenvalue error <= {worst:.1e} relative (frequency <= "
+                     f"{0.5 * worst:.1e}), computed bound")
+    for line in lines:
+        log.info("%s", line)
+    return lines

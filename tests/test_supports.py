@@ -1,0 +1,407 @@
+"""Supports that leave rigid-body modes, supports in a local frame, elastic supports.
+
+Checks and their tolerances:
+- rigid-mode count from the supports (exact integer), labels (exact strings);
+- the modes of a partly held body against a dense generalized eigh of the same K and M:
+  two solvers of one pencil, eigenvalues within 1e-8 relative (shift-invert Lanczos at
+  1e-10 residual gives eigenvalue errors ~1e-18 relative to lambda; the dense solver's
+  round-off ~ eps lambda_max / lambda ~ 1e-12 on these 1.5k-DOF meshes: 1e-8 is a wide
+  margin above both, far below any support effect);
+- M-orthonormality of rigid and elastic modes together: round-off of the Gram-Schmidt
+  and projection, 1e-9;
+- a rigid block on springs against f = sqrt(k_total / m) / (2 pi): the block is 1e4 times
+  stiffer than the springs, so its own deformation lowers f by ~ k_spring / k_block
+  (~1e-4 relative), 1e-3 holds;
+- local-frame (penalty) supports: the computed bound of :func:`penalty_bound` brackets
+  the constrained eigenvalue (plus the penalty's round-off, ROUND_OFF below), checked
+  against an exact null-space solve; against CalculiX's exact *TRANSFORM / *BOUNDARY
+  where installed, within 5e-6 (its printed digits and eigensolver).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from pipeline.config import config_from_dict
+from pipeline.fe.model import build_fe_model
+from pipeline.solve.stage import ModesInput, compute_modes
+
+STEEL = {"E": 210.0e9, "nu": 0.3, "rho": 7800.0}
+
+
+def config(supports, name="held", geometry=(0.2, 0.01, 0.1), size=0.01, order=1, count=8,
+           **extra):
+    raw = {"name": name,
+           "geometry": {"kind": "box", "length": geometry[0], "height": geometry[1],
+                        "depth": geometry[2]},
+           "mesh": {"order": order, "size": size}, "material": STEEL,
+           "supports": supports, "modes": {"count": count}}
+    raw.update(extra)
+    return config_from_dict(raw)
+
+
+def solve(cfg, tmp_path):
+    fe = build_fe_model(cfg, tmp_path)
+    modes = compute_modes(ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
+                          cfg.modes, keep=False)
+    return fe, modes
+
+
+def test_plate_held_normal_keeps_three_rigid_modes(tmp_path):
+    """A plate held only normal to its plane (y on its bottom face) keeps translation
+    in x and z and rotation about y, found at 0 Hz, labelled, M-orthonormal with the
+    elastic modes, which agree with a dense eigh of the same matrices."""
+    cfg = config([{"region": "bottom", "fix": ["y"]}])
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 3 and modes.n_rigid == 3
+    assert modes.labels[:3] == ("rigid_translation_x", "rigid_translation_z",
+                                "rigid_rotation_y")
+    assert np.all(modes.omega2[:3] == 0) and np.all(modes.omega2[3:] > 0)
+    Phi = modes.shapes
+    G = Phi.T @ (fe.M @ Phi)
+    assert np.abs(G - np.eye(G.shape[0])).max() < 1e-9
+    # the rigid shapes are exact null vectors of the supported K
+    KR = fe.K @ Phi[:, :3]
+    assert np.linalg.norm(KR) < 1e-9 * abs(fe.K).max() * np.linalg.norm(Phi[:, :3])
+    w = sla.eigh(fe.K.toarray(), fe.M.toarray(), eigvals_only=True,
+                 subset_by_index=[0, cfg.modes.count - 1])
+    assert np.abs(w[:3]).max() < 1e-8 * w[3]
+    assert np.abs(modes.omega2[3:] / w[3:] - 1).max() < 1e-8
+
+
+def test_rigid_count_from_supports():
+    """6 - rank of the held conditions: a point-free rod along x held in y, z on its
+    end faces keeps axial translation; a body held in z everywhere (in_plane) keeps 3."""
+    from pipeline.fe.supports import rigid_freedoms
+
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-1, 1, (50, 3)) * [1.0, 0.1, 0.1]
+    ends = np.flatnonzero(np.abs(x[:, 0]) > 0.8)
+    fixed = np.sort(np.concatenate([3 * ends + 1, 3 * ends + 2]))
+    rigid = rigid_freedoms(x, x.mean(0), fixed)
+    assert rigid.names == ("translation_x",)
+    rigid = rigid_freedoms(x, x.mean(0), 3 * np.arange(50) + 2)
+    assert rigid.names == ("translation_x", "translation_y", "rotation_z")
+    assert rigid_freedoms(x, x.mean(0), np.zeros(0, dtype=np.int64)).count == 6
+    # held on a line of nodes along x (one node per x): rotation about that line stays
+    line = np.c_[np.linspace(-1, 1, 5), np.zeros(5), np.zeros(5)]
+    pts = np.vstack([x, line])
+    held = np.arange(50, 55)
+    fixed = np.sort((3 * held[:, None] + np.arange(3)).ravel())
+    rigid = rigid_freedoms(pts, pts.mean(0), fixed)
+    assert rigid.count == 1 and rigid.names[0] == "rotation_x"
+
+
+def test_static_correction_refused_before_the_solve(tmp_path):
+    """A partly held body has no static compliance: a static correction is refused in
+    one line naming the key, with exit code 2 and nothing written."""
+    import yaml
+
+    raw = {"name": "slider", "geometry": {"kind": "box", "length": 0.2, "height": 0.01,
+                                          "depth": 0.1},
+           "mesh": {"order": 1, "size": 0.02}, "material": STEEL,
+           "supports": [{"region": "bottom", "fix": ["y"]}], "modes": {"count": 6},
+           "ports": {"inputs": [{"name": "f", "region": "tip", "kind": "force",
+                                 "direction": [0, 1, 0]}],
+                     "outputs": [{"name": "u", "region": "tip", "kind": "displacement",
+                                  "direction": [0, 1, 0]}]},
+           "reduction": {"modes": 4, "static_correction": "residual"}}
+    path = tmp_path / "slider.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "slider.h5"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    err = [line for line in proc.stderr.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "reduction.static_correction" in err[0]
+    assert "translation_x" in err[0] and not out.exists()
+    raw["reduction"]["static_correction"] = "none"
+    path.write_text(yaml.safe_dump(raw))
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "supports leave 3 rigid-body mode(s)" in proc.stdout
+    import h5py
+
+    with h5py.File(out) as h5:
+        assert int(h5["modes"].attrs["n_rigid"]) == 3
+
+
+def test_config_round_trip_of_every_support_kind():
+    from pipeline.config import config_to_dict
+
+    supports = [{"region": "root", "fix": "all"},
+                {"region": "tip", "fix": ["radial"],
+                 "frame": {"kind": "cylindrical", "axis": [1, 0, 0], "point": [0, 0, 0]}},
+                {"region": "bottom", "fix": ["normal"]},
+                {"region": "top", "spring": {"per_area": [1e9, 1e9, 1e9]}},
+                {"region": "back", "spring": {"total": [1e5, 2e5]}, "frame": {"kind": "face"}},
+                {"region": "front", "bushing": {"stiffness": [1e5, 1e5, 1e5],
+                                                "point": [0.1, 0, 0]}}]
+    cfg = config(supports)
+    again = config_from_dict(config_to_dict(cfg))
+    assert again.supports == cfg.supports
+    assert cfg.supports[2].frame.kind == "face" and cfg.supports[2].local_fix == ("normal",)
+
+
+@pytest.mark.parametrize("support, key", [
+    ({"region": "root", "fix": ["radial"]}, "supports[0].fix"),
+    ({"region": "root", "fix": ["x"], "spring": {"total": [1, 1, 1]}}, "supports[0].spring"),
+    ({"region": "root", "spring": {"total": [1, 1]}}, "supports[0].spring.total"),
+    ({"region": "root", "spring": {"per_area": [-1, 1, 1]}}, "supports[0].spring.per_area"),
+    ({"region": "root", "spring": {"per_area": [0, 0, 0]}}, "supports[0].spring.per_area"),
+    ({"region": "root", "bushing": {"stiffness": [[1] * 6] * 5}}, "supports[0].bushing.stiffness"),
+    ({"region": "root", "fix": ["radial"], "frame": {"kind": "cylindrical",
+                                                      "axis": [0, 0, 0], "point": [0, 0, 0]}},
+     "supports[0].frame.axis"),
+])
+def test_bad_supports_name_the_key(support, key):
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        config([support])
+    assert info.value.key == key, str(info.value)
+    assert "\n" not in str(info.value)
+
+
+BLOCK = (0.1, 0.05, 0.1)  # x, y, z in m: a steel block, ~1e4 Hz first elastic mode
+
+
+def test_block_on_vertical_springs_bounces_and_rocks_as_a_rigid_body(tmp_path):
+    """Springs normal to the bottom face only (total 1e6 N/m, as N/m^3 per area or in the
+    face frame, the same K): x, z and rotation about y stay rigid; the bounce is
+    sqrt(k/m) / (2 pi), the rocking about the centre of mass sqrt(k I_area / J) / (2 pi)
+    (I_area = L^3 D / 12 of the base, J = m (L^2 + H^2) / 12)."""
+    L, H, D = BLOCK
+    area = L * D
+    found = []
+    for spring in ({"region": "bottom", "spring": {"total": [0, 1e6, 0]}},
+                   {"region": "bottom", "spring": {"per_area": [0, 1e6 / area, 0]}},
+                   {"region": "bottom", "spring": {"total": [1e6, 0]},
+                    "frame": {"kind": "face"}}):
+        cfg = config([spring], geometry=BLOCK, size=0.02, order=2, count=6)
+        fe, modes = solve(cfg, tmp_path)
+        assert fe.n_rigid == 3 and modes.labels[:3] == (
+            "rigid_translation_x", "rigid_translation_z", "rigid_rotation_y")
+        found.append(modes.frequencies_hz)
+    m = fe.props.mass
+    bounce = np.sqrt(1e6 / m) / (2 * np.pi)
+    rock = np.sqrt(1e6 / area * L**3 * D / 12 / (m * (L**2 + H**2) / 12)) / (2 * np.pi)
+    f = found[0]
+    assert abs(f[5] / bounce - 1) < 1e-3 and modes.labels[5] == "translation_y_1"
+    assert np.abs(f[3:5] / rock - 1).max() < 1e-3
+    for other in found[1:]:
+        assert np.abs(other[3:] / f[3:] - 1).max() < 1e-10
+
+
+def test_block_on_a_grounded_bushing_at_its_centre_of_mass(tmp_path):
+    """A 6x6 diagonal bushing at the centre of mass, tied to the top face by a
+    distributing coupling (exact for rigid motion): six rigid-body modes at
+    sqrt(k_i / m) and sqrt(k_rot_i / I_i) / (2 pi); no rigid mode left."""
+    kb = [1e6, 2e6, 3e6, 1e3, 2e3, 3e3]
+    cfg0 = config([{"region": "top", "spring": {"total": [1, 1, 1]}}], geometry=BLOCK,
+                  size=0.02, order=2)
+    com = build_fe_model(cfg0, tmp_path).props.center_of_mass
+    cfg = config([{"region": "top", "bushing": {"stiffness": kb, "point": list(com)}}],
+                 geometry=BLOCK, size=0.02, order=2, count=7)
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 0 and modes.n_rigid == 0
+    I = np.diag(fe.props.inertia)
+    ref = np.sort(np.r_[np.sqrt(np.array(kb[:3]) / fe.props.mass),
+                        np.sqrt(np.array(kb[3:]) / I)]) / (2 * np.pi)
+    assert np.abs(modes.frequencies_hz[:6] / ref - 1).max() < 1e-3
+
+
+#: round-off of eigenvalues of a penalised K: the penalty (PENALTY = 1e6 x the diagonal)
+#: raises lambda_max / lambda_1 by 1e6, and eps lambda_max / lambda_1 with it; measured
+#: 4e-9 relative on the shaft below, bounded here by 1e-8
+ROUND_OFF = 1e-8
+SHAFT = (0.4, 0.04, 0.04)  # a square steel shaft along x, axis through (y, z) = (0.02, 0.02)
+AXIS = {"kind": "cylindrical", "axis": [1, 0, 0], "point": [0, 0.02, 0.02]}
+BANDS = {"band_a": {"kind": "box", "lower": [0.005, -1, -1], "upper": [0.045, 1, 1]},
+         "band_b": {"kind": "box", "lower": [0.355, -1, -1], "upper": [0.395, 1, 1]}}
+
+
+def shaft(supports, count=4):
+    return config(supports, name="shaft", geometry=SHAFT, size=0.01, order=2, count=count,
+                  regions=BANDS)
+
+
+def test_shaft_on_radial_bearings_keeps_spin_and_axial_translation(tmp_path):
+    """Held radially on two bands (no tangential, no axial hold): the spin about the
+    axis and the axial translation stay free, at 0 Hz; the penalty's computed bound is
+    small."""
+    from pipeline.fe.supports import model_penalty_bound, support_summary
+
+    cfg = shaft([{"region": "band_a", "fix": ["radial"], "frame": AXIS},
+                 {"region": "band_b", "fix": ["radial"], "frame": AXIS}])
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 2 and set(modes.labels[:2]) == {"rigid_rotation_x",
+                                                         "rigid_translation_x"}
+    assert modes.labels[2].startswith("bending")
+    assert "computed bound" in support_summary(fe, modes)[-1]
+    assert model_penalty_bound(fe, modes).max() < 1e-6
+
+
+def exact_radial_frequencies(fe, nodes, count):
+    """The lowest ``count`` frequencies (Hz) with the radial component at ``nodes`` removed
+    exactly: a null-space basis Z (radial dropped, tangential and axial kept) on the free
+    DOFs of ``fe`` (whose K holds no penalty), eigsh of Z^T K Z, Z^T M Z."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import eigsh
+
+    x = fe.space.node_points
+    pos = -np.ones(fe.space.n_dofs, dtype=np.int64)
+    pos[fe.free] = np.arange(fe.free.size)
+    held = set(int(n) for n in nodes)
+    rows, cols, vals, col = [], [], [], 0
+    for n in range(fe.space.n_nodes):
+        dofs = pos[3 * n + np.arange(3)]
+        if dofs[0] < 0:
+            continue
+        if n in held:
+            r = x[n] - np.asarray(AXIS["point"])
+            r[0] = 0.0
+            er = r / np.linalg.norm(r)
+            basis = (np.cross([1.0, 0, 0], er), np.array([1.0, 0, 0]))
+        else:
+            basis = np.eye(3)
+        for e in basis:
+            rows += list(dofs)
+            cols += [col] * 3
+            vals += list(e)
+            col += 1
+    Z = sp.csr_matrix((vals, (rows, cols)), shape=(fe.free.size, col))
+    w = eigsh((Z.T @ fe.K @ Z).tocsc(), k=count, M=(Z.T @ fe.M @ Z).tocsc(), sigma=0,
+              tol=1e-12, return_eigenvectors=False)
+    return np.sqrt(np.sort(w)) / (2 * np.pi)
+
+
+def calculix_frequencies(fe, held_all, held_radial, count, folder):
+    """The lowest ``count`` frequencies (Hz) from CalculiX on the same P2 mesh (C3D10,
+    node order as meshio's tetra10): ``held_all`` nodes fixed, ``held_radial`` nodes held
+    radially in a *TRANSFORM, TYPE=C frame about the shaft's axis."""
+    x, elements = fe.space.node_points, fe.space.element_nodes
+
+    def nset(name, nodes):
+        ids = [str(n + 1) for n in nodes]
+        return [f"*NSET, NSET={name}"] + [", ".join(ids[i:i + 12])
+                                           for i in range(0, len(ids), 12)]
+
+    p = AXIS["point"]
+    lines = ["*NODE"] + [f"{i + 1}, {a:.17g}, {b:.17g}, {c:.17g}" for i, (a, b, c)
+                         in enumerate(x)]
+    lines += ["*ELEMENT, TYPE=C3D10, ELSET=EALL"]
+    lines += [f"{i + 1}, " + ", ".join(str(n + 1) for n in e) for i, e in enumerate(elements)]
+    lines += nset("HELDA", held_all) + nset("HELDB", held_radial)
+    lines += ["*TRANSFORM, NSET=HELDB, TYPE=C",
+              f"{p[0]}, {p[1]}, {p[2]}, {p[0] + 1.0}, {p[1]}, {p[2]}",
+              "*BOUNDARY", "HELDA, 1, 3", "HELDB, 1, 1",
+              "*MATERIAL, NAME=STEEL", "*ELASTIC", f"{STEEL['E']}, {STEEL['nu']}",
+              "*DENSITY", f"{STEEL['rho']}", "*SOLID SECTION, ELSET=EALL, MATERIAL=STEEL",
+              "*STEP", "*FREQUENCY", str(count), "*END STEP"]
+    (folder / "shaft.inp").write_text("\n".join(lines) + "\n")
+    subprocess.run(["ccx", "-i", "shaft"], cwd=folder, check=True, capture_output=True)
+    text = (folder / "shaft.dat").read_text()
+    table = text.split("E I G E N V A L U E   O U T P U T")[1].splitlines()
+    rows = [line.split() for line in table if line.split()[:1] and line.split()[0].isdigit()]
+    return np.array([float(r[3]) for r in rows[:count]])
+
+
+def test_radial_support_against_exact_constraint_and_calculix(tmp_path):
+    """One band clamped, the other held radially (penalty): the frequencies agree with the
+    exact constraint (null-space basis, eigsh at 1e-12) within the computed penalty bound
+    (frequency: half the eigenvalue bound) plus ROUND_OFF, and with CalculiX's *TRANSFORM
+    within 5e-6 (its output has 7 digits, and its own eigensolver's accuracy left 1.4e-6
+    on the torsion mode against the exact constraint)."""
+    import shutil
+
+    from pipeline.fe.space import region_nodes
+    from pipeline.fe.supports import model_penalty_bound
+
+    cfg = shaft([{"region": "band_a", "fix": "all"},
+                 {"region": "band_b", "fix": ["radial"], "frame": AXIS}])
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 0
+    bound = model_penalty_bound(fe, modes)
+    f = modes.frequencies_hz
+    plain = build_fe_model(shaft([{"region": "band_a", "fix": "all"}]), tmp_path)
+    nodes_b = region_nodes(fe.space, fe.regions["band_b"])
+    exact = exact_radial_frequencies(plain, nodes_b, f.size)
+    assert np.all(np.abs(f / exact - 1) <= 0.5 * bound + ROUND_OFF)
+    if shutil.which("ccx") is None:
+        pytest.skip("CalculiX (ccx) is not installed")
+    ccx = calculix_frequencies(fe, region_nodes(fe.space, fe.regions["band_a"]), nodes_b,
+                               f.size, tmp_path)
+    assert np.abs(f / ccx - 1).max() < 5e-6
+
+
+def test_face_normal_hold_equals_the_global_component_on_a_flat_face(tmp_path):
+    """fix: [normal] on the flat bottom face (normal y) holds what fix: [y] holds: the
+    same rigid modes and frequencies within the computed penalty bound."""
+    from pipeline.fe.supports import model_penalty_bound
+
+    _, exact = solve(config([{"region": "bottom", "fix": ["y"]}], size=0.02), tmp_path)
+    fe, modes = solve(config([{"region": "bottom", "fix": ["normal"]}], size=0.02), tmp_path)
+    bound = model_penalty_bound(fe, modes)
+    assert modes.labels[:3] == exact.labels[:3]
+    assert np.all(np.abs(modes.omega2[3:] / exact.omega2[3:] - 1) <= bound[3:] + ROUND_OFF)
+
+
+def run_cli(tmp_path, supports, **extra):
+    import yaml
+
+    raw = {"name": "cli", "geometry": {"kind": "box", "length": 0.2, "height": 0.01,
+                                       "depth": 0.1},
+           "mesh": {"order": 1, "size": 0.02}, "material": STEEL, "supports": supports,
+           "modes": {"count": 8}, **extra}
+    path = tmp_path / "cli.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "cli.h5"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o", str(out)],
+                          capture_output=True, text=True)
+    return proc, out
+
+
+def test_springs_too_soft_to_hold_leave_a_free_body(tmp_path):
+    """Springs of 1e-300 N/m^3 (accepted: > 0) cannot hold the body to working precision:
+    it runs as a free body with a warning instead of a singular factorisation."""
+    proc, out = run_cli(tmp_path, [{"region": "bottom",
+                                    "spring": {"per_area": [1e-300, 1e-300, 1e-300]}}])
+    assert proc.returncode == 0, proc.stderr
+    assert "softer than" in proc.stderr and "6 rigid-body mode(s)" in proc.stdout
+    assert out.exists()
+
+
+def test_a_node_on_the_cylindrical_axis_is_refused_in_one_line(tmp_path):
+    proc, out = run_cli(tmp_path, [{"region": "root", "fix": ["radial"],
+                                    "frame": {"kind": "cylindrical", "axis": [1, 0, 0],
+                                              "point": [0, 0.005, 0.05]}}])
+    assert proc.returncode == 4
+    err = [line for line in proc.stderr.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "supports[0].frame" in err[0] and not out.exists()
+
+
+def test_more_zero_modes_than_the_supports_leave_is_a_mechanism():
+    """The singular-stiffness message is kept for what the supports analysis cannot
+    predict: more zero-frequency modes than rigid motions (a mechanism inside the mesh)."""
+    import scipy.sparse as sp
+
+    from pipeline.errors import SolverError
+    from pipeline.solve.modes import Modes
+    from pipeline.solve.stage import with_rigid_motions
+
+    n = 6
+    modes = Modes(omega2=np.array([0.0, 0.0, 5.0]), frequencies_hz=np.zeros(3),
+                  shapes=np.eye(n)[:, :3], residuals=np.zeros(3), n_rigid=2, backend="test",
+                  shift=-1.0, seconds=0.0)
+    with pytest.raises(SolverError, match="the stiffness system is singular"):
+        with_rigid_motions(modes, sp.identity(n), np.eye(n)[:, :1], ("translation_x",))
+    out = with_rigid_motions(modes, sp.identity(n), np.eye(n)[:, :2] @ [[1.0, 1], [1, -1]],
+                             ("translation_x", "rotation_y"))
+    assert out.n_rigid == 2 and np.allclose(out.shapes.T @ out.shapes, np.eye(3))
