@@ -284,6 +284,7 @@ def test_model_option_is_checked(result_h5, tmp_path):
     from pipeline.errors import ConfigError
 
     with pytest.raises(ConfigError, match="--model"):
-        run_export(result_h5, "fmu", tmp_path / "x.fmu", model="lumped")
+        run_export(result_h5, "fmu", tmp_path / "x.fmu", model="no_such_model")
+    assert not (tmp_path / "x.fmu").exists()
     with pytest.raises(ConfigError, match="--model: does not apply to --to mat"):
         run_export(result_h5, "mat", tmp_path / "x.mat", model="plant")

@@ -42,7 +42,8 @@ def exudyn_fe_data(h5_path: str | Path):
 
 def cmd_export(args: argparse.Namespace) -> int:
     print(run_export(args.file, args.to, args.output, model=getattr(args, "model", None),
-                     basis=getattr(args, "basis", None)))
+                     basis=getattr(args, "basis", None),
+                     fmi_version=getattr(args, "fmi_version", None)))
     return 0
 
 
@@ -55,13 +56,16 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
         "connection-point and Craig-Bampton models, names, frequencies); simscape: Reduced "
         "Order Flexible Solid parameters (.mat + .m); vtu/xdmf: mesh with every mode shape for ParaView; json: "
         "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file; fmu: "
-        "FMI 2.0 FMU (Model Exchange + Co-Simulation) of the plant or filtered model. "
+        "FMI 2.0 or 3.0 FMU (Model Exchange + Co-Simulation) of any model of the file. "
         "See docs/exports.md (installed: pipeline/docs/exports.md).")
     p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
     p.add_argument("--to", required=True, choices=names, help="output format")
     p.add_argument("-o", "--output", help="output file (default: beside FILE, named after it)")
-    p.add_argument("--model", choices=("plant", "filtered"),
-                   help="fmu: which model goes into the FMU (default plant)")
+    p.add_argument("--model",
+                   help="fmu: which model goes into the FMU (default plant): plant, filtered, "
+                   "lumped, connection/<name>, craig_bampton (the models 'inspect' lists)")
+    p.add_argument("--fmi-version", dest="fmi_version",
+                   help="fmu: FMI version, 2 (default) or 3")
     p.add_argument("--basis", choices=("auto", "modes", "craig_bampton"),
                    help="exudyn: mode basis (default auto: Craig-Bampton where the file has "
                    "it, else the modes plus the input ports' static modes)")

@@ -67,16 +67,16 @@ EXPORTERS: dict[str, Exporter] = {
                          "Simscape Multibody Reduced Order Flexible Solid parameters (.mat + "
                          ".m script): interface frame origins, Craig-Bampton K, M, damping"),
     "fmu": Exporter(_lazy("fmu", "export_fmu"), ".fmu",
-                    "FMI 2.0 FMU (Model Exchange + Co-Simulation, C sources inside) of the "
-                    "plant or the filtered model (--model); compiled with gcc at export",
-                    options=("model",)),
+                    "FMI 2.0 or 3.0 (--fmi-version) FMU (Model Exchange + Co-Simulation, C "
+                    "sources inside) of any model of the file (--model); compiled with gcc "
+                    "at export", options=("model", "fmi_version")),
 }
 
 
 def default_output(h5_path: str | Path, fmt: str, model: str | None = None) -> Path:
     """``<h5 stem>[.<model>]<suffix of fmt>`` beside the input file."""
     h5_path = Path(h5_path)
-    middle = f".{model}" if model else ""
+    middle = "." + model.replace("/", "_") if model else ""
     return h5_path.with_name(h5_path.stem + middle + EXPORTERS[fmt].suffix)
 
 
@@ -92,7 +92,7 @@ def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None,
     options = {k: v for k, v in options.items() if v is not None}
     extra = sorted(set(options) - set(EXPORTERS[fmt].options))
     if extra:
-        raise ConfigError(f"export --{extra[0]}: does not apply to --to {fmt} (it applies to "
+        raise ConfigError(f"export --{extra[0].replace('_', '-')}: does not apply to --to {fmt} (it applies to "
                           + (", ".join(f for f, e in EXPORTERS.items() if extra[0] in e.options)
                              or "no format") + ")", key=f"--{extra[0]}",
                           value=options[extra[0]], expected="not given")

@@ -1,22 +1,22 @@
-"""Export to an FMI 2.0 FMU (Model Exchange and Co-Simulation in one file).
+"""Export one model of a result file as an FMU: FMI 2.0 (default) or FMI 3.0, Model
+Exchange and Co-Simulation in one archive.
 
-``python -m pipeline export FILE.h5 --to fmu [--model plant|filtered]`` writes
-``<stem>.<model>.fmu``: a zip holding
+``python -m pipeline export FILE.h5 --to fmu [--model NAME] [--fmi-version 2|3]`` writes
+``<stem>.<model>.fmu`` (``/`` of ``connection/<name>`` becomes ``_``): a zip holding
 
 ===============================  ==========================================================
 entry                            content
 ===============================  ==========================================================
-modelDescription.xml             FMI 2.0: one ScalarVariable per state (``eta_k``,
-                                 ``eta_dot_k``, filter states; initial exact, start 0),
-                                 per derivative (``der(<state>)``), per input (our input
-                                 name, its unit: N or N m) and per output (our output name
-                                 ``<port>/position|velocity|acceleration``, unit m, m/s,
-                                 m/s2 or rad, rad/s, rad/s2), and a tunable parameter
-                                 ``damping_ratio_<k>`` per mode when the model is modal
+modelDescription.xml             the variables (:mod:`.fmi2`, :mod:`.fmi3`): states (FMI 2.0
+                                 one ScalarVariable each, FMI 3.0 the array ``x``), their
+                                 derivatives, the inputs and outputs (our names, SI units),
+                                 the tunable parameters ``damping_ratio_<k>`` and
+                                 ``filter_cutoff`` (Hz) where the model allows them
+                                 (:mod:`.fmu_models`)
 binaries/<platform>/<id>.so      the model compiled at export time (``gcc``, or ``$CC``);
                                  C only: it runs without Python
-sources/fmu.c, model_data.h      the C sources (the FMI 2.0 headers come from the
-sources/buildDescription.xml     importing tool), so another platform's tool builds it
+sources/fmu.c, model_data.h      the C sources (the FMI headers come from the importing
+sources/buildDescription.xml     tool), so another platform's tool builds it
 documentation/index.html         what the model is, its source file
 ===============================  ==========================================================
 
@@ -24,184 +24,121 @@ The model is the state space of the file (SI units)::
 
     x' = A x + B u,     y = C x + D u
 
-Model Exchange: the importer integrates ``fmi2GetDerivatives`` (= A x + B u). The state
-nominals (``fmi2GetNominalsOfContinuousStates``, which absolute tolerances scale with) are
-``sqrt(diag W)``, W the controllability Gramian (A W + W A^T + B B^T = 0): the RMS response
-of each state to unit white-noise inputs (1.0 where A is not Hurwitz).
-Co-Simulation: ``fmi2DoStep(h)`` holds the inputs constant over the step and advances
-exactly: x(t + h) = Phi x(t) + Gamma u with [[Phi, Gamma], [0, I]] = expm([[A, B], [0, 0]] h)
-(zero-order hold), computed in C for the step size asked (kept while h and the damping
-parameters stay the same). Damping parameters (a modal model only: states ``eta_k``,
-``eta_dot_k``): ``A[eta_dot_k, eta_dot_k] = -2 zeta_k omega_k``, and the acceleration rows
-follow as ``C_acc = C_vel A``, ``D_acc = C_vel B`` (checked on the stored model at export).
+``fmu.c`` is ``fmu_core.c`` (the model, the parameters, the exact zero-order-hold step
+[[Phi, Gamma], [0, I]] = expm([[A, B], [0, 0]] h)) followed by ``fmi2_api.c`` or
+``fmi3_api.c`` (the FMI functions); ``model_data.h`` holds this model's matrices.
+Model Exchange: the importer integrates A x + B u; the state nominals are the RMS
+response of each state to unit white-noise inputs (:func:`.fmu_models._nominals`).
 """
 
 from __future__ import annotations
 
-import datetime
 import hashlib
 import logging
 import os
 import re
 import shutil
 import subprocess
-import sys
 import uuid
 import zipfile
-from dataclasses import dataclass
-from importlib import resources
+from importlib import import_module, resources
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
 from pipeline._util.atomic import atomic_path, private_folder
-from pipeline.errors import ConfigError, FileFormatError, ResourceError
-from pipeline.reduce.statespace import StateSpace
-from pipeline.store.read import StoredModels, load_model
+from pipeline.apps.exports.fmu_models import FmuModel, check_model_name, fmu_model
+from pipeline.errors import ConfigError, ResourceError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["export_fmu", "FmuModel", "fmu_model", "fmi_headers", "platform_folder", "MODELS"]
+__all__ = ["export_fmu", "FmuModel", "fmu_model", "fmi_headers", "FMI_VERSIONS",
+           "parameters", "unit_definitions", "default_experiment", "variables_section",
+           "identifier"]
 
-MODELS = ("plant", "filtered")
-QUANTITY_SUFFIX = {"position": "", "velocity": "/s", "acceleration": "/s2"}
+#: FMI versions written: the module of each (model description, C functions, platform)
+FMI_VERSIONS = {"2": "fmi2", "3": "fmi3"}
 #: SI base-unit exponents (kg, m, s, rad) of the units our files use
 BASE_UNITS = {"m": {"m": 1}, "m/s": {"m": 1, "s": -1}, "m/s2": {"m": 1, "s": -2},
-              "rad": {"rad": 1}, "rad/s": {"rad": 1, "s": -1}, "rad/s2": {"rad": 1, "s": -2},
+              "m/s^2": {"m": 1, "s": -2}, "rad": {"rad": 1}, "rad/s": {"rad": 1, "s": -1},
+              "rad/s2": {"rad": 1, "s": -2}, "rad/s^2": {"rad": 1, "s": -2},
               "N": {"kg": 1, "m": 1, "s": -2}, "N m": {"kg": 1, "m": 2, "s": -2},
-              "N.m": {"kg": 1, "m": 2, "s": -2}, "1": {}}
-#: relative tolerance of the structure checks behind the damping parameters
-STRUCTURE_RTOL = 1e-9
+              "N.m": {"kg": 1, "m": 2, "s": -2}, "Hz": {"s": -1}, "s": {"s": 1}, "1": {}}
 
 
-@dataclass(frozen=True)
-class FmuModel:
-    """What goes into the FMU: ``ss`` (names from the file), one unit per input and output,
-    the damping parameters (state indices of ``eta_k`` and ``eta_dot_k``, omega_k rad/s,
-    zeta_k) and the (acceleration row, velocity row) pairs of C that follow A."""
-
-    name: str
-    ss: StateSpace
-    input_units: tuple[str, ...]
-    output_units: tuple[str, ...]
-    mode_pos: tuple[int, ...]
-    mode_vel: tuple[int, ...]
-    omega: np.ndarray
-    zeta: np.ndarray
-    acc_rows: tuple[tuple[int, int], ...]
-    nominals: np.ndarray
+def check_fmi_version(version) -> str:
+    """``version`` as ``"2"`` or ``"3"``; ConfigError naming ``--fmi-version`` else."""
+    text = str(version).strip()
+    text = {"2.0": "2", "3.0": "3"}.get(text, text)
+    if text not in FMI_VERSIONS:
+        raise ConfigError(f"export --fmi-version: got {version!r}, expected 2 or 3 (the FMI "
+                          "versions this export writes)", key="--fmi-version", value=version,
+                          expected="2 | 3")
+    return text
 
 
-def _port_units(lm: StoredModels, ss: StateSpace) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(input units, output units) of the file's plant (one per input, one per output
-    port) expanded to position/velocity/acceleration."""
-    u_units, port_units = list(lm.input_units), list(lm.port_units)
-    if len(u_units) != ss.B.shape[1]:
-        u_units = [""] * ss.B.shape[1]
-    ports = ss.ports
-    per_port = dict(zip(ports, port_units)) if len(port_units) == len(ports) else {}
-    y_units = []
-    for name in ss.output_names:
-        port, _, quantity = name.rpartition("/")
-        base = per_port.get(port, "")
-        y_units.append(base + QUANTITY_SUFFIX.get(quantity, "?") if base else "")
-    return tuple(u_units), tuple("" if u.endswith("?") else u for u in y_units)
+# --------------------------------------------------------------------------- shared parts
+def parameters(m: FmuModel) -> list[tuple[str, float, str, str]]:
+    """(name, start, unit, description) of each tunable parameter, in C order."""
+    out = []
+    if m.damping is not None:
+        d = m.damping
+        for k, (mode, w, z) in enumerate(zip(d.mode, d.omega, d.zeta)):
+            out.append((f"damping_ratio_{mode}", float(z), "",
+                        f"modal damping ratio of mode {mode} ({w / (2 * np.pi):.6g} Hz)"))
+    if m.filter is not None:
+        out.append(("filter_cutoff", m.filter.cutoff_hz, "Hz",
+                    f"cut-off frequency of the {m.filter.kind.replace('_', '-')} output filter"))
+    return out
 
 
-def _damping_structure(ss: StateSpace, zeta: np.ndarray):
-    """(pos, vel, omega, zeta, acc_rows) when A is modal in (eta_k, eta_dot_k) with
-    A[vel, vel] = -2 zeta omega and every acceleration row = velocity row times A (D_vel
-    = 0); else None (the FMU then has no damping parameters)."""
-    names = list(ss.state_names)
-    A, B, C, D = ss.A, ss.B, ss.C, ss.D
-    pos, vel, omega = [], [], []
-    for k in range(1, zeta.size + 1):
-        if f"eta_{k}" not in names or f"eta_dot_{k}" not in names:
-            return None
-        i, j = names.index(f"eta_{k}"), names.index(f"eta_dot_{k}")
-        w2 = -A[j, i]
-        if A[i, j] != 1.0 or not w2 > 0:
-            return None
-        w = float(np.sqrt(w2))
-        if abs(A[j, j] + 2.0 * zeta[k - 1] * w) > STRUCTURE_RTOL * max(w, 1.0):
-            return None
-        pos.append(i), vel.append(j), omega.append(w)
-    acc_rows = []
-    for r, name in enumerate(ss.output_names):
-        port, _, quantity = name.rpartition("/")
-        if quantity != "acceleration":
-            continue
-        if f"{port}/velocity" not in ss.output_names:
-            return None
-        v = ss.output_names.index(f"{port}/velocity")
-        scale_c = np.abs(C[v]) @ np.abs(A) + 1e-300
-        scale_d = np.abs(C[v]) @ np.abs(B) + 1e-300
-        if (np.any(D[v] != 0.0) or np.any(np.abs(C[r] - C[v] @ A) > STRUCTURE_RTOL * scale_c)
-                or np.any(np.abs(D[r] - C[v] @ B) > STRUCTURE_RTOL * scale_d)):
-            return None
-        acc_rows.append((r, v))
-    return tuple(pos), tuple(vel), np.array(omega), np.array(zeta, float), tuple(acc_rows)
+def unit_definitions(m: FmuModel, extra: tuple[str, ...] = ()) -> str:
+    """The <UnitDefinitions> element of the units the model uses and ``extra`` ('' without
+    any)."""
+    units = {u for u in m.input_units + m.output_units + extra if u}
+    units |= {p[2] for p in parameters(m) if p[2]}
+    if not units:
+        return ""
+    lines = ["  <UnitDefinitions>"]
+    for u in sorted(units):
+        base = BASE_UNITS.get(u)
+        exps = " ".join(f'{k}="{v}"' for k, v in (base or {}).items())
+        lines.append(f"    <Unit name={quoteattr(u)}/>" if base is None else
+                     f"    <Unit name={quoteattr(u)}><BaseUnit {exps}/></Unit>" if exps else
+                     f"    <Unit name={quoteattr(u)}><BaseUnit/></Unit>")
+    lines.append("  </UnitDefinitions>")
+    return "\n".join(lines) + "\n"
 
 
-def _nominals(ss: StateSpace) -> np.ndarray:
-    import scipy.linalg as sla
-
-    n = ss.A.shape[0]
-    if n == 0 or not np.all(np.linalg.eigvals(ss.A).real < 0):
-        return np.ones(n)
-    W = sla.solve_continuous_lyapunov(ss.A, -ss.B @ ss.B.T)
-    d = np.sqrt(np.clip(np.diag(W), 0.0, None))
-    return np.where(np.isfinite(d) & (d > 0), d, 1.0)
-
-
-def fmu_model(h5_path: str | Path, model: str = "plant") -> FmuModel:
-    """The model ``model`` (``plant`` or ``filtered``) of ``h5_path`` with units and
-    damping parameters, as :func:`export_fmu` writes it."""
-    h5_path = Path(h5_path)
-    if model not in MODELS:
-        raise ConfigError(f"export --model: got {model!r}, expected one of {', '.join(MODELS)}",
-                          key="--model", value=model, expected=" | ".join(MODELS))
-    lm = load_model(h5_path, require_plant=True)
-    ss = lm.plant if model == "plant" else lm.filtered
-    if ss is None:
-        raise FileFormatError(f"file '{h5_path}': holds no filtered model (the config had no "
-                              "'filter' section); use --model plant", key="--model",
-                              value=model, expected="plant")
-    u_units, y_units = _port_units(lm, ss)
-    structure = _damping_structure(ss, np.asarray(lm.damping_ratios, float))
-    if structure is None:
-        log.info("fmu: %s model is not modal with damping in A; no damping parameters", model)
-        structure = ((), (), np.zeros(0), np.zeros(0), ())
-    name = str(lm.path.stem)
-    return FmuModel(name, ss, u_units, y_units, *structure, _nominals(ss))
+def default_experiment(m: FmuModel) -> str:
+    """<DefaultExperiment>: 10 periods of the lowest frequency, 20 steps per period of
+    the highest (frequencies of A's eigenvalues, Hz; 1 Hz without any)."""
+    freqs = np.abs(np.linalg.eigvals(m.ss.A)) / (2 * np.pi)
+    freqs = freqs[freqs > 1e-6 * max(float(freqs.max(initial=0.0)), 1e-300)]
+    f_lo, f_hi = (float(freqs.min()), float(freqs.max())) if freqs.size else (1.0, 1.0)
+    return (f'  <DefaultExperiment startTime="0" stopTime="{10.0 / f_lo:.6g}" '
+            f'stepSize="{1.0 / (20.0 * f_hi):.6g}"/>\n')
 
 
-# --------------------------------------------------------------------------- C and XML
-def fmi_headers() -> Path:
-    """The folder of fmpy's FMI 2.0 headers (``fmi2Functions.h``)."""
-    try:
-        import fmpy
-    except ImportError:
-        raise ResourceError("export --to fmu: needs the FMI 2.0 headers of the Python package "
-                            "fmpy; install it with: pip install 'fe-reduced-body[fmu]' "
-                            "(or pip install fmpy)", key="fmpy", value="not installed",
-                            expected="fmpy") from None
-    folder = Path(fmpy.__file__).parent / "c-code"
-    if not (folder / "fmi2Functions.h").exists():
-        raise ResourceError(f"export --to fmu: fmpy has no FMI headers at {folder}",
-                            key="fmpy", value=str(folder), expected="c-code/fmi2Functions.h")
-    return folder
+def variables_section(m: FmuModel, rows: list[str]) -> str:
+    """<LogCategories>, <DefaultExperiment> and <ModelVariables> (the ``rows``): the part
+    of the model description FMI 2.0 and 3.0 write alike."""
+    return ('  <LogCategories>\n    <Category name="logStatusError"/>\n  </LogCategories>\n'
+            + default_experiment(m) + "  <ModelVariables>\n" + "\n".join(rows)
+            + "\n  </ModelVariables>\n")
 
 
-def platform_folder() -> tuple[str, str]:
-    """(FMI 2.0 binaries folder, shared-library ending) of this machine."""
-    bits = "64" if sys.maxsize > 2 ** 32 else "32"
-    if sys.platform.startswith("win"):
-        return "win" + bits, ".dll"
-    if sys.platform == "darwin":
-        return "darwin" + bits, ".dylib"
-    return "linux" + bits, ".so"
+def description(m: FmuModel, source: str) -> str:
+    nx = m.ss.A.shape[0]
+    return (f"{m.model} model of {source}: x' = A x + B u, y = C x + D u ({nx} states); "
+            "co-simulation steps are exact for inputs held over the step (zero-order hold)")
+
+
+def identifier(name: str, model: str) -> str:
+    """The modelIdentifier (a C name) of ``model`` of the file ``name``."""
+    ident = re.sub(r"[^A-Za-z0-9_]", "_", f"{name}_{model}")
+    return ident if ident[0].isalpha() else "m_" + ident
 
 
 def _c_array(name: str, values, ctype: str = "double") -> str:
@@ -215,110 +152,29 @@ def _c_array(name: str, values, ctype: str = "double") -> str:
 
 
 def model_data_header(m: FmuModel, guid: str) -> str:
-    """``model_data.h``: sizes, matrices (row major, 17 significant digits), GUID."""
-    ss = m.ss
-    nx, nu, ny, n_p = ss.A.shape[0], ss.B.shape[1], ss.C.shape[0], len(m.mode_pos)
-    out = [f"/* model data of {m.name}: generated by pipeline.apps.exports.fmu */\n",
+    """``model_data.h``: sizes, matrices (row major, 17 significant digits), the token."""
+    ss, p, d, f = m.ss, m.plant, m.damping, m.filter
+    nx, nu, ny = ss.A.shape[0], ss.B.shape[1], ss.C.shape[0]
+    nxp, nyp = p.A.shape[0], p.C.shape[0]
+    nz = 0 if d is None else len(d.vcol)
+    nf = 0 if f is None else f.A_f1.shape[0]
+    A_base, C_base = (p.A, p.C) if d is None else (d.A_base, d.C_base)
+    out = [f"/* model data of {m.name} ({m.model}): generated by pipeline.apps.exports.fmu */\n",
            f"#define MODEL_GUID \"{guid}\"\n#define NX {nx}\n#define NU {nu}\n#define NY {ny}\n",
-           f"#define NP {n_p}\n#define NACC {len(m.acc_rows)}\n",
-           _c_array("A0", ss.A), _c_array("B0", ss.B), _c_array("C0", ss.C), _c_array("D0", ss.D),
-           _c_array("X0", np.zeros(nx)), _c_array("NOMINAL", m.nominals),
-           _c_array("MODE_VEL", m.mode_vel, "int"), _c_array("OMEGA", m.omega),
-           _c_array("ZETA0", m.zeta),
-           _c_array("ACC_ROW", [a for a, _ in m.acc_rows], "int"),
-           _c_array("VEL_ROW", [v for _, v in m.acc_rows], "int")]
+           f"#define NXP {nxp}\n#define NYP {nyp}\n#define NZ {nz}\n#define NF {nf}\n",
+           f"#define NFIN {0 if f is None else len(f.rows)}\n",
+           _c_array("A_BASE", A_base), _c_array("B_P", p.B), _c_array("C_BASE", C_base),
+           _c_array("D_P", p.D), _c_array("GA", np.zeros(0) if d is None else d.GA),
+           _c_array("GC", np.zeros(0) if d is None else d.GC),
+           _c_array("VCOL", () if d is None else d.vcol, "int"),
+           _c_array("PAR0", [v for _, v, _, _ in parameters(m)]),
+           _c_array("AF1", np.zeros(0) if f is None else f.A_f1),
+           _c_array("BF1", np.zeros(0) if f is None else f.B_f1),
+           _c_array("CF1", np.zeros(0) if f is None else f.C_f1),
+           _c_array("CF_POW", () if f is None else f.pow, "int"),
+           _c_array("FIN_ROW", () if f is None else f.rows, "int"),
+           _c_array("X0", np.zeros(nx)), _c_array("NOMINAL", m.nominals)]
     return "".join(out)
-
-
-def _unit_definitions(units: set[str]) -> str:
-    lines = ["  <UnitDefinitions>"]
-    for u in sorted(units):
-        base = BASE_UNITS.get(u)
-        if base is None:
-            lines.append(f"    <Unit name={quoteattr(u)}/>")
-        else:
-            exps = " ".join(f'{k}="{v}"' for k, v in base.items())
-            lines.append(f"    <Unit name={quoteattr(u)}><BaseUnit {exps}/></Unit>"
-                         if exps else f"    <Unit name={quoteattr(u)}><BaseUnit/></Unit>")
-    lines.append("  </UnitDefinitions>")
-    return "\n".join(lines) + "\n"
-
-
-def model_description(m: FmuModel, identifier: str, guid: str, model: str,
-                      source: str) -> str:
-    """The FMI 2.0 modelDescription.xml (variables ordered as their value references)."""
-    from pipeline._version import __version__
-
-    ss = m.ss
-    nx = ss.A.shape[0]
-    freqs = m.omega / (2 * np.pi) if m.omega.size else np.abs(np.linalg.eigvals(ss.A)) / (2 * np.pi)
-    freqs = freqs[freqs > 0]
-    f_lo, f_hi = (float(freqs.min()), float(freqs.max())) if freqs.size else (1.0, 1.0)
-    rows, index = [], 0
-
-    def var(name, vr, attrs, real, description=""):
-        nonlocal index
-        index += 1
-        desc = f" description={quoteattr(description)}" if description else ""
-        rows.append(f"    <ScalarVariable name={quoteattr(name)} valueReference=\"{vr}\"{desc} "
-                    f"{attrs}>\n      <Real{real}/>\n    </ScalarVariable>")
-        return index
-
-    def unit(u):
-        return f" unit={quoteattr(u)}" if u else ""
-
-    states = [var(s, i, 'causality="local" variability="continuous" initial="exact"',
-                  ' start="0"', "state") for i, s in enumerate(ss.state_names)]
-    derivs = [var(f"der({s})", nx + i, 'causality="local" variability="continuous"',
-                  f' derivative="{states[i]}"') for i, s in enumerate(ss.state_names)]
-    for j, (s, u) in enumerate(zip(ss.input_names, m.input_units)):
-        var(s, 2 * nx + j, 'causality="input" variability="continuous"',
-            unit(u) + ' start="0"', "input (held constant over a co-simulation step)")
-    outputs = [var(s, 2 * nx + len(ss.input_names) + i,
-                   'causality="output" variability="continuous" initial="calculated"', unit(u),
-                   "output") for i, (s, u) in enumerate(zip(ss.output_names, m.output_units))]
-    base = 2 * nx + len(ss.input_names) + len(ss.output_names)
-    for k, z in enumerate(m.zeta):
-        var(f"damping_ratio_{k + 1}", base + k,
-            'causality="parameter" variability="tunable" initial="exact"',
-            f' start="{float(z)!r}" min="0"',
-            f"modal damping ratio of mode {k + 1} ({m.omega[k] / (2 * np.pi):.6g} Hz)")
-    units = {u for u in m.input_units + m.output_units if u}
-    src = '\n      <SourceFiles><File name="fmu.c"/></SourceFiles>'
-    caps = ('canNotUseMemoryManagementFunctions="true" canGetAndSetFMUstate="false" '
-            'canSerializeFMUstate="false" providesDirectionalDerivative="false"')
-    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    desc = (f"{model} model of {source}: x' = A x + B u, y = C x + D u ({nx} states); "
-            "co-simulation steps are exact for inputs held over the step (zero-order hold)")
-    unknown = lambda idx: "\n".join(f'      <Unknown index="{i}"/>' for i in idx)  # noqa: E731
-    return f"""<?xml version="1.0" encoding="UTF-8"?>
-<fmiModelDescription fmiVersion="2.0" modelName={quoteattr(identifier)} guid="{guid}"
-  description={quoteattr(desc)} generationTool="fe-reduced-body {escape(__version__)}"
-  generationDateAndTime="{now}" variableNamingConvention="flat" numberOfEventIndicators="0">
-  <ModelExchange modelIdentifier="{identifier}" {caps}>{src}
-  </ModelExchange>
-  <CoSimulation modelIdentifier="{identifier}" canHandleVariableCommunicationStepSize="true" canInterpolateInputs="false" {caps}>{src}
-  </CoSimulation>
-{_unit_definitions(units) if units else ""}  <LogCategories>
-    <Category name="logStatusError"/>
-  </LogCategories>
-  <DefaultExperiment startTime="0" stopTime="{10.0 / f_lo:.6g}" stepSize="{1.0 / (20.0 * f_hi):.6g}"/>
-  <ModelVariables>
-{chr(10).join(rows)}
-  </ModelVariables>
-  <ModelStructure>
-    <Outputs>
-{unknown(outputs)}
-    </Outputs>
-    <Derivatives>
-{unknown(derivs)}
-    </Derivatives>
-    <InitialUnknowns>
-{unknown(outputs + derivs)}
-    </InitialUnknowns>
-  </ModelStructure>
-</fmiModelDescription>
-"""
 
 
 BUILD_DESCRIPTION = """<?xml version="1.0" encoding="UTF-8"?>
@@ -332,41 +188,62 @@ BUILD_DESCRIPTION = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
+# --------------------------------------------------------------------------- build
+def fmi_headers(version: str = "2") -> Path:
+    """The folder of fmpy's FMI headers (``fmi2Functions.h``, ``fmi3Functions.h``)."""
+    try:
+        import fmpy
+    except ImportError:
+        raise ResourceError("export --to fmu: needs the FMI headers of the Python package "
+                            "fmpy; install it with: pip install 'fe-reduced-body[fmu]' "
+                            "(or pip install fmpy)", key="fmpy", value="not installed",
+                            expected="fmpy") from None
+    folder = Path(fmpy.__file__).parent / "c-code"
+    header = f"fmi{version}Functions.h"
+    if not (folder / header).exists():
+        raise ResourceError(f"export --to fmu: fmpy has no FMI headers at {folder}",
+                            key="fmpy", value=str(folder), expected=f"c-code/{header}")
+    return folder
+
+
 def _compiler() -> str:
     cc = os.environ.get("CC") or "gcc"
     path = shutil.which(cc)
     if path is None:
         raise ResourceError(f"export --to fmu: needs a C compiler to build the FMU binary: "
-                            f"'{cc}' not found on PATH (install gcc, or set CC)",
+                            f"'{cc}' not found on PATH (install gcc: Debian/Ubuntu 'apt install "
+                            "gcc' or build-essential; or set CC)",
                             key="CC", value=cc, expected="a C compiler (gcc) on PATH")
     return path
 
 
-def _identifier(name: str, model: str) -> str:
-    ident = re.sub(r"[^A-Za-z0-9_]", "_", f"{name}_{model}")
-    return ident if ident[0].isalpha() else "m_" + ident
-
-
-def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant") -> Path:
-    """Write the FMU of ``model`` (plant | filtered) of ``h5_path`` to ``out_path``
-    (compiling its C code with gcc or ``$CC``); returns ``out_path``."""
+def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant",
+               fmi_version: str | int = "2") -> Path:
+    """Write the FMU (FMI ``fmi_version`` 2 or 3) of ``model`` (any name
+    :func:`.fmu_models.fmu_model` takes) of ``h5_path`` to ``out_path``, compiling its C code
+    with gcc or ``$CC``; returns ``out_path``. Bad input (version, model, compiler, a file
+    without the model) is refused before anything is written."""
     h5_path, out_path = Path(h5_path), Path(out_path)
+    version = check_fmi_version(fmi_version)
+    check_model_name(model)
+    fmi = import_module(f"{__package__}.{FMI_VERSIONS[version]}")
     cc = _compiler()
-    headers = fmi_headers()
+    headers = fmi_headers(version)
     m = fmu_model(h5_path, model)
-    identifier = _identifier(m.name, model)
-    digest = hashlib.sha256()
+    ident = identifier(m.name, m.model)
+    digest = hashlib.sha256(version.encode())
     for a in m.ss:
         digest.update(np.ascontiguousarray(a).tobytes())
     digest.update("|".join(m.ss.input_names + m.ss.output_names + m.ss.state_names).encode())
     guid = "{" + str(uuid.UUID(bytes=digest.digest()[:16], version=4)) + "}"
-    template = resources.files("pipeline.apps.exports").joinpath("fmu_template.c").read_text()
+    files = resources.files(__package__)
+    source = files.joinpath("fmu_core.c").read_text() + files.joinpath(fmi.C_API).read_text()
     header = model_data_header(m, guid)
-    folder, ending = platform_folder()
+    folder, ending = fmi.platform_folder()
     with private_folder("fmu_") as tmp:  # the build folder: C sources and the library
-        (tmp / "fmu.c").write_text(template)
+        (tmp / "fmu.c").write_text(source)
         (tmp / "model_data.h").write_text(header)
-        lib = tmp / (identifier + ending)
+        lib = tmp / (ident + ending)
         cmd = [cc, "-std=c99", "-O2", "-shared", "-fPIC", f"-I{headers}", "-o", str(lib),
                str(tmp / "fmu.c"), "-lm"]
         proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -375,21 +252,22 @@ def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant") 
             raise ResourceError(f"export --to fmu: the C compiler failed ({cc}): {first}",
                                 key="CC", value=cc, expected="a working C99 compiler")
         entries = {
-            "modelDescription.xml": model_description(m, identifier, guid, model,
-                                                      str(h5_path.name)),
-            "sources/fmu.c": template,
+            "modelDescription.xml": fmi.model_description(m, ident, guid, description(
+                m, h5_path.name)),
+            "sources/fmu.c": source,
             "sources/model_data.h": header,
-            "sources/buildDescription.xml": BUILD_DESCRIPTION.format(identifier=identifier),
+            "sources/buildDescription.xml": BUILD_DESCRIPTION.format(identifier=ident),
             "documentation/index.html": (
-                f"<html><body><h1>{escape(identifier)}</h1><p>{escape(model)} model of "
-                f"{escape(str(h5_path.name))}, exported by fe-reduced-body: x' = A x + B u, "
-                "y = C x + D u (SI units). Co-simulation steps are exact for piecewise-constant "
-                "inputs (zero-order hold).</p></body></html>\n"),
+                f"<html><body><h1>{escape(ident)}</h1><p>{escape(m.model)} model of "
+                f"{escape(h5_path.name)}, exported by fe-reduced-body as an FMI {version}.0 "
+                "FMU: x' = A x + B u, y = C x + D u (SI units). Co-simulation steps are exact "
+                "for piecewise-constant inputs (zero-order hold).</p></body></html>\n"),
         }
         with atomic_path(out_path) as part, zipfile.ZipFile(part, "w", zipfile.ZIP_DEFLATED) as z:
             for name, text in entries.items():
                 z.writestr(name, text)
-            z.write(lib, f"binaries/{folder}/{identifier}{ending}")
-    log.info("wrote FMU %s (%s, %d states, %d inputs, %d outputs, %d damping parameters)",
-             out_path, model, m.ss.A.shape[0], m.ss.B.shape[1], m.ss.C.shape[0], m.zeta.size)
+            z.write(lib, f"binaries/{folder}/{ident}{ending}")
+    log.info("wrote FMU %s (FMI %s.0, %s, %d states, %d inputs, %d outputs, %d parameters)",
+             out_path, version, m.model, m.ss.A.shape[0], m.ss.B.shape[1], m.ss.C.shape[0],
+             m.n_parameters)
     return out_path
