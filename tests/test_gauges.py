@@ -175,6 +175,12 @@ def test_cli_run_gauge_dc_gain_equals_full_fe_and_beam_theory(tmp_path):
     bound = 10 * lmax / lmin * EPS * np.linalg.norm(x) * np.linalg.norm(row)
     assert abs(dc[g] - full) <= bound, (dc[g], full, bound)
     assert full == pytest.approx(beam_strain(L / 2), rel=0.005)  # measured 1e-4
+    # the Exudyn export re-assembles the stored mesh's input loads from the stored config
+    # (its gauge keys included) without a traceback
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "-q", "export", str(out), "--to",
+                           "exudyn", "-o", str(tmp_path / "g.hdf5")], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_cli_refuses_a_gauge_off_the_surface_before_the_modes(tmp_path):

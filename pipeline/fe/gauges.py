@@ -243,6 +243,7 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
             "mean over the elements around a point inside the body")
     normal = faces.normals[seed]
     planes, offsets = grid_planes(normal, direction, length, width, radius, key)
+    nominal = length * width if length > 0 else math.pi * radius * radius  # m^2 (flat)
     neighbours = _edge_neighbours(tris, space.body.n_vertices)
     elements, points, areas = [], [], []
     seen = {seed}
@@ -251,7 +252,7 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
         t = stack.pop()
         piece = _clip(v[tris[t]], p, planes, offsets)
         area, centroid = _area_centroid(piece)
-        if area <= 1e-12 * faces.areas[t]:
+        if not area > 1e-12 * min(nominal, faces.areas[t]):  # nothing, or a sliver
             continue
         elements.append(faces.owners[t])
         points.append(centroid)
@@ -261,8 +262,10 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
                 seen.add(int(u))
                 stack.append(int(u))
     if not areas:
-        raise RegionError(f"config key '{key}': the gauge's grid covers no surface at "
-                          f"{p.tolist()}; expected a grid size > 0 on the surface")
+        size = f"{length:g} m x {width:g} m" if length > 0 else f"radius {radius:g} m"
+        raise RegionError(f"config key '{key}': the gauge's grid ({size}) covers no surface "
+                          f"at {p.tolist()}; expected a grid larger than the round-off of the "
+                          "coordinates (1e-9 of the body's size or more)")
     return SurfacePatch(np.array(elements, dtype=np.int64), np.array(points), np.array(areas))
 
 
