@@ -83,8 +83,11 @@ def test_linear_field_gives_exact_strain_everywhere(tmp_path, order):
     for kind, (normal, shear) in expected.items():
         scale = np.abs(sig).max() if kind == "stress" else np.abs(e).max()
         where = [dict(point=(0.2, 0.01, 0.02)),                    # at a point
-                 dict(point=(0.2, 0.02, 0.02), radius=0.015),      # a sphere at the surface
-                 dict(triangles=model.regions["top"])]             # a boundary region
+                 dict(point=(0.2, 0.02, 0.02), radius=0.015),      # a disc on the surface
+                 dict(point=(0.2, 0.02, 0.02), length=0.01, width=0.004),  # a grid
+                 dict(triangles=model.regions["top"]),             # a boundary region
+                 dict(point=(0.2, 0.02, 0.02), radius=0.015, average="volume"),  # a sphere
+                 dict(triangles=model.regions["top"], average="volume")]
         for loc in where:
             row = strain.gauge_row(space, ALUMINIUM, kind, d1, **loc)
             assert row @ U == pytest.approx(normal, abs=1e-10 * scale)
@@ -114,7 +117,7 @@ def test_gauge_outside_body_or_empty_is_refused(coarse):
                          key="ports.outputs[1]")
     with pytest.raises(RegionError, match="no element centroid"):
         strain.gauge_row(coarse.space, ALUMINIUM, "strain", (1, 0, 0), point=(0.25, 0.02, 0),
-                         radius=1e-5)
+                         radius=1e-5, average="volume")
 
 
 def _tip_load(model):
@@ -301,8 +304,7 @@ def test_gauge_as_input_is_refused():
 # --------------------------------------------------------------------------- file and simulate
 @pytest.fixture(scope="module")
 def gauge_file(tmp_path_factory):
-    """configs/cantilever_gauges.yaml at h = 20 mm through the pipeline (the sphere gauges
-    widened to 12 mm so that they hold element centroids), and its FE model."""
+    """configs/cantilever_gauges.yaml at h = 20 mm through the pipeline, and its FE model."""
     from pathlib import Path
 
     from pipeline.config import load_config
@@ -311,8 +313,7 @@ def gauge_file(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("gauges")
     root = Path(__file__).resolve().parents[1]
-    cfg = load_config(root / "configs" / "cantilever_gauges.yaml", ["mesh.size=0.02", "ports.outputs[1].radius=0.012",
-                                                   "ports.outputs[3].radius=0.012"])
+    cfg = load_config(root / "configs" / "cantilever_gauges.yaml", ["mesh.size=0.02"])
     out = tmp / "gauges.h5"
     run_pipeline(cfg, out, mesh_dir=tmp)
     fe = build_fe_model(cfg, tmp)

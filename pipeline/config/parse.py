@@ -15,6 +15,7 @@ from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
+from pipeline.config.gauges import AREA_KEYS, gauge_area
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.supports import parse_support
@@ -172,15 +173,15 @@ def _ports(raw: Any) -> Ports:
 
 def _gauge_port(raw: Mapping, path: str) -> Port:
     """A strain or stress output: name, kind, direction [, direction2] and either a
-    boundary ``region`` or a ``point`` [, ``radius`` >= 0 m] (docs/stress.md)."""
-    item = v.mapping(raw, path, ("name", "region", "kind", "direction", "direction2", "point",
-                                 "radius"), ("name", "kind", "direction"))
+    boundary ``region`` or a ``point`` [, ``radius`` >= 0 m | ``length`` and ``width`` m]
+    [, ``average``] (docs/stress.md, :mod:`pipeline.config.gauges`)."""
+    item = v.mapping(raw, path, ("name", "region", "kind", "direction", "direction2", "point")
+                     + AREA_KEYS, ("name", "kind", "direction"))
     if ("region" in item) == ("point" in item):
         raise v.fail(path, dict(item), "exactly one of 'region' (a boundary region the gauge "
-                    "covers) or 'point' (with an optional 'radius' in m)")
-    if "region" in item and "radius" in item:
-        raise v.fail(f"{path}.radius", item["radius"], "no radius with 'region' (a radius "
-                    "goes with 'point')")
+                    "covers) or 'point' (with an optional 'radius', or 'length' and 'width', "
+                    "in m)")
+    area = gauge_area(item, path)
     d1 = v.vector(item, "direction", path, nonzero=True)
     d2 = v.vector(item, "direction2", path, None, nonzero=True)
     if d2 is not None:
@@ -192,8 +193,7 @@ def _gauge_port(raw: Mapping, path: str) -> Port:
     return Port(name=v.name(item, "name", path),
                 region=v.name(item, "region", path) if "region" in item else "",
                 kind=item["kind"], direction=d1, direction2=d2,
-                point=v.vector(item, "point", path, None),
-                radius=v.number(item, "radius", path, 0.0, lo=0.0) if "point" in item else 0.0)
+                point=v.vector(item, "point", path, None), **area)
 
 
 def _damping(raw: Any) -> Damping:

@@ -23,6 +23,9 @@ OutputKind = Literal["displacement", "rotation", "strain", "stress"]
 PortKind = Literal["force", "moment", "displacement", "rotation", "strain", "stress"]
 #: output kinds read inside the body (gauges) rather than as the motion of a surface region
 GAUGE_KINDS: tuple[str, ...] = ("strain", "stress")
+#: what a gauge with an area averages: the strain on the surface it covers, or the
+#: element averages of the elements around it (docs/stress.md)
+GaugeAverage = Literal["surface", "volume"]
 DampingKind = Literal["uniform", "per_mode", "rayleigh"]
 StaticCorrection = Literal["none", "residual", "augment"]
 FilterKind = Literal["none", "first_order", "third_order"]
@@ -138,9 +141,12 @@ class Port:
 
     A gauge reads sym(d1 d2^T) : eps (strain, tensor shear) or : sigma (stress, Pa) with
     d1 = ``direction``, d2 = ``direction2`` (default d1: the normal strain / stress along
-    d1), averaged over the elements with a face on ``region``, or over the elements whose
-    centroid lies within ``radius`` (m) of ``point`` (``region`` is then ""), or taken at
-    ``point`` itself (radius 0).
+    d1). With ``average`` "surface" (the default) it is the area-weighted mean of the
+    surface value over ``region``, or over the surface around ``point`` covered by a grid
+    of ``length`` (along d1) x ``width`` (m) or a disc of ``radius`` (m); with "volume"
+    the volume-weighted mean of the element averages over the elements with a face on
+    ``region`` or whose centroid lies within ``radius`` of ``point``; with neither a grid
+    nor a radius the value at ``point`` itself (``region`` is "" for a point).
     """
 
     name: str
@@ -150,6 +156,9 @@ class Port:
     direction2: tuple[float, float, float] | None = None
     point: tuple[float, float, float] | None = None
     radius: float = 0.0
+    length: float = 0.0
+    width: float = 0.0
+    average: GaugeAverage = "surface"
 
 
 @dataclass(frozen=True)

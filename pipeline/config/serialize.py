@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, fields
 from typing import Any
 
-from pipeline.config.schema import Config
+from pipeline.config.schema import GAUGE_KINDS, Config
 from pipeline.config.supports import support_dict
 
 
@@ -63,10 +63,15 @@ def config_to_dict(cfg: Config) -> dict:
 
 def _port_dict(port) -> dict:
     """A port as its YAML keys: the gauge keys only where set (docs/stress.md)."""
+    area = ("radius", "length", "width", "average")
     out = {k: v for k, v in asdict(port).items()
-           if v is not None and k != "radius" and (k != "region" or v)}
+           if v is not None and k not in area and (k != "region" or v)}
     if port.point is not None and port.radius:
         out["radius"] = port.radius
+    if port.length:
+        out.update(length=port.length, width=port.width)
+    if (port.region and port.kind in GAUGE_KINDS) or port.radius or port.length:
+        out["average"] = port.average
     return out
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Material, Port, Ports
+from pipeline.config.schema import GAUGE_KINDS
 from pipeline.errors import RegionError
 from pipeline.fe.space import FESpace, SurfaceRegion, surface_region
 from pipeline.fe.regions import get_region
@@ -76,6 +77,14 @@ def port_vector(space: FESpace, region: SurfaceRegion, port: Port, key: str) -> 
     return vec.ravel()
 
 
+def _gauge_row(space: FESpace, regions: Mapping[str, np.ndarray], port: Port,
+               material: Material | None, key: str) -> np.ndarray:
+    """(n_dofs,) sensor row of the gauge output ``port`` (config key ``key``)."""
+    tris = get_region(regions, port.region, f"{key}.region") if port.region else None
+    return gauge_row(space, material, port.kind, port.direction, port.direction2, tris,
+                     port.point, port.radius, key, port.length, port.width, port.average)
+
+
 def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
                   material: Material | None = None) -> PortMatrices:
     """Assemble F and T for the configured ports (``material``: for stress outputs)."""
@@ -85,12 +94,8 @@ def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Port
         cols = []
         for i, port in enumerate(items):
             key = f"ports.{side}[{i}]"
-            if port.kind in ("strain", "stress"):
-                tris = (get_region(regions, port.region, f"{key}.region") if port.region
-                        else None)
-                row = gauge_row(space, material, port.kind, port.direction,
-                                port.direction2, tris, port.point, port.radius, key)
-                cols.append(sp.csc_matrix(row[:, None]))
+            if port.kind in GAUGE_KINDS:
+                cols.append(sp.csc_matrix(_gauge_row(space, regions, port, material, key)[:, None]))
                 continue
             if port.region not in cache:
                 cache[port.region] = surface_region(
@@ -106,3 +111,13 @@ def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Port
                         tuple(p.name for p in ports.outputs),
                         tuple(UNITS[p.kind] for p in ports.inputs),
                         tuple(UNITS[p.kind] for p in ports.outputs))
+
+
+def check_gauges(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
+                 material: Material | None = None) -> None:
+    """Place every gauge output (its point, or the surface it covers) on the mesh, so that
+    a gauge off the surface or outside the body stops a run in one line before the long
+    stages; the rows are built again with the other ports after the modes (cheap)."""
+    for i, port in enumerate(ports.outputs):
+        if port.kind in GAUGE_KINDS:
+            _gauge_row(space, regions, port, material, f"ports.outputs[{i}]")

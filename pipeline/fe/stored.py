@@ -22,7 +22,7 @@ from typing import Mapping
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.config import Config
+from pipeline.config import Config, Ports
 from pipeline.errors import MeshError
 from pipeline.fe.assemble import assemble_stiffness_mass
 from pipeline.fe.mesh.common import BodyMesh
@@ -68,7 +68,9 @@ def matrices_of_stored_mesh(cfg: Config, points: np.ndarray, cells: np.ndarray,
     F = np.zeros((space.n_dofs, 0))
     names: tuple[str, ...] = ()
     if n_u:
-        ports = port_matrices(space, regions, cfg.ports)
+        # the input loads only: the stored output rows are the file's own (a gauge's row
+        # depends on the version that placed it)
+        ports = port_matrices(space, regions, Ports(inputs=cfg.ports.inputs))
         F, names = ports.F.toarray(), tuple(ports.input_names)
     if assemble:
         log.info("re-assembled K and M of %s on its stored mesh (%d DOFs)", what, space.n_dofs)

@@ -36,9 +36,12 @@ Gauges (``gauge_row``): a strain or stress port is a linear functional of the no
 displacement vector, g(u) = w . s(u), with w the Voigt weights of the symmetric dyad
 A = (d1 d2^T + d2 d1^T) / 2 of its unit direction(s): the normal strain or stress along d
 (d2 = d1) or the shear component between d1 and d2 (tensor shear for strain). The value
-is the volume-weighted mean of the element averages over the gauge's elements (a named
-boundary region: the elements with a face on it; or a sphere: the elements whose centroid
-lies within it), or the value at a point (radius 0) inside its element.
+is, by default (``average="surface"``), the area-weighted mean of the surface strain over
+the surface the gauge covers (a named boundary region, or a grid or disc around a point
+on the surface; :mod:`pipeline.fe.gauges`); with ``average="volume"`` the
+volume-weighted mean of the element averages over the gauge's elements (a named boundary
+region: the elements with a face on it; or a sphere: the elements whose centroid lies
+within it); or the value at a point (no radius, no grid) inside its element.
 Shapes: the operator of ``element_strain_operator`` is (6 n_e, n_dofs) sparse, row
 6 e + k is component k of element e; fields are (n_e | n_nodes, 6, n_shapes).
 """
@@ -52,6 +55,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.errors import RegionError
+from pipeline.fe.gauges import grid_patch, region_patch, strain_row
 from pipeline.fe.kernels import inverse_jacobians, lame_parameters, scatter_add
 from pipeline.fe.space import FESpace
 
@@ -281,17 +285,24 @@ def _point_strain_row(space: FESpace, point, key: str) -> np.ndarray:
 
 def gauge_row(space: FESpace, material: Material | None, kind: str, direction, direction2=None,
               triangles: np.ndarray | None = None, point=None, radius: float = 0.0,
-              key: str = "ports.outputs") -> np.ndarray:
+              key: str = "ports.outputs", length: float = 0.0, width: float = 0.0,
+              average: str = "surface") -> np.ndarray:
     """(n_dofs,) sensor row of a strain (1) or stress (Pa) gauge per metre of nodal
-    displacement; located on a boundary region (``triangles``), in a sphere (``point``,
-    ``radius`` > 0) or at a ``point`` (module docstring)."""
+    displacement; located on a boundary region (``triangles``), around a ``point`` on the
+    surface (a ``length`` x ``width`` grid along ``direction`` or a disc of ``radius``, m),
+    in a sphere (``point``, ``radius`` > 0, ``average="volume"``) or at a ``point``
+    (module docstring)."""
     w = voigt_weights(kind, direction, direction2)
     if kind == "stress":
         if material is None:
             raise ValueError(f"{key}: a stress gauge needs the material (pass material=)")
         w = elasticity_matrix(material).T @ w  # w . (D eps) = (D^T w) . eps
-    if triangles is None and radius == 0.0:
+    if triangles is None and radius == 0.0 and length == 0.0:
         return w @ _point_strain_row(space, point, key)
+    if average == "surface":
+        patch = region_patch(space, triangles, key) if triangles is not None else \
+            grid_patch(space, point, direction, length, width, radius, key)
+        return strain_row(space, patch, w)
     if triangles is not None:
         elements = elements_on_surface(space, triangles)
         where = "has no element face on it"
