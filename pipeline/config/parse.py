@@ -9,6 +9,7 @@ model with ports, ...) are checked after the sections.
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence, get_args
@@ -26,6 +27,8 @@ from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOME
                                     Reduction, RegionSelector, SelectorKind, StaticCorrection,
                                     Support)
 from pipeline.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 def _geometry(raw: Any, base_dir: str = "") -> Geometry:
     raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale"),
@@ -65,9 +68,16 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
 
 
 def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
-    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), ("size",))
+    # a mesh file brings its elements: mesh.size (gmsh's element size) does not apply
+    from_file = geometry.kind == "mesh"
+    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), () if from_file else ("size",))
     order = v.choice(raw, "order", "mesh", (1, 2), default=2)
-    size = v.number(raw, "size", "mesh", lo=0.0, lo_open=True)
+    size = v.number(raw, "size", "mesh", MeshSpec.size if from_file else v.MISSING, lo=0.0,
+                    lo_open=True)
+    if from_file and ("size" in raw or "algorithm" in raw):
+        log.warning("config key 'mesh.%s' does not apply to geometry.kind 'mesh' (the file's "
+                    "elements are used as they are): ignored",
+                    "size" if "size" in raw else "algorithm")
     largest = geometry.largest_dimension()
     if largest is not None:
         if size > largest:
@@ -298,7 +308,7 @@ def _section(raw: Mapping, key: str) -> Any:
 
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
-    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
+    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "material"))
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
@@ -317,7 +327,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     cfg = Config(
         name=v.name(raw, "name", ""),
         geometry=geometry,
-        mesh=_mesh(raw["mesh"], geometry),
+        mesh=_mesh(_section(raw, "mesh"), geometry),
         material=_material(raw["material"]),
         supports=_supports(raw.get("supports")),
         constraints=Constraints(in_plane=v.boolean(constraints, "in_plane", "constraints", False)),
@@ -334,7 +344,11 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                                      lo=0, hi=500),
         source=source,
     )
-    known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
+    # a box's and a CAD file's region names are all known here (its faces, the selectors);
+    # a mesh file's or a .geo script's named groups are checked where the mesh is read,
+    # before assembly (pipeline.fe.regions.check_region_uses)
+    known = (set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
+             if geometry.kind in ("box", "step") else set())
     used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
     used += [(f"ports.inputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.inputs)]
     used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)

@@ -27,7 +27,7 @@ from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
-from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -44,7 +44,7 @@ class FEModel:
     """The discretised body, supported as the config says.
 
     space: the FE space (mesh points, elements, DOF numbering).
-    regions: region name -> (n_f, 3) boundary triangles (vertex indices).
+    regions: region name -> vertex cells (n, 3 | 2 | 1): a face, line or point region.
     fixed, free: sorted DOF indices (int64), fixed + free = all 3 * n_points DOFs.
     K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs.
     K_full, M_full: (n_dofs, n_dofs) unsupported matrices, or None (kept only when
@@ -95,6 +95,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        check_region_uses(cfg, space, regions)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)

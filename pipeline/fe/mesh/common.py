@@ -66,18 +66,22 @@ def z_order(points: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BodyMesh:
-    """A tetrahedral mesh of the body with named boundary regions.
+    """A tetrahedral mesh of the body with named regions.
 
     vertices: (n_v, 3) float64, m.
     tetrahedra: (n_t, 4) int64 vertex indices, positively oriented.
-    regions: name -> (n_f, 3) int64 vertex indices of the boundary triangles.
+    regions: name -> int64 vertex indices of the region's cells: (n, 3) triangles (a
+        face), (n, 2) edges (a line) or (n, 1) vertices (a point or node set).
     source: the file the mesh was read from.
+    other_groups: name -> what it is, for the named groups of the file that are no
+        region (a volume group: "a volume group of 120 tetrahedra").
     """
 
     vertices: np.ndarray
     tetrahedra: np.ndarray
     regions: Mapping[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
+    other_groups: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:

@@ -1,13 +1,16 @@
 """Mesh files: :func:`read_mesh` reads any tetrahedral mesh meshio reads, with its named
 boundary regions; the ``mesh`` source (:func:`mesh_file`) reads the file
 ``geometry.path`` as it is (``.msh``, ``.inp``, ``.vtu``, ``.med``, ...) and multiplies
-its coordinates by ``geometry.scale``; its triangle cell sets (gmsh physical groups)
-name regions. ``mesh.size`` does not apply.
+its coordinates by ``geometry.scale``; its named triangle, line and vertex cell sets
+(gmsh physical groups of dimension 2, 1, 0) name face, line and point regions; other
+groups (volumes) are named in the log and in the error of a config that uses one.
+``mesh.size`` does not apply.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import logging
 from pathlib import Path
@@ -61,8 +64,8 @@ def read_mesh(path: str | Path) -> BodyMesh:
     """Read a tetrahedral mesh (any format meshio reads) with its named boundary regions.
 
     Accepts ``tetra`` and ``tetra10`` cells (higher-order nodes are dropped: see the
-    module docstring); named regions are the triangle cell sets (gmsh physical
-    groups). Unused nodes are removed and vertices renumbered 0..n_v-1 along the
+    module docstring); named regions are the triangle, line and vertex cell sets (gmsh
+    physical groups of dimension 2, 1 and 0: :func:`named_groups`). Unused nodes are removed and vertices renumbered 0..n_v-1 along the
     Z-order curve (:func:`~pipeline.fe.mesh.common.z_order`), and the elements sorted by
     their lowest vertex number: near nodes get near DOF numbers, so the sparse products
     with K and M gather from cache instead of memory: at 1M DOFs, against gmsh's own
@@ -93,25 +96,65 @@ def read_mesh(path: str | Path) -> BodyMesh:
     tets = orient(vertices, renumber[tets], str(path))
     tets = tets[np.argsort(tets.min(axis=1), kind="stable")]  # elements in vertex order
 
+    regions, other = named_groups(mesh, renumber, str(path))
+    log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
+             tets.shape[0], ", ".join(sorted(regions)) or "none")
+    return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path),
+                    other_groups=other)
+
+
+#: meshio cell type -> dimension of the region its cells make (vertex columns: dimension + 1)
+REGION_CELLS = {"triangle": 2, "triangle6": 2, "line": 1, "line3": 1, "vertex": 0}
+
+
+def named_groups(mesh, renumber: np.ndarray, source: str
+                 ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The named cell sets of a meshio mesh (gmsh physical groups) as regions, and the
+    rest named by what they are.
+
+    A set's region is made of its cells of the highest dimension it has among triangles
+    (a face, (n, 3)), lines ((n, 2)) and vertices ((n, 1)), in vertex numbers after
+    ``renumber``; lower-dimensional cells besides are left out with a log line. A set of
+    volume cells only (a gmsh physical volume) is no region: it is returned in the second
+    mapping, name -> "a volume group of N tetrahedra", so that a config naming it is told
+    what it is. Returns (regions, other groups).
+    """
     regions: dict[str, np.ndarray] = {}
+    other: dict[str, str] = {}
     for name, per_block in (mesh.cell_sets or {}).items():
         if name.startswith("gmsh:"):
             continue
         # a region name becomes an HDF5 key (mesh/regions/<name>) and exported names
-        check_name(name, f"mesh file '{path}': region name", error=MeshError)
-        tris = []
+        check_name(name, f"mesh file '{source}': region name", error=MeshError)
+        by_dim: dict[int, list[np.ndarray]] = {}
+        counts: dict[str, int] = {}
         for block, ids in zip(mesh.cells, per_block):
-            if block.type in ("triangle", "triangle6") and ids is not None and len(ids):
-                tris.append(block.data[np.asarray(ids), :3])
-        if tris:
-            tri = renumber[np.concatenate(tris).astype(np.int64)]
-            if (tri < 0).any():
-                raise MeshError(f"mesh file '{path}': region '{name}' has triangles whose nodes "
-                                "belong to no tetrahedron")
-            regions[name] = tri
-    log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
-             tets.shape[0], ", ".join(sorted(regions)) or "none")
-    return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path))
+            if ids is None or not len(ids):
+                continue
+            counts[block.type] = counts.get(block.type, 0) + len(ids)
+            dim = REGION_CELLS.get(block.type)
+            if dim is not None:
+                by_dim.setdefault(dim, []).append(block.data[np.asarray(ids), :dim + 1])
+        if not by_dim:
+            listing = ", ".join(f"{n} {k}" for k, n in sorted(counts.items())) or "no cells"
+            volume = all(k in VOLUME_TYPES for k in counts) and counts
+            other[name] = (f"a volume group ({listing})" if volume
+                           else f"a group of {listing}")
+            log.info("mesh '%s': group '%s' is %s: not a face, line or point region", source,
+                     name, other[name])
+            continue
+        dim = max(by_dim)
+        cells = renumber[np.concatenate(by_dim[dim]).astype(np.int64)]
+        if (cells < 0).any():
+            raise MeshError(f"mesh file '{source}': region '{name}' has cells whose nodes "
+                            "belong to no tetrahedron")
+        left = sorted(k for k in counts if REGION_CELLS.get(k) != dim)
+        if left:
+            log.info("mesh '%s': region '%s' is made of its %s cells; its %s cells are left out",
+                     source, name, ", ".join(k for k in counts if REGION_CELLS.get(k) == dim),
+                     ", ".join(left))
+        regions[name] = cells
+    return regions, other
 
 
 def read_foreign(geometry: Geometry) -> BodyMesh:
@@ -143,8 +186,7 @@ def read_foreign(geometry: Geometry) -> BodyMesh:
                         "expected a tetrahedral volume mesh (tetra or tetra10)")
     body = read_mesh(path)
     if geometry.scale != 1.0:
-        body = BodyMesh(vertices=body.vertices * geometry.scale, tetrahedra=body.tetrahedra,
-                        regions=body.regions, source=body.source)
+        body = dataclasses.replace(body, vertices=body.vertices * geometry.scale)
     extent = body.vertices.max(axis=0) - body.vertices.min(axis=0)
     check_dimensions(extent, geometry, str(path))
     return body
