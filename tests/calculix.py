@@ -44,7 +44,7 @@ def write_frequency_deck(path: Path, points: np.ndarray, cells: np.ndarray, E: f
             out.append(", ".join(ids[8:]))
     for name, (nodes, _) in fixed.items():
         out += [f"*NSET, NSET={name}", _lines(np.asarray(nodes) + 1)]
-    out += ["*MATERIAL, NAME=MAT", "*ELASTIC", f"{E:.17g}, {nu:.17g}", "*DENSITY", f"{rho:.17g}",
+    out += ["*MATERIAL, NAME=MAT", "*ELASTIC", f"{E:.12g}, {nu:.12g}", "*DENSITY", f"{rho:.12g}",
             "*SOLID SECTION, ELSET=EALL, MATERIAL=MAT", "*STEP", "*FREQUENCY", f"{n_modes}",
             "*BOUNDARY"]
     for name, (_, comps) in fixed.items():

@@ -23,7 +23,7 @@ import yaml
 from calculix import CCX, run_frequencies, write_frequency_deck
 from conftest import ROOT
 from pipeline.config import RegionSelector, config_from_dict
-from pipeline.errors import RegionError
+from pipeline.errors import ConfigError, RegionError
 from pipeline.fe.mesh import read_mesh
 from pipeline.fe.model import build_fe_model
 from pipeline.fe.ports import port_matrices
@@ -314,3 +314,82 @@ def test_mesh_size_does_not_apply_to_a_mesh_file(plate_msh, caplog):
         cfg = config_from_dict(raw)
     assert cfg.mesh.order == 1
     assert "'mesh.size' does not apply to geometry.kind 'mesh'" in caplog.text
+
+
+# --------------------------------------------------------------------------- Abaqus, Nastran
+@pytest.fixture(scope="module")
+def abaqus_plate(plate_msh, tmp_path_factory):
+    """The quadratic plate mesh as an Abaqus/CalculiX deck in mm-t-s (MPa, t/mm^3): C3D10
+    elements in the element set EALL, node sets C0, C1, C2 holding the nodes (mid-edge
+    nodes included) whose x, y, z the simply supported plate fixes, found from the
+    coordinates; with CalculiX's frequencies of it (None without ccx)."""
+    space = build_space(read_mesh(plate_msh), 2)
+    points = space.node_points
+    fixed = geometric_fixed_dofs(points)
+    sets = {f"C{c}": (np.unique(fixed[fixed % 3 == c] // 3), [c + 1]) for c in range(3)}
+    folder = tmp_path_factory.mktemp("inp")
+    deck = write_frequency_deck(folder / "plate.inp", points * 1e3, space.element_nodes,
+                                E * 1e-6, NU, RHO * 1e-12, sets, 4)
+    return deck, (run_frequencies(deck)[:4] if CCX else None)
+
+
+def abaqus_config(deck: Path, **geometry) -> dict:
+    return {"name": "plate_inp", "geometry": {"kind": "mesh", "path": str(deck), **geometry},
+            "material": {"E": E, "nu": NU, "rho": RHO},  # SI, whatever the file's units
+            "supports": [{"region": f"C{c}", "fix": [xyz]} for c, xyz in enumerate("xyz")],
+            "modes": {"count": 4},
+            "ports": {"inputs": [{"name": "f", "region": "C0", "kind": "force",
+                                  "direction": [0, 0, 1]}]}}
+
+
+def test_abaqus_node_sets_are_regions_and_units_convert(abaqus_plate, tmp_path):
+    """The deck's node sets carry the supports by name: C2 (the four bottom edges, with
+    their mid-edge nodes) becomes a line region that takes no triangle across a corner,
+    C0 the corner's point; the mm coordinates become m. The same fixed DOFs as found from
+    the coordinates, and CalculiX's frequencies of the same deck within 1e-4 (its 4-point
+    mass integration, see above)."""
+    deck, theirs = abaqus_plate
+    out = run_cli(abaqus_config(deck, units="mm-t-s"), tmp_path, "plate_inp")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "node set 'C2': a line of" in out.stderr
+    assert "group 'EALL' is a volume group" in out.stderr
+    with h5py.File(tmp_path / "plate_inp.h5") as h5:
+        points = h5["mesh/points"][()]
+        ours, fixed = h5["modes/frequencies_hz"][()], h5["mesh/fixed_dofs"][()]
+        assert h5["mesh/regions/C2"].shape[1] == 2 and h5["mesh/regions/C0"].shape == (1, 1)
+    assert np.ptp(points, axis=0) == pytest.approx([A, A, T], rel=1e-12)
+    np.testing.assert_array_equal(fixed, geometric_fixed_dofs(points))
+    if theirs is not None:
+        np.testing.assert_allclose(ours, theirs, rtol=1e-4)
+
+
+def test_units_are_refused_in_one_line(abaqus_plate):
+    deck, _ = abaqus_plate
+    with pytest.raises(ConfigError, match=r"geometry\.units.*'furlong-s'.*one of m-kg-s"):
+        config_from_dict(abaqus_config(deck, units="furlong-s"))
+    with pytest.raises(ConfigError, match=r"geometry\.scale.*no scale with geometry\.units"):
+        config_from_dict(abaqus_config(deck, units="mm-t-s", scale=0.001))
+    # the file in mm read as metres: the unit slip is named, with the fix
+    with pytest.raises(ConfigError, match=r"geometry\.scale.*did you mean scale: 0\.001"):
+        build_fe_model(config_from_dict(abaqus_config(deck)))
+
+
+def test_a_nastran_file_reads_as_the_same_mesh(plate_msh, tmp_path):
+    """Nastran bulk data (GRID, CTETRA) in mm, through meshio: the same vertices in m as
+    the .msh it was written from. Its sets are not named (regions come from selectors)."""
+    import meshio
+
+    msh = meshio.read(plate_msh)
+    tets = [b for b in msh.cells if b.type == "tetra"]
+    nas = tmp_path / "plate.nas"
+    meshio.write(nas, meshio.Mesh(msh.points * 1e3, tets), file_format="nastran")
+    cfg = config_from_dict({"name": "nas", "geometry": {"kind": "mesh", "path": str(nas),
+                                                        "units": "mm-t-s"},
+                            "material": {"E": E, "nu": NU, "rho": RHO},
+                            "regions": SELECTORS, "supports": SS_SUPPORTS})
+    fe = build_fe_model(cfg)
+    ref = read_mesh(plate_msh)
+    assert fe.space.body.n_tetrahedra == ref.n_tetrahedra
+    np.testing.assert_allclose(np.sort(fe.space.body.vertices, axis=0),
+                               np.sort(ref.vertices, axis=0), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(fe.fixed, geometric_fixed_dofs(fe.space.node_points))

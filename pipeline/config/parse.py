@@ -18,7 +18,7 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
-from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
+from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, UNIT_SYSTEMS, GAUGE_KINDS, GEOMETRY_KINDS,
                                     PRECISIONS, SOLVERS,
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
                                     FilterKind,
@@ -31,8 +31,8 @@ from pipeline.errors import ConfigError
 log = logging.getLogger(__name__)
 
 def _geometry(raw: Any, base_dir: str = "") -> Geometry:
-    raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale"),
-                   ("kind",))
+    raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale",
+                                      "units"), ("kind",))
     kind = v.choice(raw, "kind", "geometry", GEOMETRY_KINDS)
     if kind == "box":
         extra = sorted(set(raw) - {"kind", "length", "height", "depth"})
@@ -45,10 +45,11 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
             height=v.number(raw, "height", "geometry", lo=0.0, lo_open=True, hi=1e3),
             depth=v.number(raw, "depth", "geometry", lo=0.0, lo_open=True, hi=1e3),
         )
-    extra = sorted(set(raw) - {"kind", "path", "scale"})
+    allowed = {"kind", "path", "scale"} | ({"units"} if kind == "mesh" else set())
+    extra = sorted(set(raw) - allowed)
     if extra:
         raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to kind '{kind}'; "
-                          "expected kind, path, scale")
+                          f"expected {', '.join(sorted(allowed))}")
     path = raw.get("path", v.MISSING)
     if path is v.MISSING:
         raise ConfigError("config key 'geometry.path' is missing; it is required for kind "
@@ -63,8 +64,14 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
     if not exists:
         raise v.fail("geometry.path", path, f"an existing file (looked for "
                     f"'{v.describe(str(resolved))[1:-1]}')")
+    scale = v.number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3)
+    units = v.choice(raw, "units", "geometry", tuple(UNIT_SYSTEMS)) if "units" in raw else ""
+    if units and "scale" in raw:
+        raise v.fail("geometry.scale", raw["scale"], f"no scale with geometry.units "
+                    f"'{units}' (the unit system gives the file's length unit, "
+                    f"{UNIT_SYSTEMS[units]:g} m): give one of the two")
     return Geometry(kind=kind, length=0.0, height=0.0, depth=0.0, path=str(resolved),
-                    scale=v.number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3))
+                    scale=UNIT_SYSTEMS[units] if units else scale, units=units)
 
 
 def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:

@@ -22,8 +22,8 @@ import numpy as np
 
 from pipeline.config import Config, RegionSelector, Support
 from pipeline.errors import RegionError
-from pipeline.fe.space import (REGION_KINDS, FESpace, boundary_edges, boundary_triangles,
-                               region_dimension, region_nodes)
+from pipeline.fe.space import (REGION_KINDS, TRI_EDGES, FESpace, boundary_edges,
+                               boundary_triangles, region_dimension, region_nodes)
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,52 @@ def select_region(space: FESpace, selector: RegionSelector) -> np.ndarray:
     return verts[inside[verts]][:, None] if inside[verts].any() else faces
 
 
+def _keys(pairs: np.ndarray, n: int) -> np.ndarray:
+    p = np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
+    return p[:, 0] * n + p[:, 1]
+
+
+def node_set_region(space: FESpace, name: str, vertices: np.ndarray,
+                    edge_pairs: np.ndarray | None = None) -> np.ndarray:
+    """The boundary region a mesh file's node set spans: its boundary triangles (n, 3) if
+    they hold every boundary vertex of the set, else its boundary edges (n, 2) if they
+    do, else its boundary vertices (n, 1). A triangle or edge belongs to the set when its
+    vertices do and, where the file's mid-edge nodes are known (``edge_pairs`` (m, 2),
+    the edges whose mid-edge node the set holds), its edges' mid-edge nodes do too (so
+    that a set along two edges of a face does not take the triangle across its corner).
+    What is left out (interior vertices; a point set's mid-edge nodes) is logged."""
+    n_v = space.body.n_vertices
+    inside = np.zeros(n_v, dtype=bool)
+    inside[vertices] = True
+    tris = boundary_triangles(space)
+    edges = boundary_edges(space)
+    on_boundary = np.unique(tris)
+    wanted = on_boundary[inside[on_boundary]]
+    tri_ok = inside[tris].all(axis=1)
+    edge_ok = inside[edges].all(axis=1)
+    if edge_pairs is not None:
+        known = np.isin(_keys(edges, n_v), _keys(edge_pairs, n_v))
+        edge_ok &= known
+        tri_ok &= np.isin(_keys(tris[:, TRI_EDGES], n_v),
+                          _keys(edge_pairs, n_v)).reshape(-1, 3).all(axis=1)
+    cells = np.zeros((0, 1), dtype=np.int64)
+    for candidate in (tris[tri_ok], edges[edge_ok], wanted[:, None]):
+        if candidate.shape[0] and np.isin(wanted, candidate).all():
+            cells = candidate
+            break
+    left = vertices.size - wanted.size
+    if cells.shape[0] == 0:
+        log.info("node set '%s': none of its %d vertices is on the boundary: not a region",
+                 name, vertices.size)
+    else:
+        mids = (edge_pairs.shape[0] if edge_pairs is not None and cells.shape[1] == 1
+                else 0)
+        log.info("node set '%s': a %s%s%s", name, describe_region(cells),
+                 f"; {left} interior vertices left out" if left else "",
+                 f"; its {mids} mid-edge nodes left out" if mids else "")
+    return cells
+
+
 def describe_region(cells: np.ndarray) -> str:
     """'face of 12 triangles', 'line of 4 edges', 'point set of 1 vertex'."""
     n = int(cells.shape[0])
@@ -77,6 +123,12 @@ def resolve_regions(space: FESpace, selectors: Mapping[str, RegionSelector]
     """All named regions: the mesh's named groups plus the config's selectors, each an
     int64 array of vertex cells (n, 3 | 2 | 1) (module docstring)."""
     regions = dict(space.body.regions)
+    for name, verts in space.body.node_sets.items():
+        if name in regions:  # a cell set of the same name (Abaqus: *ELSET and *NSET) wins
+            continue
+        cells = node_set_region(space, name, verts, space.body.node_set_edges.get(name))
+        if cells.shape[0]:
+            regions[name] = cells
     for name, sel in selectors.items():
         cells = select_region(space, sel)
         if cells.shape[0] == 0:

@@ -75,6 +75,10 @@ class BodyMesh:
     source: the file the mesh was read from.
     other_groups: name -> what it is, for the named groups of the file that are no
         region (a volume group: "a volume group of 120 tetrahedra").
+    node_sets: name -> sorted vertex indices of the file's named node sets (Abaqus
+        ``*NSET``), made into regions by :func:`pipeline.fe.regions.resolve_regions`;
+        node_set_edges: name -> (n, 2) sorted vertex pairs of the edges whose mid-edge
+        node a set holds (files of quadratic cells only).
     """
 
     vertices: np.ndarray
@@ -82,6 +86,8 @@ class BodyMesh:
     regions: Mapping[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
     other_groups: Mapping[str, str] = field(default_factory=dict)
+    node_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
+    node_set_edges: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:

@@ -3,8 +3,10 @@ boundary regions; the ``mesh`` source (:func:`mesh_file`) reads the file
 ``geometry.path`` as it is (``.msh``, ``.inp``, ``.vtu``, ``.med``, ...) and multiplies
 its coordinates by ``geometry.scale``; its named triangle, line and vertex cell sets
 (gmsh physical groups of dimension 2, 1, 0) name face, line and point regions; other
-groups (volumes) are named in the log and in the error of a config that uses one.
-``mesh.size`` does not apply.
+groups (volumes) are named in the log and in the error of a config that uses one. Named
+node sets (Abaqus ``*NSET``) are kept as vertex sets, with the edges whose mid-edge
+node a set holds, for :func:`pipeline.fe.regions.node_set_region`. ``geometry.units``
+(a unit system) sets ``scale`` at parse time. ``mesh.size`` does not apply.
 """
 
 from __future__ import annotations
@@ -97,10 +99,59 @@ def read_mesh(path: str | Path) -> BodyMesh:
     tets = tets[np.argsort(tets.min(axis=1), kind="stable")]  # elements in vertex order
 
     regions, other = named_groups(mesh, renumber, str(path))
+    node_sets, node_set_edges = named_node_sets(mesh, renumber, str(path))
     log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
-             tets.shape[0], ", ".join(sorted(regions)) or "none")
+             tets.shape[0], ", ".join(sorted(set(regions) | set(node_sets))) or "none")
     return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path),
-                    other_groups=other)
+                    other_groups=other, node_sets=node_sets, node_set_edges=node_set_edges)
+
+
+def named_node_sets(mesh, renumber: np.ndarray, source: str
+                    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The named node sets of a meshio mesh (Abaqus ``*NSET``: ``mesh.point_sets``):
+    (name -> sorted vertex numbers after ``renumber``, name -> (n, 2) vertex pairs of the
+    edges whose mid-edge node the set holds, for a file of ``tetra10`` cells only).
+
+    The FE space re-creates the mid-edge nodes; the pairs tell which of them a set holds
+    (:func:`pipeline.fe.regions.node_set_region` turns a node set into the face, line or
+    point region its nodes span). A set with no vertex of a tetrahedron is said in the log
+    and left out."""
+    points_sets = getattr(mesh, "point_sets", None) or {}
+    mid_pairs = _mid_edge_pairs(mesh, renumber) if points_sets else None
+    nodes: dict[str, np.ndarray] = {}
+    edges: dict[str, np.ndarray] = {}
+    for name, ids in points_sets.items():
+        check_name(name, f"mesh file '{source}': node set name", error=MeshError)
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        if ids.size and (ids.min() < 0 or ids.max() >= renumber.size):
+            raise MeshError(f"mesh file '{source}': node set '{name}' refers to nodes outside "
+                            f"0..{renumber.size - 1}")
+        verts = np.unique(renumber[ids])
+        verts = verts[verts >= 0]
+        if verts.size == 0:
+            log.info("mesh '%s': node set '%s' holds no vertex of a tetrahedron (%d nodes): "
+                     "not a region", source, name, ids.size)
+            continue
+        nodes[name] = verts
+        if mid_pairs is not None:
+            pairs = mid_pairs[ids]
+            edges[name] = np.unique(pairs[pairs[:, 0] >= 0], axis=0)
+    return nodes, edges
+
+
+def _mid_edge_pairs(mesh, renumber: np.ndarray) -> np.ndarray | None:
+    """(n_points, 2): the sorted vertex pair (after ``renumber``) of every mid-edge node of
+    the file's ``tetra10`` cells, (-1, -1) for other nodes; None for a file of linear
+    cells."""
+    blocks = [b.data for b in mesh.cells if b.type == "tetra10"]
+    if not blocks:
+        return None
+    cells = np.concatenate(blocks).astype(np.int64)
+    local = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])  # meshio tetra10 order
+    pairs = np.sort(renumber[cells[:, local]], axis=2).reshape(-1, 2)
+    out = np.full((renumber.size, 2), -1, dtype=np.int64)
+    out[cells[:, 4:].ravel()] = pairs
+    return out
 
 
 #: meshio cell type -> dimension of the region its cells make (vertex columns: dimension + 1)
