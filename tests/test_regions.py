@@ -183,6 +183,11 @@ def test_simply_supported_plate_against_kirchhoff_theory(tmp_path):
         f1 = float(h5["modes/frequencies_hz"][0])
         assert h5["mesh/regions/e_y0"].shape[1] == 2 and h5["mesh/regions/c00"].shape == (1, 1)
     assert 0.97 * kirchhoff_f11() < f1 < 0.999 * kirchhoff_f11()
+    shown = subprocess.run([sys.executable, "-m", "pipeline", "inspect",
+                            str(tmp_path / "plate.h5")], capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert "c00 (point)" in shown.stdout and "e_y0 (line)" in shown.stdout
+    assert "root," in shown.stdout  # a face region goes unmarked
     assert f1 < 606.38
 
 
@@ -191,7 +196,7 @@ def test_simply_supported_plate_against_kirchhoff_theory(tmp_path):
 def plate_msh(tmp_path_factory) -> Path:
     """A gmsh .msh of the plate (20 mm elements) with physical groups of every dimension:
     'bottom_edges' (4 curves), 'corner_a' and 'corner_b' (points), 'top' (a surface) and
-    'plate' (the volume)."""
+    'plate' (the volume), and an unnamed group (the bottom face)."""
     import gmsh
 
     path = tmp_path_factory.mktemp("msh") / "plate.msh"
@@ -211,6 +216,8 @@ def plate_msh(tmp_path_factory) -> Path:
         gmsh.model.addPhysicalGroup(2, [t for _, t in box(-EPS, -EPS, T - EPS, A + EPS, A + EPS,
                                                           T + EPS, 2)], name="top")
         gmsh.model.addPhysicalGroup(3, [1], name="plate")
+        gmsh.model.addPhysicalGroup(2, [t for _, t in box(-EPS, -EPS, -EPS, A + EPS, A + EPS,
+                                                          EPS, 2)])  # no name: said, unused
         gmsh.option.setNumber("Mesh.MeshSizeMax", 0.02)
         gmsh.model.mesh.generate(3)
         gmsh.write(str(path))
@@ -227,6 +234,8 @@ def test_mesh_file_keeps_physical_groups_of_every_dimension(plate_msh, caplog):
     assert body.regions["top"].shape[1] == 3
     assert "plate" not in body.regions and "volume group" in body.other_groups["plate"]
     assert "group 'plate' is a volume group" in caplog.text
+    assert "physical groups without a name are no regions (tags by cell type: triangle: " \
+        in caplog.text
     space = build_space(body, 2)
     line = weighted_region(space, "bottom_edges", body.regions["bottom_edges"])
     assert line.measure == pytest.approx(4 * A, rel=1e-12)

@@ -183,7 +183,7 @@ def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: 
                    point, coupling: str = "rigid", key: str | None = None) -> Interface:
     """Resolve one interface on a region of ``space`` and check it carries six DOFs.
 
-    ``regions``: the name -> boundary triangles mapping of
+    ``regions``: the name -> vertex cells (face, line or point) mapping of
     :func:`pipeline.fe.regions.resolve_regions`. ``key`` names the config entry in messages
     (default ``connections.<name>``). Raises RegionError naming the region.
     """

@@ -2,7 +2,8 @@
 the body's dimensions and of the element count, and the gmsh session helpers.
 
 A :class:`BodyMesh` holds straight-sided tetrahedra (the corner nodes of the gmsh
-elements) plus the boundary triangles of every named region (gmsh physical groups).
+elements) plus the cells of every named region (gmsh physical groups: boundary
+triangles, edges or vertices) and the file's named node sets.
 Higher-order nodes are re-created by the finite-element space
 (:mod:`pipeline.fe.space`) at the edge midpoints, so a quadratic field lives on
 straight-edged tetrahedra: exact for the box, and a faceted approximation of a curved

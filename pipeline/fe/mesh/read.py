@@ -205,7 +205,26 @@ def named_groups(mesh, renumber: np.ndarray, source: str
                      source, name, ", ".join(k for k in counts if REGION_CELLS.get(k) == dim),
                      ", ".join(left))
         regions[name] = cells
+    _log_unnamed_groups(mesh, source)
     return regions, other
+
+
+def _log_unnamed_groups(mesh, source: str) -> None:
+    """Say which gmsh physical groups have no name (meshio keeps only named ones as cell
+    sets, so a config cannot use them)."""
+    # gmsh numbers physical groups per dimension: field_data holds [tag, dimension]
+    named = {(int(v[0]), int(v[1])) for v in (mesh.field_data or {}).values()
+             if np.size(v) == 2}
+    unnamed: dict[str, set[int]] = {}
+    for block, tags in zip(mesh.cells, (mesh.cell_data or {}).get("gmsh:physical", [])):
+        dim = REGION_CELLS.get(block.type, 3 if block.type in VOLUME_TYPES else -1)
+        for tag in {int(t) for t in np.unique(tags)} - {t for t, d in named if d == dim}:
+            unnamed.setdefault(block.type, set()).add(int(tag))
+    if unnamed:
+        listing = "; ".join(f"{kind}: {', '.join(map(str, sorted(tags)))}"
+                            for kind, tags in sorted(unnamed.items()))
+        log.warning("mesh '%s': physical groups without a name are no regions (tags by cell "
+                    "type: %s): name them in the file to use them", source, listing)
 
 
 def read_foreign(geometry: Geometry) -> BodyMesh:
