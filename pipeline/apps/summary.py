@@ -41,8 +41,11 @@ def _lines(s: FileSummary, path) -> list[str]:
         cells = [f"{n} {k}" for k, n in (m.cells or {}).items()]
         dofs = (f"{m.n_dofs} DOFs, {m.n_free_dofs} free; "
                 if m.n_dofs is not None and m.n_free_dofs is not None else "")
+        # a line or point region says so; a face region (the usual kind) goes unmarked
+        kinds = {1: " (line)", 0: " (point)"}
+        names = [r + kinds.get(m.region_dimensions.get(r, 2), "") for r in m.regions]
         lines.append(f"mesh      {m.n_points} points, {', '.join(cells) or 'no cells'}"
-                     f"; {dofs}regions: {', '.join(m.regions) or 'none'}")
+                     f"; {dofs}regions: {', '.join(names) or 'none'}")
     if s.modes is not None:
         freqs = s.modes.frequencies_hz
         labels = s.modes.labels if s.modes.labels is not None else [""] * len(freqs)

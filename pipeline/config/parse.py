@@ -9,6 +9,7 @@ model with ports, ...) are checked after the sections.
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence, get_args
@@ -19,7 +20,7 @@ from pipeline.config.gauges import AREA_KEYS, gauge_area
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.supports import parse_support
-from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
+from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, UNIT_SYSTEMS, GAUGE_KINDS, GEOMETRY_KINDS,
                                     PRECISIONS, SOLVERS,
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
                                     FilterKind,
@@ -29,9 +30,11 @@ from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOME
                                     Support)
 from pipeline.errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 def _geometry(raw: Any, base_dir: str = "") -> Geometry:
-    raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale"),
-                   ("kind",))
+    raw = v.mapping(raw, "geometry", ("kind", "length", "height", "depth", "path", "scale",
+                                      "units"), ("kind",))
     kind = v.choice(raw, "kind", "geometry", GEOMETRY_KINDS)
     if kind == "box":
         extra = sorted(set(raw) - {"kind", "length", "height", "depth"})
@@ -44,10 +47,11 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
             height=v.number(raw, "height", "geometry", lo=0.0, lo_open=True, hi=1e3),
             depth=v.number(raw, "depth", "geometry", lo=0.0, lo_open=True, hi=1e3),
         )
-    extra = sorted(set(raw) - {"kind", "path", "scale"})
+    allowed = {"kind", "path", "scale"} | ({"units"} if kind == "mesh" else set())
+    extra = sorted(set(raw) - allowed)
     if extra:
         raise ConfigError(f"config key 'geometry.{extra[0]}' does not apply to kind '{kind}'; "
-                          "expected kind, path, scale")
+                          f"expected {', '.join(sorted(allowed))}")
     path = raw.get("path", v.MISSING)
     if path is v.MISSING:
         raise ConfigError("config key 'geometry.path' is missing; it is required for kind "
@@ -62,14 +66,27 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
     if not exists:
         raise v.fail("geometry.path", path, f"an existing file (looked for "
                     f"'{v.describe(str(resolved))[1:-1]}')")
+    scale = v.number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3)
+    units = v.choice(raw, "units", "geometry", tuple(UNIT_SYSTEMS)) if "units" in raw else ""
+    if units and "scale" in raw:
+        raise v.fail("geometry.scale", raw["scale"], f"no scale with geometry.units "
+                    f"'{units}' (the unit system gives the file's length unit, "
+                    f"{UNIT_SYSTEMS[units]:g} m): give one of the two")
     return Geometry(kind=kind, length=0.0, height=0.0, depth=0.0, path=str(resolved),
-                    scale=v.number(raw, "scale", "geometry", 1.0, lo=0.0, lo_open=True, hi=1e3))
+                    scale=UNIT_SYSTEMS[units] if units else scale, units=units)
 
 
 def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
-    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), ("size",))
+    # a mesh file brings its elements: mesh.size (gmsh's element size) does not apply
+    from_file = geometry.kind == "mesh"
+    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), () if from_file else ("size",))
     order = v.choice(raw, "order", "mesh", (1, 2), default=2)
-    size = v.number(raw, "size", "mesh", lo=0.0, lo_open=True)
+    size = v.number(raw, "size", "mesh", MeshSpec.size if from_file else v.MISSING, lo=0.0,
+                    lo_open=True)
+    if from_file and ("size" in raw or "algorithm" in raw):
+        log.warning("config key 'mesh.%s' does not apply to geometry.kind 'mesh' (the file's "
+                    "elements are used as they are): ignored",
+                    "size" if "size" in raw else "algorithm")
     largest = geometry.largest_dimension()
     if largest is not None:
         if size > largest:
@@ -287,7 +304,7 @@ def _section(raw: Mapping, key: str) -> Any:
 
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
-    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
+    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "material"))
     # relative paths: against the config's folder; a config read from a pipe or
     # /dev/stdin has none, so against the current directory
     base_dir = str(Path(source).parent) if source and not is_stream(source) else ""
@@ -309,7 +326,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     cfg = Config(
         name=v.name(raw, "name", ""),
         geometry=geometry,
-        mesh=_mesh(raw["mesh"], geometry),
+        mesh=_mesh(_section(raw, "mesh"), geometry),
         material=_material(raw["material"]),
         supports=_supports(raw.get("supports")),
         constraints=Constraints(in_plane=v.boolean(constraints, "in_plane", "constraints", False)),
@@ -326,7 +343,11 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                                      lo=0, hi=500),
         source=source,
     )
-    known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
+    # a box's and a CAD file's region names are all known here (its faces, the selectors);
+    # a mesh file's or a .geo script's named groups are checked where the mesh is read,
+    # before assembly (pipeline.fe.regions.check_region_uses)
+    known = (set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
+             if geometry.kind in ("box", "step") else set())
     used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
     used += [(f"ports.inputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.inputs)]
     used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)

@@ -40,6 +40,11 @@ PRECISIONS: tuple[str, ...] = get_args(Precision)
 EigenMethod = Literal["auto", "factor", "multigrid"]
 EIGEN_METHODS: tuple[str, ...] = get_args(EigenMethod)
 BOX_FACES: tuple[str, ...] = get_args(BoxFace)
+#: unit systems a mesh file may be in (``geometry.units``): length-mass-time -> metres per
+#: length unit. Only the coordinates are converted: the config's material stays SI.
+UNIT_SYSTEMS: dict[str, float] = {"m-kg-s": 1.0, "mm-t-s": 1e-3, "mm-kg-ms": 1e-3,
+                                  "mm-g-ms": 1e-3, "cm-g-s": 1e-2, "in-lbf-s": 0.0254,
+                                  "ft-lbf-s": 0.3048}
 
 
 @dataclass(frozen=True)
@@ -49,7 +54,9 @@ class Geometry:
     ``box``: x in [0, length], y in [0, height], z in [0, depth] (m).
     ``step`` (STEP/IGES file), ``geo`` (gmsh script), ``mesh`` (a mesh file meshio reads):
     ``path`` to the file (relative paths are relative to the config file), ``scale``
-    multiplies its coordinates into metres (0.001 for CAD drawn in mm).
+    multiplies its coordinates into metres (0.001 for CAD drawn in mm); ``units`` (kind
+    ``mesh`` only): the file's unit system, a key of :data:`UNIT_SYSTEMS`, which sets
+    ``scale`` to its length unit (the material stays SI).
     """
 
     kind: GeometryKind = "box"
@@ -58,6 +65,7 @@ class Geometry:
     depth: float = 0.05
     path: str = ""
     scale: float = 1.0
+    units: str = ""  # kind mesh: the file's unit system (UNIT_SYSTEMS); scale is its length unit in m
 
     def largest_dimension(self) -> float | None:
         """Largest box dimension (m), or None where only the file knows it."""

@@ -51,8 +51,10 @@ def config_to_dict(cfg: Config) -> dict:
                      for side in ("inputs", "outputs")}
         elif f.name == "geometry":
             keep = ("kind", "length", "height", "depth") if value.kind == "box" else \
-                ("kind", "path", "scale")
+                ("kind", "path", "units" if value.units else "scale")
             value = {k: getattr(value, k) for k in keep}
+        elif f.name == "mesh" and cfg.geometry.kind == "mesh":
+            value = {"order": value.order}  # size and algorithm do not apply to a mesh file
         elif hasattr(value, "__dataclass_fields__"):
             value = asdict(value)
         out[f.name] = plain(value)

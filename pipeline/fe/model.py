@@ -28,7 +28,7 @@ from pipeline.fe.pattern import block_pattern
 from pipeline.fe.ports import check_gauges
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
-from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (RigidFreedoms, SupportStiffness, rigid_freedoms,
                                   support_stiffness, with_penalty)
 from pipeline._util.resources import check_memory
@@ -47,7 +47,7 @@ class FEModel:
     """The discretised body, supported as the config says.
 
     space: the FE space (mesh points, elements, DOF numbering).
-    regions: region name -> (n_f, 3) boundary triangles (vertex indices).
+    regions: region name -> vertex cells (n, 3 | 2 | 1): a face, line or point region.
     fixed, free: sorted DOF indices (int64), fixed + free = all 3 * n_points DOFs.
     K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs; K holds
     the elastic supports and the local-frame penalties (``support_stiffness``).
@@ -109,6 +109,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        check_region_uses(cfg, space, regions)
         extra = support_stiffness(space, regions, cfg.supports)
         check_gauges(space, regions, cfg.ports, cfg.material)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,

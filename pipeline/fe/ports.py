@@ -2,7 +2,7 @@
 
 An input distributes a unit force or moment over a region's nodes like a
 distributing coupling (RBE3): nodal weights are the integrals of the shape functions
-over the region (:func:`pipeline.fe.space.surface_region`), so
+over the region (:func:`pipeline.fe.space.weighted_region`), so
 
 - a unit force along d gives f_i = (w_i / A) d: resultant d, zero moment about the
   region's centroid c;
@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from pipeline.config import Material, Port, Ports
 from pipeline.config.schema import GAUGE_KINDS
 from pipeline.errors import RegionError
-from pipeline.fe.space import FESpace, SurfaceRegion, surface_region
+from pipeline.fe.space import FESpace, WeightedRegion, weighted_region
 from pipeline.fe.regions import get_region
 from pipeline.fe.strain import gauge_row
 
@@ -48,7 +48,7 @@ class PortMatrices:
     output_units: tuple[str, ...]
 
 
-def _rotation_weights(region: SurfaceRegion, points: np.ndarray, direction: np.ndarray,
+def _rotation_weights(region: WeightedRegion, points: np.ndarray, direction: np.ndarray,
                       key: str) -> np.ndarray:
     """(n_r, 3): w_i (alpha x r_i) with alpha = J^-1 d (see the module docstring)."""
     r = points[region.nodes] - region.centroid
@@ -64,12 +64,12 @@ def _rotation_weights(region: SurfaceRegion, points: np.ndarray, direction: np.n
     return w[:, None] * np.cross(alpha, r)
 
 
-def port_vector(space: FESpace, region: SurfaceRegion, port: Port, key: str) -> np.ndarray:
+def port_vector(space: FESpace, region: WeightedRegion, port: Port, key: str) -> np.ndarray:
     """(n_dofs,) nodal load of a unit input, or sensor row of an output, on ``region``."""
     d = np.asarray(port.direction, dtype=float)
     d = d / np.linalg.norm(d)
     if port.kind in ("force", "displacement"):
-        per_node = (region.weights / region.area)[:, None] * d
+        per_node = (region.weights / region.measure)[:, None] * d
     else:
         per_node = _rotation_weights(region, space.node_points, d, key)
     vec = np.zeros((space.n_nodes, 3))
@@ -88,7 +88,7 @@ def _gauge_row(space: FESpace, regions: Mapping[str, np.ndarray], port: Port,
 def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
                   material: Material | None = None) -> PortMatrices:
     """Assemble F and T for the configured ports (``material``: for stress outputs)."""
-    cache: dict[str, SurfaceRegion] = {}
+    cache: dict[str, WeightedRegion] = {}
 
     def columns(items: Sequence[Port], side: str) -> sp.csc_matrix:
         cols = []
@@ -98,7 +98,7 @@ def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Port
                 cols.append(sp.csc_matrix(_gauge_row(space, regions, port, material, key)[:, None]))
                 continue
             if port.region not in cache:
-                cache[port.region] = surface_region(
+                cache[port.region] = weighted_region(
                     space, port.region, get_region(regions, port.region, f"{key}.region"))
             cols.append(sp.csc_matrix(port_vector(space, cache[port.region], port, key)[:, None]))
         if not cols:

@@ -136,20 +136,33 @@ def _edge_ids(space: FESpace, pairs: np.ndarray) -> np.ndarray:
     return np.where(found, order[pos], -1)
 
 
-@dataclass(frozen=True)
-class SurfaceRegion:
-    """A boundary region as the FE space sees it.
+#: region dimension -> (what it is made of, the unit of its measure)
+REGION_KINDS = {2: ("face", "m^2"), 1: ("line", "m"), 0: ("point", "1")}
 
+
+def region_dimension(cells: np.ndarray) -> int:
+    """Dimension of a region given by its vertex ``cells`` (n, k): k = 3 triangles (2, a
+    face), k = 2 edges (1, a line), k = 1 vertices (0, a point or node set)."""
+    return int(np.asarray(cells).shape[1]) - 1
+
+
+@dataclass(frozen=True)
+class WeightedRegion:
+    """A region (face, line or point set) as the FE space sees it.
+
+    dimension: 2 face, 1 line, 0 point (node set).
     nodes: (n_r,) node indices on the region.
-    weights: (n_r,) m^2, integral of each node's shape function over the region
-        (sum = area; a uniform traction t gives nodal forces weights * t).
-    area: m^2; centroid: (3,) m.
+    weights: (n_r,) integral of each node's shape function over the region, in m^2 for a
+        face, m for a line, 1 per node for a point set (sum = measure; a uniform load per
+        unit measure t gives nodal forces weights * t).
+    measure: area (m^2), length (m) or node count; centroid: (3,) m.
     """
 
     name: str
+    dimension: int
     nodes: np.ndarray
     weights: np.ndarray
-    area: float
+    measure: float
     centroid: np.ndarray
 
 
@@ -159,42 +172,77 @@ def boundary_triangles(space: FESpace) -> np.ndarray:
     return mesh.facets[:, mesh.boundary_facets()].T.astype(np.int64)
 
 
-def surface_region(space: FESpace, name: str, triangles: np.ndarray) -> SurfaceRegion:
-    """Nodes and consistent area weights of the region made of ``triangles`` (n_f, 3).
+def boundary_edges(space: FESpace) -> np.ndarray:
+    """(n_be, 2) vertex pairs (smaller first) of the edges of the boundary facets."""
+    pairs = np.sort(boundary_triangles(space)[:, TRI_EDGES].reshape(-1, 2), axis=1)
+    return np.unique(pairs, axis=0)
 
-    The weights are exact integrals of the Lagrange shape functions on straight
-    triangles: area/3 per vertex for order 1; 0 per vertex and area/3 per edge midpoint
-    for order 2.
+
+def weighted_region(space: FESpace, name: str, cells: np.ndarray) -> WeightedRegion:
+    """Nodes and consistent weights of the region made of ``cells`` (n, 3 | 2 | 1).
+
+    The weights are exact integrals of the Lagrange shape functions on straight cells:
+    triangles (area A): A/3 per vertex for order 1, 0 per vertex and A/3 per edge midpoint
+    for order 2; edges (length L): L/2 per vertex for order 1, L/6 per vertex and 2L/3 per
+    midpoint for order 2; vertices: 1 each.
     """
-    if triangles.shape[0] == 0:
-        raise RegionError(f"region '{name}': has no boundary facets; expected a non-empty surface")
+    cells = np.asarray(cells, dtype=np.int64)
+    dim = region_dimension(cells)
+    what, unit = REGION_KINDS[dim]
+    if cells.shape[0] == 0:
+        raise RegionError(f"region '{name}': has no {what} cells; expected a non-empty region")
     v = space.body.vertices
-    a, b, c = (v[triangles[:, i]] for i in range(3))
-    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    area = float(areas.sum())
-    if not area > 0:
-        raise RegionError(f"region '{name}': has zero area")
-    centroid = ((a + b + c) / 3.0 * areas[:, None]).sum(axis=0) / area
-    if space.order == 1:
-        nodes_per_tri = triangles
+    if dim == 0:
+        nodes = np.unique(cells)
+        return WeightedRegion(name, 0, nodes, np.ones(nodes.size), float(nodes.size),
+                              v[nodes].mean(axis=0))
+    if dim == 2:
+        a, b, c = (v[cells[:, i]] for i in range(3))
+        sizes = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        centres = (a + b + c) / 3.0
     else:
-        pairs = triangles[:, TRI_EDGES].reshape(-1, 2)
+        a, b = v[cells[:, 0]], v[cells[:, 1]]
+        sizes = np.linalg.norm(b - a, axis=1)
+        centres = 0.5 * (a + b)
+    measure = float(sizes.sum())
+    if not measure > 0:
+        raise RegionError(f"region '{name}': has zero {'area' if dim == 2 else 'length'}")
+    centroid = (centres * sizes[:, None]).sum(axis=0) / measure
+    if dim == 2:
+        corner_w = np.zeros(0) if space.order == 2 else np.repeat(sizes / 3.0, 3)
+        pairs = cells[:, TRI_EDGES].reshape(-1, 2)
+        mid_w = np.repeat(sizes / 3.0, 3)
+    else:
+        corner_w = np.repeat(sizes / (6.0 if space.order == 2 else 2.0), 2)
+        pairs = cells
+        mid_w = 2.0 * sizes / 3.0
+    parts, w = [], []
+    if corner_w.size:
+        parts.append(cells.ravel())
+        w.append(corner_w)
+    if space.order == 2:
         eid = _edge_ids(space, pairs)
         if (eid < 0).any():
-            raise RegionError(f"region '{name}': has triangles that are not faces of the mesh")
-        nodes_per_tri = space.body.n_vertices + eid.reshape(-1, 3)
-    w = np.repeat(areas / 3.0, 3)
-    nodes, inverse = np.unique(nodes_per_tri.ravel(), return_inverse=True)
-    weights = np.bincount(inverse, weights=w, minlength=nodes.size)
-    return SurfaceRegion(name, nodes, weights, area, centroid)
+            raise RegionError(f"region '{name}': has {what} cells whose edges are not edges of "
+                              "the mesh")
+        parts.append(space.body.n_vertices + eid)
+        w.append(mid_w)
+    nodes, inverse = np.unique(np.concatenate(parts), return_inverse=True)
+    weights = np.bincount(inverse, weights=np.concatenate(w), minlength=nodes.size)
+    return WeightedRegion(name, dim, nodes, weights, measure, centroid)
 
 
-def region_nodes(space: FESpace, triangles: np.ndarray) -> np.ndarray:
-    """All node indices touching ``triangles`` (vertices, and edge midpoints for order 2)."""
-    verts = np.unique(triangles)
-    if space.order == 1:
+def region_nodes(space: FESpace, cells: np.ndarray) -> np.ndarray:
+    """All node indices of a region of any dimension, given by its vertex ``cells``
+    (n, 3 | 2 | 1): the vertices, and for order 2 the midpoints of the cells' edges (a
+    line region's mid-edge nodes belong to it; a point region is its vertex nodes)."""
+    cells = np.asarray(cells, dtype=np.int64)
+    verts = np.unique(cells)
+    dim = region_dimension(cells)
+    if space.order == 1 or dim == 0:
         return verts
-    eid = _edge_ids(space, triangles[:, TRI_EDGES].reshape(-1, 2))
+    pairs = cells[:, TRI_EDGES].reshape(-1, 2) if dim == 2 else cells
+    eid = _edge_ids(space, pairs)
     return np.concatenate([verts, space.body.n_vertices + np.unique(eid[eid >= 0])])
 
 

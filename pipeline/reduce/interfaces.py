@@ -20,7 +20,7 @@ An interface ties the nodes of a named boundary region to a point with six DOFs 
   region becomes a rigid patch (it stiffens the body locally).
 - ``distributing`` (RBE3): the point moves with the weighted least-squares rigid fit of
   the region, q = G u_r with G = (R_r^T W R_r)^-1 R_r^T W, W the consistent area
-  weights of the nodes (:func:`pipeline.fe.space.surface_region`). The region keeps
+  weights of the nodes (:func:`pipeline.fe.space.weighted_region`). The region keeps
   deforming freely; only these six averages are tied. A wrench at P reaches the nodes
   as f_r = G^T [F; T] (the classic RBE3 load distribution). G R_r = I_6.
 
@@ -46,7 +46,7 @@ import scipy.sparse as sp
 from pipeline.errors import RegionError, SolverError
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
-from pipeline.fe.space import region_nodes, surface_region
+from pipeline.fe.space import region_nodes, weighted_region
 
 __all__ = [
     "COUPLINGS",
@@ -183,7 +183,7 @@ def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: 
                    point, coupling: str = "rigid", key: str | None = None) -> Interface:
     """Resolve one interface on a region of ``space`` and check it carries six DOFs.
 
-    ``regions``: the name -> boundary triangles mapping of
+    ``regions``: the name -> vertex cells (face, line or point) mapping of
     :func:`pipeline.fe.regions.resolve_regions`. ``key`` names the config entry in messages
     (default ``connections.<name>``). Raises RegionError naming the region.
     """
@@ -193,7 +193,7 @@ def make_interface(space, regions: Mapping[str, np.ndarray], name: str, region: 
         raise RegionError(f"{key}.coupling: got {coupling!r}, expected one of "
                           f"{', '.join(COUPLINGS)}")
     tris = get_region(regions, region, f"{key}.region")
-    sr = surface_region(space, region, tris)  # P2: edge nodes only (corners weigh 0)
+    sr = weighted_region(space, region, tris)  # P2 face: edge nodes only (corners weigh 0)
     nodes = np.unique(region_nodes(space, tris)).astype(np.int64)
     weights = np.zeros(nodes.size)
     weights[np.searchsorted(nodes, sr.nodes)] = sr.weights

@@ -119,7 +119,7 @@ def cells(kind: str) -> str:
 
 
 def region(name: str) -> str:
-    """Path of the boundary triangles of region ``name``."""
+    """Path of the vertex cells of region ``name`` (triangles, edges or vertices)."""
     return f"{MESH.regions}/{name}"
 
 

@@ -280,13 +280,17 @@ def _region_centroid(h5, name: str) -> np.ndarray | None:
     key = L.region(name)
     if key not in h5 or L.MESH.points not in h5:
         return None
-    tris = np.asarray(h5[key][()], dtype=np.int64)
-    if tris.ndim != 2 or tris.shape[0] == 0:
+    cells = np.asarray(h5[key][()], dtype=np.int64)
+    if cells.ndim != 2 or cells.shape[0] == 0 or cells.shape[1] not in (1, 2, 3):
         return None
-    pts = np.asarray(h5[L.MESH.points][()], dtype=float)
-    p = pts[tris[:, :3]]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return (area[:, None] * p.mean(axis=1)).sum(axis=0) / area.sum()
+    p = np.asarray(h5[L.MESH.points][()], dtype=float)[cells]  # (n, k, 3)
+    if cells.shape[1] == 3:  # a face: area-weighted
+        size = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    elif cells.shape[1] == 2:  # a line: length-weighted
+        size = np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
+    else:  # a point set: the mean of its vertices
+        size = np.ones(cells.shape[0])
+    return (size[:, None] * p.mean(axis=1)).sum(axis=0) / size.sum()
 
 
 def read_model_file(path: str | Path) -> ModelFile:
@@ -384,9 +388,24 @@ def _mesh(h5, path: str | Path) -> tuple[np.ndarray, str, np.ndarray, np.ndarray
                               f"0..{points.shape[0] - 1}", key=key)
     fixed = (_array(h5, L.MESH.fixed_dofs, "i", (None,)) if L.MESH.fixed_dofs in h5
              else np.zeros(0, np.int64))
-    regions = {name: _array(h5, L.region(name), "i", (None, 3))
+    regions = {name: _region_cells(h5, name, points.shape[0])
                for name in (h5[L.MESH.regions] if L.MESH.regions in h5 else [])}
     return points, kind, cells, fixed, regions
+
+
+def _region_cells(h5, name: str, n_points: int) -> np.ndarray:
+    """Region ``name``'s vertex cells: (n, 3) triangles, (n, 2) edges or (n, 1) vertices,
+    node indices inside 0..n_points-1."""
+    key = L.region(name)
+    cells = _array(h5, key, "i", (None, None))
+    if cells.shape[1] not in (1, 2, 3):
+        raise FileFormatError(f"file '{h5.filename}': {key} has shape {cells.shape}, expected "
+                              "(n, 3), (n, 2) or (n, 1)", key=key, value=cells.shape,
+                              expected="(n, 3), (n, 2) or (n, 1)")
+    if cells.size and (cells.min() < 0 or cells.max() >= n_points):
+        raise FileFormatError(f"file '{h5.filename}': {key} refers to nodes outside "
+                              f"0..{n_points - 1}", key=key)
+    return cells
 
 
 def read_stored_mesh(path: str | Path) -> StoredMesh:

@@ -214,7 +214,8 @@ class StoredMesh:
 
     points (n_p, 3) m; cells (n_t, 4 | 10) node indices in meshio order, of ``cell_type``;
     shapes (n_p, 3, n_m) kg^-1/2; frequencies_hz (n_m,); labels (n_m,); fixed_dofs (n_c,)
-    (DOF 3 node + component); regions: boundary triangles (n_f, 3) by name;
+    (DOF 3 node + component); regions: vertex cells by name ((n, 3) face, (n, 2) line,
+    (n, 1) point set);
     retained_damping: damping ratios of the modes in ``/statespace`` (empty without it);
     config_yaml: the stored config (YAML text, empty when absent); has_fe: the file holds
     the full M and K (``/fe``).
@@ -264,7 +265,7 @@ class StoredFEModel:
 
     name: the config's name (the file's stem when absent); points (n_p, 3) m; cells
     (n_t, 4 | 10) node indices in meshio order, of ``cell_type``; fixed_dofs (n_c,);
-    regions: boundary triangles (n_f, 3) by name; M, K (3 n_p, 3 n_p) CSR of the
+    regions: vertex cells by name ((n, 3) face, (n, 2) line, (n, 1) point set); M, K (3 n_p, 3 n_p) CSR of the
     unsupported body in kg and N/m from ``/fe``, or None in a file without it (then
     :class:`pipeline.fe.stored.StoredFE` re-assembles them); basis: the mode basis asked for.
     """

@@ -100,12 +100,18 @@ def models_tree(models: Models) -> tuple[dict[str, Dataset], dict[str, dict[str,
 
 
 # --------------------------------------------------------------------------- mesh, body, modes
+#: a region's cells by their vertex count: triangles (a face), edges (a line), vertices
+REGION_DESCRIPTIONS = {3: "face: boundary triangles (vertex node indices)",
+                       2: "line: edges (vertex node indices)",
+                       1: "point set: vertex node indices"}
+
+
 def core_datasets(space, regions: Mapping[str, np.ndarray], fixed: np.ndarray, props, modes,
                   shapes: np.ndarray, labels: Sequence[str]) -> dict[str, Dataset]:
     """The ``mesh``, ``body`` and ``modes`` datasets of every result file.
 
-    space: the FE space (node_points (n_p, 3) m, element_nodes, cell_type); regions:
-    boundary triangles (n_f, 3) by name; fixed (n_c,): constrained DOFs; props: the body's
+    space: the FE space (node_points (n_p, 3) m, element_nodes, cell_type); regions: vertex
+    cells by name, (n, 3) triangles, (n, 2) edges or (n, 1) vertices; fixed (n_c,): constrained DOFs; props: the body's
     mass (kg), center_of_mass (3,) m, inertia (3, 3) kg m^2, rigid_mass (6, 6); modes: the
     solve stage's frequencies_hz, omega2 (rad^2/s^2), residuals (n_m,); shapes (n_p, 3, n_m)
     kg^-1/2; labels (n_m,).
@@ -131,9 +137,9 @@ def core_datasets(space, regions: Mapping[str, np.ndarray], fixed: np.ndarray, p
         MODES.residuals: Dataset(modes.residuals, "1",
                                  "||K phi - omega^2 M phi|| / ||K phi|| per mode"),
     }
-    for name, tris in regions.items():
-        tree[region(name)] = Dataset(tris.astype(np.int64), "1",
-                                     "boundary triangles (vertex node indices)")
+    for name, region_cells in regions.items():
+        tree[region(name)] = Dataset(region_cells.astype(np.int64), "1",
+                                     REGION_DESCRIPTIONS[region_cells.shape[1]])
     return tree
 
 

@@ -13,7 +13,7 @@ its inertia, a model group whose ``A`` has no names) is one FileFormatError line
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,14 +50,16 @@ class BodySummary:
 @dataclass(frozen=True, eq=False)
 class MeshSummary:
     """``/mesh``: n_points; cells: element count by cell type in file order (None without
-    ``/mesh/cells``); regions: boundary-region names, sorted; n_dofs, n_free_dofs: DOF
-    counts (None in a file without them)."""
+    ``/mesh/cells``); regions: region names, sorted; n_dofs, n_free_dofs: DOF counts
+    (None in a file without them); region_dimensions: name -> 2 (face), 1 (line) or 0
+    (point set), from each region dataset's column count."""
 
     n_points: int
     cells: dict[str, int] | None
     regions: tuple[str, ...]
     n_dofs: int | None
     n_free_dofs: int | None
+    region_dimensions: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,9 +196,11 @@ def _mesh(h5) -> MeshSummary | None:
              else None)
     regions = tuple(sorted(h5[L.MESH.regions])) if L.MESH.regions in h5 else ()
     n_dofs, n_free = L.MESH.attr.n_dofs, L.MESH.attr.n_free_dofs
+    shapes = {name: h5[L.region(name)].shape for name in regions}
     return MeshSummary(len(h5[L.MESH.points]), cells, regions,
                        int(m[n_dofs]) if n_dofs in m else None,
-                       int(m[n_free]) if n_free in m else None)
+                       int(m[n_free]) if n_free in m else None,
+                       {name: s[1] - 1 for name, s in shapes.items() if len(s) == 2})
 
 
 def _modes(h5) -> ModesSummary | None:

@@ -92,7 +92,7 @@ def _mid_of(edge_map, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     q = lo.astype(np.int64) * n + hi
     pos = np.searchsorted(keys, q).clip(max=keys.size - 1)
     if not np.all(keys[pos] == q):
-        raise FileFormatError("mesh: a boundary triangle edge is not an edge of any element")
+        raise FileFormatError("mesh: an edge of a region is not an edge of any element")
     return mids[pos]
 
 
@@ -121,25 +121,43 @@ def boundary_faces(points: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, n
     return faces, np.hstack([faces, mids])
 
 
-def region_node_weights(points: np.ndarray, cells: np.ndarray, triangles: np.ndarray
+def region_node_weights(points: np.ndarray, cells: np.ndarray, region: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
-    """(nodes, weights) of a region given by vertex triangles: every node of the region
-    (vertices, and edge nodes for tetra10) with its consistent area weight (area/3 per
-    edge node for P2, per vertex for P1), normalised to sum 1."""
-    tri = np.asarray(triangles, dtype=np.int64)
-    a, b, c = (points[tri[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    """(nodes, weights) of a region given by its vertex cells (triangles (n, 3), edges
+    (n, 2) or vertices (n, 1)): every node of the region (vertices, and edge nodes for
+    tetra10) with its consistent weight, normalised to sum 1: area/3 per edge node for P2
+    and per vertex for P1 on a face; length/6 per vertex and 2 length/3 per edge node for
+    P2, length/2 per vertex for P1 on a line; equal weights on a point set."""
+    reg = np.asarray(region, dtype=np.int64)
+    k = reg.shape[1]
+    if k == 1:
+        nodes = np.unique(reg)
+        return nodes, np.full(nodes.size, 1.0 / max(nodes.size, 1))
+    p = [points[reg[:, i]] for i in range(k)]
+    if k == 3:
+        size = 0.5 * np.linalg.norm(np.cross(p[1] - p[0], p[2] - p[0]), axis=1)
+        pairs = [(0, 1), (1, 2), (2, 0)]
+    else:
+        size = np.linalg.norm(p[1] - p[0], axis=1)
+        pairs = [(0, 1)]
+    carriers, carrier_w = [], []
     if cells.shape[1] == 10:
         em = _edge_midnodes(cells)
-        carriers = np.stack([_mid_of(em, tri[:, 0], tri[:, 1]), _mid_of(em, tri[:, 1], tri[:, 2]),
-                             _mid_of(em, tri[:, 2], tri[:, 0])], axis=1)
-        all_nodes = np.concatenate([tri.ravel(), carriers.ravel()])
+        mids = np.stack([_mid_of(em, reg[:, a], reg[:, b]) for a, b in pairs], axis=1)
+        carriers.append(mids.ravel())
+        carrier_w.append(np.repeat(size / 3.0 if k == 3 else 2.0 * size / 3.0, len(pairs)))
+        if k == 2:
+            carriers.append(reg.ravel())
+            carrier_w.append(np.repeat(size / 6.0, 2))
+        all_nodes = np.concatenate([reg.ravel(), mids.ravel()])
     else:
-        carriers = tri
-        all_nodes = tri.ravel()
+        carriers.append(reg.ravel())
+        carrier_w.append(np.repeat(size / k, k))
+        all_nodes = reg.ravel()
     nodes = np.unique(all_nodes)
     weights = np.zeros(nodes.size)
-    np.add.at(weights, np.searchsorted(nodes, carriers.ravel()), np.repeat(area / 3.0, 3))
+    np.add.at(weights, np.searchsorted(nodes, np.concatenate(carriers)),
+              np.concatenate(carrier_w))
     total = weights.sum()
     return nodes, weights / total if total > 0 else weights
 

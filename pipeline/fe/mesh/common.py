@@ -2,7 +2,8 @@
 the body's dimensions and of the element count, and the gmsh session helpers.
 
 A :class:`BodyMesh` holds straight-sided tetrahedra (the corner nodes of the gmsh
-elements) plus the boundary triangles of every named region (gmsh physical groups).
+elements) plus the cells of every named region (gmsh physical groups: boundary
+triangles, edges or vertices) and the file's named node sets.
 Higher-order nodes are re-created by the finite-element space
 (:mod:`pipeline.fe.space`) at the edge midpoints, so a quadratic field lives on
 straight-edged tetrahedra: exact for the box, and a faceted approximation of a curved
@@ -66,18 +67,28 @@ def z_order(points: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BodyMesh:
-    """A tetrahedral mesh of the body with named boundary regions.
+    """A tetrahedral mesh of the body with named regions.
 
     vertices: (n_v, 3) float64, m.
     tetrahedra: (n_t, 4) int64 vertex indices, positively oriented.
-    regions: name -> (n_f, 3) int64 vertex indices of the boundary triangles.
+    regions: name -> int64 vertex indices of the region's cells: (n, 3) triangles (a
+        face), (n, 2) edges (a line) or (n, 1) vertices (a point or node set).
     source: the file the mesh was read from.
+    other_groups: name -> what it is, for the named groups of the file that are no
+        region (a volume group: "a volume group of 120 tetrahedra").
+    node_sets: name -> sorted vertex indices of the file's named node sets (Abaqus
+        ``*NSET``), made into regions by :func:`pipeline.fe.regions.resolve_regions`;
+        node_set_edges: name -> (n, 2) sorted vertex pairs of the edges whose mid-edge
+        node a set holds (files of quadratic cells only).
     """
 
     vertices: np.ndarray
     tetrahedra: np.ndarray
     regions: Mapping[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
+    other_groups: Mapping[str, str] = field(default_factory=dict)
+    node_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
+    node_set_edges: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:
