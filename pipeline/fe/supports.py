@@ -25,7 +25,7 @@ lambda_p,k <= lambda_c,k <= theta_k, a computed error bound, not an estimate.
 
 **Springs to ground** on a region: per unit area, k (N/m^3) per frame component c with
 unit vector e_c at node i, node i gets w_i sum_c k_c e_c e_c^T with w_i the integral of
-its shape function over the region (:func:`pipeline.fe.space.surface_region`: sum of
+its shape function over the region (:func:`pipeline.fe.space.weighted_region`: sum of
 w_i = area), so a uniform displacement u meets the force k A u, exactly as the
 continuous spring bed; a total stiffness K_c (N/m) is k_c = K_c / A.
 
@@ -50,7 +50,8 @@ from pipeline.config import Support
 from pipeline.errors import RegionError
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
-from pipeline.fe.space import FESpace, region_nodes, surface_region, triangle_nodes
+from pipeline.fe.space import (REGION_KINDS, FESpace, region_nodes, triangle_nodes,
+                               weighted_region)
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +164,7 @@ def _bushing_matrix(space: FESpace, region, support: Support, key: str) -> sp.cs
     r = space.node_points[region.nodes] - c
     n = region.nodes.size
     W = np.zeros((6, n, 3))
-    W[0:3] = (np.eye(3)[:, None, :] * (w / region.area)[None, :, None])
+    W[0:3] = (np.eye(3)[:, None, :] * (w / region.measure)[None, :, None])
     needs_rotation = np.abs(Kb[3:]).max() > 0 or np.linalg.norm(P - c) > 0
     if needs_rotation:
         J = (w * (r * r).sum(1)).sum() * np.eye(3) - np.einsum("i,ij,ik->jk", w, r, r)
@@ -198,7 +199,17 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
         if s.spring is None and s.bushing is None and not s.local_fix:
             continue
         tris = get_region(regions, s.region, f"{key}.region")
-        region = surface_region(space, s.region, tris)
+        region = weighted_region(space, s.region, tris)
+        needs_face = (s.spring is not None and s.spring.kind == "per_area") or \
+            (s.frame is not None and s.frame.kind == "face")
+        if needs_face and region.dimension != 2:
+            what = "springs per unit area" if s.spring is not None and \
+                s.spring.kind == "per_area" else "a face frame"
+            raise RegionError(
+                f"config key '{key}.region': region '{s.region}' is a "
+                f"{REGION_KINDS[region.dimension][0]} region; {what} need a face "
+                "region (use spring.total on a line or point region, or a cylindrical or "
+                "global frame)")
         if s.bushing is not None:
             if region.nodes.size > MAX_BUSHING_NODES:
                 raise RegionError(
@@ -211,7 +222,7 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
             axes = frame_axes(space, tris, region.nodes, s.frame, f"{key}.frame")
             k = np.asarray(s.spring.values, dtype=float)
             if s.spring.kind == "total":
-                k = k / region.area
+                k = k / region.measure
             if k.size == 2:  # face frame: normal, then both tangents
                 k = k[[0, 1, 1]]
             blocks = np.einsum("n,c,nci,ncj->nij", region.weights, k, axes, axes)
