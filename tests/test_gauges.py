@@ -89,6 +89,13 @@ def test_grid_at_an_edge_stops_there(coarse):
 def test_region_patch_is_the_whole_region(coarse):
     patch = gauges.region_patch(coarse.space, coarse.regions["top"], "ports.outputs[0]")
     assert patch.areas.sum() == pytest.approx(L * B, rel=1e-12)
+    with pytest.raises(RegionError, match=r"'ports.outputs\[0\].region'.*line or point"):
+        gauges.region_patch(coarse.space, coarse.regions["top"][:, :2], "ports.outputs[0]")
+    faces = coarse.space.body.tetrahedra[:, :3]
+    inside = ~np.isin(gauges._keys(faces), gauges._keys(gauges.boundary_faces(
+        coarse.space).triangles))
+    with pytest.raises(RegionError, match="not boundary faces.*average: volume"):
+        gauges.region_patch(coarse.space, faces[inside][:1], "ports.outputs[0]")
 
 
 def test_grid_follows_a_curved_surface_and_stops_short_of_its_back(tmp_path):
@@ -128,6 +135,7 @@ def test_surface_row_equals_scikit_fems_basis_at_the_same_points(tmp_path, order
         row = gauges.strain_row(space, patch, w)
         ref = w @ strain._point_strain_row(space, x, "p")
         assert np.abs(row - ref).max() <= 1e-10 * np.abs(ref).max()
+        assert np.array_equal(gauges.strain_row(space, patch, w[None, :]), row)  # per piece
 
 
 # --------------------------------------------------------------------------- refusals

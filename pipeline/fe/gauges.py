@@ -112,6 +112,9 @@ def _keys(tris: np.ndarray) -> np.ndarray:
 
 def region_patch(space: FESpace, triangles: np.ndarray, key: str) -> SurfacePatch:
     """The whole boundary ``triangles`` (n_f, 3) of a region, one piece each."""
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise RegionError(f"config key '{key}.region': a gauge covers a face region; got "
+                          f"cells of {triangles.shape[-1]} vertices (a line or point region)")
     faces = boundary_faces(space)
     table = _keys(faces.triangles)
     order = np.argsort(table)
@@ -119,9 +122,9 @@ def region_patch(space: FESpace, triangles: np.ndarray, key: str) -> SurfacePatc
     pos = np.searchsorted(table[order], query).clip(max=order.size - 1)
     found = table[order][pos] == query
     if not found.all():
-        raise RegionError(f"config key '{key}': the gauge's region has {int((~found).sum())} "
-                          "triangles that are not boundary faces of the mesh; expected a "
-                          "boundary region")
+        raise RegionError(f"config key '{key}.region': {int((~found).sum())} of its triangles "
+                          "are not boundary faces of the mesh (an inner surface); expected a "
+                          "boundary region, or 'average: volume' for the elements on it")
     idx = order[pos]
     return SurfacePatch(faces.owners[idx], faces.centroids[idx], faces.areas[idx])
 
@@ -270,9 +273,10 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
 
 
 def strain_row(space: FESpace, patch: SurfacePatch, weights: np.ndarray) -> np.ndarray:
-    """(n_dofs,) row r with r . U = sum_k a_k w . eps_{e_k}(x_k) / sum_k a_k: the
+    """(n_dofs,) row r with r . U = sum_k a_k w_k . eps_{e_k}(x_k) / sum_k a_k: the
     area-weighted mean over the patch's pieces (a_k their areas, x_k their points) of the
-    Voigt-weighted engineering strain (``weights`` (6,), VOIGT order) of the nodal
+    Voigt-weighted engineering strain (``weights`` (6,) or one row per piece (n_p, 6),
+    VOIGT order: a stress gauge's D_k^T w where pieces differ in material) of the nodal
     displacements U (m), each piece's strain from its own element's shape functions.
 
     On a straight-sided element x_k maps to reference coordinates xi = G (x_k - x_0),
@@ -289,8 +293,8 @@ def strain_row(space: FESpace, patch: SurfacePatch, weights: np.ndarray) -> np.n
     dref = np.stack([np.broadcast_to(ref.lbasis(xi.T, b)[1], (3, e.size))
                      for b in range(n_loc)])  # (b, k, n_p)
     grad = np.einsum("bkp,pki->pbi", dref, G)  # (n_p, b, i) 1/m
-    w = np.asarray(weights, float)
-    W = np.array([[w[0], w[5], w[4]], [w[5], w[1], w[3]], [w[4], w[3], w[2]]])
+    w = np.broadcast_to(np.asarray(weights, float), (e.size, 6))
+    W = w[:, [[0, 5, 4], [5, 1, 3], [4, 3, 2]]]  # (n_p, 3, 3) symmetric
     share = patch.areas / patch.areas.sum()
     values = (grad @ W) * share[:, None, None]  # (n_p, b, c)
     dofs = 3 * space.element_nodes[e][:, :, None] + np.arange(3)

@@ -25,12 +25,12 @@ import scipy.sparse as sp
 from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
-from pipeline.fe.ports import check_gauges
 from pipeline.fe.body import BodyProperties, body_properties
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
+from pipeline.fe.ports import check_gauges
 
 log = logging.getLogger(__name__)
 
@@ -96,9 +96,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
-        check_gauges(space, regions, cfg.ports, cfg.material)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
+    check_gauges(space, regions, cfg.ports, cfg.material)  # a misplaced gauge: before assembly
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
 
     with stage("assemble"):
