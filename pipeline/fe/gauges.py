@@ -20,9 +20,10 @@ The surface S:
 
 - a boundary ``region``: its triangles, whole;
 - a ``point`` p on the surface with a grid ``length`` l and ``width`` b: the rectangle
-  |(x - p) . e1| <= l / 2, |(x - p) . e2| <= b / 2, with n the outward normal of the
-  boundary triangle nearest to p, e1 the gauge direction projected on the plane normal
-  to n (the grid's measuring axis) and e2 = n x e1;
+  |(x - p) . e1| <= l / 2, |(x - p) . e2| <= b / 2, with n the outward surface normal
+  at p (:func:`surface_normal`: the vertex normals of the boundary triangle nearest to p
+  interpolated at p), e1 the gauge direction projected on the plane normal to n (the
+  grid's measuring axis) and e2 = n x e1;
 - a ``point`` with a ``radius`` r: the disc |x - p| <= r in that plane, taken as the
   regular 32-gon of the same area (apothem r sqrt(pi / (32 tan(pi / 32)))).
 
@@ -30,7 +31,11 @@ The grid's bounding planes contain n, so they cut a curved surface too (a gauge 
 over a fillet); S is the connected patch of boundary triangles around p cut by them,
 grown across shared edges from the triangle nearest p through triangles that face the
 same side (n_t . n > 0.1), so that a grid never wraps around a sharp edge onto another
-face. Point p must lie on the surface: within a quarter of the longest edge h of the
+face. A grid bent over a curved surface measures along the surface: on the piece of a
+face with normal n_t its directions d are R_t d, R_t the smallest rotation taking n to
+n_t (about n x n_t; R_t = I on a flat face), so a grid along a fillet's arc reads the
+strain along the arc at every point, as the bonded foil does. A region's directions are
+the same on all its faces. Point p must lie on the surface: within a quarter of the longest edge h of the
 nearest boundary triangle (the chords of a curved face of radius R lie up to h^2 / (8 R)
 off the true surface, at most h / 8 where the mesh resolves the curve, h <= R).
 
@@ -64,11 +69,16 @@ MIN_TANGENT = math.cos(math.radians(45.0))
 @dataclass(frozen=True)
 class SurfacePatch:
     """Flat pieces of surface under a gauge: pieces k = 0..n_p-1 lie on a boundary face of
-    element ``elements[k]`` with area ``areas[k]`` (m^2) and centroid ``points[k]`` (m)."""
+    element ``elements[k]`` with area ``areas[k]`` (m^2) and centroid ``points[k]`` (m).
+
+    rotations: (n_p, 3, 3) or None: R_k carries the gauge's directions from its point to
+    piece k (the grid bent over a curved surface; module docstring); None: the
+    directions are the same on every piece (a region)."""
 
     elements: np.ndarray
     points: np.ndarray
     areas: np.ndarray
+    rotations: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -226,6 +236,33 @@ def grid_planes(normal: np.ndarray, direction, length: float, width: float, radi
     return planes, np.full(DISC_SIDES, apothem)
 
 
+def surface_normal(faces: BoundaryFaces, seed: int, point: np.ndarray, vertices: np.ndarray
+                   ) -> np.ndarray:
+    """(3,) unit outward normal of the surface at ``point`` on boundary triangle ``seed``:
+    the vertex normals of its corners (area-weighted means of the normals of the faces
+    around each corner that turn less than 45 deg from the seed's: a sharp edge is not
+    smoothed) interpolated with the point's barycentric coordinates. On a flat face it is
+    the face's normal; on a curved one it is off the true normal by O((h / R)^2) instead
+    of the single facet's O(h / R)."""
+    corners = faces.triangles[seed]
+    n0 = faces.normals[seed]
+    a, b, c = vertices[corners]
+    cross = np.cross(b - a, c - a)
+    q = point - a
+    # barycentric coordinates of the point's projection on the seed's plane, clamped
+    lam = np.array([np.cross(c - b, point - b) @ cross, np.cross(a - c, point - c) @ cross,
+                    np.cross(b - a, q) @ cross]) / (cross @ cross)
+    lam = np.clip(lam, 0.0, None)
+    lam /= lam.sum()
+    near = faces.normals @ n0 > MIN_TANGENT  # faces within 45 deg of the seed's
+    n = np.zeros(3)
+    for weight, corner in zip(lam, corners):
+        ring = near & (faces.triangles == corner).any(axis=1)
+        vertex = (faces.areas[ring, None] * faces.normals[ring]).sum(axis=0)
+        n += weight * vertex / np.linalg.norm(vertex)
+    return n / np.linalg.norm(n)
+
+
 def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: float = 0.0,
                radius: float = 0.0, key: str = "ports.outputs") -> SurfacePatch:
     """The surface under a gauge at ``point`` (on the surface) with a ``length`` x
@@ -244,11 +281,11 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
             f"surface; expected a point on the surface (within {tolerance:.3g} m, a quarter "
             "of the local element size) for a surface gauge, or 'average: volume' for the "
             "mean over the elements around a point inside the body")
-    normal = faces.normals[seed]
+    normal = surface_normal(faces, seed, p, v)
     planes, offsets = grid_planes(normal, direction, length, width, radius, key)
     nominal = length * width if length > 0 else math.pi * radius * radius  # m^2 (flat)
     neighbours = _edge_neighbours(tris, space.body.n_vertices)
-    elements, points, areas = [], [], []
+    pieces, elements, points, areas = [], [], [], []
     seen = {seed}
     stack = [seed]
     while stack:
@@ -257,6 +294,7 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
         area, centroid = _area_centroid(piece)
         if not area > 1e-12 * min(nominal, faces.areas[t]):  # nothing, or a sliver
             continue
+        pieces.append(t)
         elements.append(faces.owners[t])
         points.append(centroid)
         areas.append(area)
@@ -269,7 +307,20 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
         raise RegionError(f"config key '{key}': the gauge's grid ({size}) covers no surface "
                           f"at {p.tolist()}; expected a grid larger than the round-off of the "
                           "coordinates (1e-9 of the body's size or more)")
-    return SurfacePatch(np.array(elements, dtype=np.int64), np.array(points), np.array(areas))
+    return SurfacePatch(np.array(elements, dtype=np.int64), np.array(points), np.array(areas),
+                        smallest_rotations(normal, faces.normals[np.array(pieces)]))
+
+
+def smallest_rotations(n0: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations R_k with R_k n0 = normals[k] (unit vectors, n0 . n_k > -1), each
+    about the axis n0 x n_k (Rodrigues: R = I + [v]x + [v]x^2 / (1 + c), v = n0 x n_k,
+    c = n0 . n_k)."""
+    v = np.cross(n0, normals)
+    c = normals @ n0
+    vx = np.zeros((normals.shape[0], 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    vx -= vx.transpose(0, 2, 1)
+    return np.eye(3) + vx + (vx @ vx) / (1.0 + c)[:, None, None]
 
 
 def strain_row(space: FESpace, patch: SurfacePatch, weights: np.ndarray) -> np.ndarray:
