@@ -35,9 +35,11 @@ face. A grid bent over a curved surface measures along the surface: on the piece
 face with normal n_t its directions d are R_t d, R_t the smallest rotation taking n to
 n_t (about n x n_t; R_t = I on a flat face), so a grid along a fillet's arc reads the
 strain along the arc at every point, as the bonded foil does. A region's directions are
-the same on all its faces. Point p must lie on the surface: within a quarter of the longest edge h of the
-nearest boundary triangle (the chords of a curved face of radius R lie up to h^2 / (8 R)
-off the true surface, at most h / 8 where the mesh resolves the curve, h <= R).
+the same on all its faces.
+
+Point p must lie on the surface: within a quarter of the longest edge h of the nearest
+boundary triangle (the chords of a curved face of radius R lie up to h^2 / (8 R) off the
+true surface, at most h / 8 where the mesh resolves the curve, h <= R).
 
 Shapes: points (n_p, 3) m, areas (n_p,) m^2, rows (n_dofs,) per unit nodal displacement.
 """
