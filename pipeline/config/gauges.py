@@ -10,7 +10,8 @@ element averages of the elements around it ("volume", with a region or a radius 
 
 from __future__ import annotations
 
-from typing import Any, Mapping, get_args
+from collections.abc import Mapping
+from typing import Any, get_args
 
 from pipeline._util import validate as v
 from pipeline.config.schema import GaugeAverage

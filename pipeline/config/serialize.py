@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, fields
 from typing import Any
 
-from pipeline.config.schema import GAUGE_KINDS, Config
+from pipeline.config.schema import Config
 from pipeline.config.supports import support_dict
 
 
@@ -72,7 +72,7 @@ def _port_dict(port) -> dict:
         out["radius"] = port.radius
     if port.length:
         out.update(length=port.length, width=port.width)
-    if (port.region and port.kind in GAUGE_KINDS) or port.radius or port.length:
+    if port.average != "surface":  # the default of every gauge with an area
         out["average"] = port.average
     return out
 

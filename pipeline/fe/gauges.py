@@ -20,9 +20,10 @@ The surface S:
 
 - a boundary ``region``: its triangles, whole;
 - a ``point`` p on the surface with a grid ``length`` l and ``width`` b: the rectangle
-  |(x - p) . e1| <= l / 2, |(x - p) . e2| <= b / 2, with n the outward normal of the
-  boundary triangle nearest to p, e1 the gauge direction projected on the plane normal
-  to n (the grid's measuring axis) and e2 = n x e1;
+  |(x - p) . e1| <= l / 2, |(x - p) . e2| <= b / 2, with n the outward surface normal
+  at p (:func:`surface_normal`: the vertex normals of the boundary triangle nearest to p
+  interpolated at p), e1 the gauge direction projected on the plane normal to n (the
+  grid's measuring axis) and e2 = n x e1;
 - a ``point`` with a ``radius`` r: the disc |x - p| <= r in that plane, taken as the
   regular 32-gon of the same area (apothem r sqrt(pi / (32 tan(pi / 32)))).
 
@@ -30,9 +31,15 @@ The grid's bounding planes contain n, so they cut a curved surface too (a gauge 
 over a fillet); S is the connected patch of boundary triangles around p cut by them,
 grown across shared edges from the triangle nearest p through triangles that face the
 same side (n_t . n > 0.1), so that a grid never wraps around a sharp edge onto another
-face. Point p must lie on the surface: within a quarter of the longest edge h of the
-nearest boundary triangle (the chords of a curved face of radius R lie up to h^2 / (8 R)
-off the true surface, at most h / 8 where the mesh resolves the curve, h <= R).
+face. A grid bent over a curved surface measures along the surface: on the piece of a
+face with normal n_t its directions d are R_t d, R_t the smallest rotation taking n to
+n_t (about n x n_t; R_t = I on a flat face), so a grid along a fillet's arc reads the
+strain along the arc at every point, as the bonded foil does. A region's directions are
+the same on all its faces.
+
+Point p must lie on the surface: within a quarter of the longest edge h of the nearest
+boundary triangle (the chords of a curved face of radius R lie up to h^2 / (8 R) off the
+true surface, at most h / 8 where the mesh resolves the curve, h <= R).
 
 Shapes: points (n_p, 3) m, areas (n_p,) m^2, rows (n_dofs,) per unit nodal displacement.
 """
@@ -64,11 +71,16 @@ MIN_TANGENT = math.cos(math.radians(45.0))
 @dataclass(frozen=True)
 class SurfacePatch:
     """Flat pieces of surface under a gauge: pieces k = 0..n_p-1 lie on a boundary face of
-    element ``elements[k]`` with area ``areas[k]`` (m^2) and centroid ``points[k]`` (m)."""
+    element ``elements[k]`` with area ``areas[k]`` (m^2) and centroid ``points[k]`` (m).
+
+    rotations: (n_p, 3, 3) or None: R_k carries the gauge's directions from its point to
+    piece k (the grid bent over a curved surface; module docstring); None: the
+    directions are the same on every piece (a region)."""
 
     elements: np.ndarray
     points: np.ndarray
     areas: np.ndarray
+    rotations: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -112,6 +124,9 @@ def _keys(tris: np.ndarray) -> np.ndarray:
 
 def region_patch(space: FESpace, triangles: np.ndarray, key: str) -> SurfacePatch:
     """The whole boundary ``triangles`` (n_f, 3) of a region, one piece each."""
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise RegionError(f"config key '{key}.region': a gauge covers a face region; got "
+                          f"cells of {triangles.shape[-1]} vertices (a line or point region)")
     faces = boundary_faces(space)
     table = _keys(faces.triangles)
     order = np.argsort(table)
@@ -119,9 +134,9 @@ def region_patch(space: FESpace, triangles: np.ndarray, key: str) -> SurfacePatc
     pos = np.searchsorted(table[order], query).clip(max=order.size - 1)
     found = table[order][pos] == query
     if not found.all():
-        raise RegionError(f"config key '{key}': the gauge's region has {int((~found).sum())} "
-                          "triangles that are not boundary faces of the mesh; expected a "
-                          "boundary region")
+        raise RegionError(f"config key '{key}.region': {int((~found).sum())} of its triangles "
+                          "are not boundary faces of the mesh (an inner surface); expected a "
+                          "boundary region, or 'average: volume' for the elements on it")
     idx = order[pos]
     return SurfacePatch(faces.owners[idx], faces.centroids[idx], faces.areas[idx])
 
@@ -223,6 +238,33 @@ def grid_planes(normal: np.ndarray, direction, length: float, width: float, radi
     return planes, np.full(DISC_SIDES, apothem)
 
 
+def surface_normal(faces: BoundaryFaces, seed: int, point: np.ndarray, vertices: np.ndarray
+                   ) -> np.ndarray:
+    """(3,) unit outward normal of the surface at ``point`` on boundary triangle ``seed``:
+    the vertex normals of its corners (area-weighted means of the normals of the faces
+    around each corner that turn less than 45 deg from the seed's: a sharp edge is not
+    smoothed) interpolated with the point's barycentric coordinates. On a flat face it is
+    the face's normal; on a curved one it is off the true normal by O((h / R)^2) instead
+    of the single facet's O(h / R)."""
+    corners = faces.triangles[seed]
+    n0 = faces.normals[seed]
+    a, b, c = vertices[corners]
+    cross = np.cross(b - a, c - a)
+    q = point - a
+    # barycentric coordinates of the point's projection on the seed's plane, clamped
+    lam = np.array([np.cross(c - b, point - b) @ cross, np.cross(a - c, point - c) @ cross,
+                    np.cross(b - a, q) @ cross]) / (cross @ cross)
+    lam = np.clip(lam, 0.0, None)
+    lam /= lam.sum()
+    near = faces.normals @ n0 > MIN_TANGENT  # faces within 45 deg of the seed's
+    n = np.zeros(3)
+    for weight, corner in zip(lam, corners):
+        ring = near & (faces.triangles == corner).any(axis=1)
+        vertex = (faces.areas[ring, None] * faces.normals[ring]).sum(axis=0)
+        n += weight * vertex / np.linalg.norm(vertex)
+    return n / np.linalg.norm(n)
+
+
 def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: float = 0.0,
                radius: float = 0.0, key: str = "ports.outputs") -> SurfacePatch:
     """The surface under a gauge at ``point`` (on the surface) with a ``length`` x
@@ -241,11 +283,11 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
             f"surface; expected a point on the surface (within {tolerance:.3g} m, a quarter "
             "of the local element size) for a surface gauge, or 'average: volume' for the "
             "mean over the elements around a point inside the body")
-    normal = faces.normals[seed]
+    normal = surface_normal(faces, seed, p, v)
     planes, offsets = grid_planes(normal, direction, length, width, radius, key)
     nominal = length * width if length > 0 else math.pi * radius * radius  # m^2 (flat)
     neighbours = _edge_neighbours(tris, space.body.n_vertices)
-    elements, points, areas = [], [], []
+    pieces, elements, points, areas = [], [], [], []
     seen = {seed}
     stack = [seed]
     while stack:
@@ -254,6 +296,7 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
         area, centroid = _area_centroid(piece)
         if not area > 1e-12 * min(nominal, faces.areas[t]):  # nothing, or a sliver
             continue
+        pieces.append(t)
         elements.append(faces.owners[t])
         points.append(centroid)
         areas.append(area)
@@ -266,13 +309,27 @@ def grid_patch(space: FESpace, point, direction, length: float = 0.0, width: flo
         raise RegionError(f"config key '{key}': the gauge's grid ({size}) covers no surface "
                           f"at {p.tolist()}; expected a grid larger than the round-off of the "
                           "coordinates (1e-9 of the body's size or more)")
-    return SurfacePatch(np.array(elements, dtype=np.int64), np.array(points), np.array(areas))
+    return SurfacePatch(np.array(elements, dtype=np.int64), np.array(points), np.array(areas),
+                        smallest_rotations(normal, faces.normals[np.array(pieces)]))
+
+
+def smallest_rotations(n0: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotations R_k with R_k n0 = normals[k] (unit vectors, n0 . n_k > -1), each
+    about the axis n0 x n_k (Rodrigues: R = I + [v]x + [v]x^2 / (1 + c), v = n0 x n_k,
+    c = n0 . n_k)."""
+    v = np.cross(n0, normals)
+    c = normals @ n0
+    vx = np.zeros((normals.shape[0], 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    vx -= vx.transpose(0, 2, 1)
+    return np.eye(3) + vx + (vx @ vx) / (1.0 + c)[:, None, None]
 
 
 def strain_row(space: FESpace, patch: SurfacePatch, weights: np.ndarray) -> np.ndarray:
-    """(n_dofs,) row r with r . U = sum_k a_k w . eps_{e_k}(x_k) / sum_k a_k: the
+    """(n_dofs,) row r with r . U = sum_k a_k w_k . eps_{e_k}(x_k) / sum_k a_k: the
     area-weighted mean over the patch's pieces (a_k their areas, x_k their points) of the
-    Voigt-weighted engineering strain (``weights`` (6,), VOIGT order) of the nodal
+    Voigt-weighted engineering strain (``weights`` (6,) or one row per piece (n_p, 6),
+    VOIGT order: a stress gauge's D_k^T w where pieces differ in material) of the nodal
     displacements U (m), each piece's strain from its own element's shape functions.
 
     On a straight-sided element x_k maps to reference coordinates xi = G (x_k - x_0),
@@ -289,8 +346,8 @@ def strain_row(space: FESpace, patch: SurfacePatch, weights: np.ndarray) -> np.n
     dref = np.stack([np.broadcast_to(ref.lbasis(xi.T, b)[1], (3, e.size))
                      for b in range(n_loc)])  # (b, k, n_p)
     grad = np.einsum("bkp,pki->pbi", dref, G)  # (n_p, b, i) 1/m
-    w = np.asarray(weights, float)
-    W = np.array([[w[0], w[5], w[4]], [w[5], w[1], w[3]], [w[4], w[3], w[2]]])
+    w = np.broadcast_to(np.asarray(weights, float), (e.size, 6))
+    W = w[:, [[0, 5, 4], [5, 1, 3], [4, 3, 2]]]  # (n_p, 3, 3) symmetric
     share = patch.areas / patch.areas.sum()
     values = (grad @ W) * share[:, None, None]  # (n_p, b, c)
     dofs = 3 * space.element_nodes[e][:, :, None] + np.arange(3)

@@ -111,9 +111,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         regions = resolve_regions(space, cfg.regions)
         check_region_uses(cfg, space, regions)
         extra = support_stiffness(space, regions, cfg.supports)
-        check_gauges(space, regions, cfg.ports, cfg.material)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
+    check_gauges(space, regions, cfg.ports, cfg.material)  # a misplaced gauge: before assembly
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
 
     with stage("assemble"):

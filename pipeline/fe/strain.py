@@ -293,15 +293,21 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
     in a sphere (``point``, ``radius`` > 0, ``average="volume"``) or at a ``point``
     (module docstring)."""
     w = voigt_weights(kind, direction, direction2)
+    D = np.eye(6)
     if kind == "stress":
         if material is None:
             raise ValueError(f"{key}: a stress gauge needs the material (pass material=)")
-        w = elasticity_matrix(material).T @ w  # w . (D eps) = (D^T w) . eps
+        D = elasticity_matrix(material)
+        w = D.T @ w  # w . (D eps) = (D^T w) . eps
     if triangles is None and radius == 0.0 and length == 0.0:
         return w @ _point_strain_row(space, point, key)
     if average == "surface":
         patch = region_patch(space, triangles, key) if triangles is not None else \
             grid_patch(space, point, direction, length, width, radius, key)
+        if patch.rotations is not None:  # each piece's own directions (pipeline.fe.gauges)
+            d2 = direction if direction2 is None else direction2
+            w = np.stack([voigt_weights(kind, R @ direction, R @ d2)
+                          for R in patch.rotations]) @ D
         return strain_row(space, patch, w)
     if triangles is not None:
         elements = elements_on_surface(space, triangles)
