@@ -144,6 +144,33 @@ def test_fmi3_fmus_are_valid_with_units_array_state_and_parameters(fmus, result_
     assert fmus["connection/root"].name == "beam.connection_root.fmu"
 
 
+def test_fmi3_terminals_group_each_port(fmus):
+    """terminalsAndIcons.xml is valid against the FMI 3.0 schema (shipped with fmpy) and
+    makes one terminal of each mechanical port: the connection model's root carries its
+    accelerations in and its reaction wrench out."""
+    import os
+
+    from lxml import etree
+
+    xsd = Path(os.path.dirname(fmpy.__file__)) / "schema" / "fmi3" / "fmi3TerminalsAndIcons.xsd"
+    schema = etree.XMLSchema(etree.parse(str(xsd)))
+    members = {}
+    for model, path in fmus.items():
+        names = zipfile.ZipFile(path).namelist()
+        if model == "lumped":  # tip_force, tip_position ...: no <port>/ or <port>. names
+            assert not any(n.startswith("terminalsAndIcons") for n in names)
+            continue
+        doc = etree.fromstring(zipfile.ZipFile(path).read("terminalsAndIcons/terminalsAndIcons.xml"))
+        assert schema.validate(doc), (model, schema.error_log)
+        members[model] = {t.get("name"): [v.get("memberName") for v in t]
+                          for t in doc.iter("Terminal")}
+    assert members["plant"] == {"tip_y": ["position", "velocity", "acceleration"]}
+    root = members["connection/root"]["root"]
+    assert root == ["ax", "ay", "az", "alpha_x", "alpha_y", "alpha_z",
+                    "Fx", "Fy", "Fz", "Tx", "Ty", "Tz"]
+    assert set(members["craig_bampton"]) == {"root", "tip"}
+
+
 @pytest.mark.parametrize("model", MODELS)
 def test_co_simulation_is_the_exact_step_response(result_h5, fmus, model):
     m = _model(result_h5, model)
@@ -183,18 +210,31 @@ def test_craig_bampton_fmu_is_the_stored_m_and_k(result_h5, fmus):
     nb = len([c for c in cb.coordinate_names if not c.startswith("mode_")])
     np.testing.assert_allclose(B[n:], Minv[:, :nb], rtol=0, atol=1e-12 * np.abs(Minv).max())
     np.testing.assert_allclose(D[2 * nb:], Minv[:nb, :nb], rtol=0, atol=1e-12 * np.abs(Minv).max())
+    # damping_ratio_2 = 0.3: C_d = diag(0, 2 zeta_k omega_k) on the fixed-interface modes
+    zeta = np.full(n - nb, 0.02)  # the config's uniform ratio
+    zeta[1] = 0.3
+    omega = 2 * np.pi * cb.fixed_interface_frequencies_hz
+    Cd = np.zeros((n, n))
+    Cd[nb:, nb:] = np.diag(2 * zeta * omega)
+    A, _, C, _ = _linearise(fmus["craig_bampton"], m.ss, {"damping_ratio_2": 0.3})
+    np.testing.assert_allclose(A[n:, n:], -Minv @ Cd, rtol=0, atol=1e-9 * np.abs(Minv @ Cd).max())
+    np.testing.assert_allclose(C[2 * nb:], A[n:n + nb], rtol=0, atol=1e-12 * np.abs(A[n:]).max())
 
 
-def _linearise(path, ss):
-    """A, B, C, D read back through the FMI 3.0 ME interface (unit states and inputs)."""
+def _linearise(path, ss, parameters=None):
+    """A, B, C, D read back through the FMI 3.0 ME interface (unit states and inputs),
+    with ``parameters`` (name -> value) set in initialization mode."""
     from fmpy import extract, read_model_description
     from fmpy.fmi3 import FMU3Model
 
     md = read_model_description(str(path))
+    vr = {x.name: x.valueReference for x in md.modelVariables}
     fmu = FMU3Model(guid=md.guid, unzipDirectory=extract(str(path)),
                     modelIdentifier=md.modelExchange.modelIdentifier, instanceName="t")
     fmu.instantiate()
     fmu.enterInitializationMode()
+    for name, value in (parameters or {}).items():
+        fmu.setFloat64([vr[name]], [value])
     fmu.exitInitializationMode()
     fmu.enterContinuousTimeMode()
     nx, nu, ny = ss.n_states, ss.n_inputs, ss.n_outputs
@@ -227,7 +267,7 @@ def test_parameters_rebuild_the_model(result_h5, fmus):
     w = np.sqrt(-A[v, e])
     A[v, v], C[:, v] = -2 * 0.1 * w, C[:, e] * 2 * 0.1 / w
     ref = conn.with_(A=A, C=C)
-    got = _linearise_with(fmus["connection/root"], conn, {"damping_ratio_1": 0.1})
+    got = _linearise(fmus["connection/root"], conn, {"damping_ratio_1": 0.1})
     for g, r in zip(got, ref):
         np.testing.assert_allclose(g, r, rtol=0, atol=1e-9 * np.abs(r).max())
     p = lm.plant
@@ -239,25 +279,6 @@ def test_parameters_rebuild_the_model(result_h5, fmus):
                     start_values={"filter_cutoff": 2000.0})
     want = _zoh(ref, t)
     assert np.all(np.abs(got - want) <= 1e-9 * np.abs(want).max(axis=0))
-
-
-def _linearise_with(path, ss, start):
-    """A, B, C, D of one CS step's worth: set parameters, then linearise (ME)."""
-    import fmpy.fmi3 as F
-
-    real = F.FMU3Model.exitInitializationMode
-
-    def exit_with_parameters(self):
-        md = fmpy.read_model_description(str(path))
-        vr = {x.name: x.valueReference for x in md.modelVariables}
-        self.setFloat64([vr[k] for k in start], list(start.values()))
-        return real(self)
-
-    F.FMU3Model.exitInitializationMode = exit_with_parameters
-    try:
-        return _linearise(path, ss)
-    finally:
-        F.FMU3Model.exitInitializationMode = real
 
 
 def test_fmi2_export_of_every_model_is_valid_and_exact(result_h5, tmp_path):
@@ -325,12 +346,13 @@ def test_every_model_inspect_lists_exports(result_h5, tmp_path):
     names = [n.strip() for n in line.split(None, 1)[1].split(",")]
     assert names == ["statespace", "statespace_filtered", "lumped", "connection/root",
                      "craig_bampton"]
-    for name in names:
-        path = run_export(result_h5, "fmu", tmp_path / "m.fmu", model=name, fmi_version="3")
-        md = fmpy.read_model_description(str(path))
-        assert md.coSimulation.modelIdentifier.endswith(
-            {"statespace": "plant", "statespace_filtered": "filtered"}.get(
-                name, name).replace("/", "_")), name
+    aliases = {"statespace": "plant", "statespace_filtered": "filtered"}
+    for name in names:  # each resolves to its model (the exports compile in `fmus`)
+        assert _model(result_h5, name).model == aliases.get(name, name)
+    path = run_export(result_h5, "fmu", tmp_path / "m.fmu", model="statespace_filtered",
+                      fmi_version="3")
+    md = fmpy.read_model_description(str(path))
+    assert md.coSimulation.modelIdentifier == "beam_filtered"
 
 
 def test_co_simulation_example_of_the_docs(tmp_path, monkeypatch, capsys):
@@ -378,3 +400,31 @@ def test_co_simulation_example_of_the_docs(tmp_path, monkeypatch, capsys):
     for col, name in ((0, "tip"), (1, "mass")):
         err = np.abs(tip[:, col + 1] - ref[:, col]).max()
         assert err <= 5e-3 * np.abs(ref[:, col]).max(), name
+
+
+def test_first_order_filter_follows_cutoff_and_damping(tmp_path):
+    """A first-order filter takes every plant output, the acceleration too, so its rows of
+    A follow the damping (C_acc = C_vel A): the FMU with filter_cutoff = 1.5 kHz and
+    damping_ratio_1 = 0.2 is pipeline.reduce.filters' model of the plant so changed."""
+    from pipeline.cli.export import run_export
+    from pipeline.reduce.filters import filtered_model
+    from pipeline.reduce.modal import StateSpaceModel
+
+    (tmp_path / "b.yaml").write_text(CONFIG.replace("third_order", "first_order"))
+    h5 = run_pipeline(load_config(tmp_path / "b.yaml"), tmp_path / "b.h5",
+                      mesh_dir=tmp_path).output
+    path = run_export(h5, "fmu", tmp_path / "b.fmu", model="filtered", fmi_version="3")
+    lm = load_model(h5)
+    A, B, C, D = (np.array(x) for x in lm.plant)
+    names = list(lm.plant.state_names)
+    i, v = names.index("eta_1"), names.index("eta_dot_1")
+    A[v, v] = -2 * 0.2 * np.sqrt(-A[v, i])
+    C[2], D[2] = C[1] @ A, C[1] @ B
+    plant = StateSpaceModel(A, B, C, D, input_names=lm.plant.input_names,
+                            output_names=lm.plant.output_names,
+                            state_names=lm.plant.state_names)
+    t = np.linspace(0.0, 0.005, 101)
+    want = _zoh(filtered_model(plant, "first_order", 1500.0), t)
+    got = _simulate(path, lm.filtered, "CoSimulation", t,
+                    start_values={"filter_cutoff": 1500.0, "damping_ratio_1": 0.2})
+    assert np.all(np.abs(got - want) <= 1e-9 * np.abs(want).max(axis=0))

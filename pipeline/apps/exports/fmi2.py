@@ -19,7 +19,7 @@ from pipeline._version import __version__
 from pipeline.apps.exports.fmu import parameters, unit_definitions, variables_section
 from pipeline.apps.exports.fmu_models import FmuModel
 
-__all__ = ["model_description", "platform_folder", "C_API"]
+__all__ = ["model_description", "platform_folder", "extra_entries", "C_API"]
 
 #: the C file of the FMI 2.0 functions (appended to fmu_core.c)
 C_API = "fmi2_api.c"
@@ -33,6 +33,11 @@ def platform_folder() -> tuple[str, str]:
     if sys.platform == "darwin":
         return "darwin" + bits, ".dylib"
     return "linux" + bits, ".so"
+
+
+def extra_entries(m: FmuModel) -> dict[str, str]:
+    """Archive entries beyond the common ones: none for FMI 2.0."""
+    return {}
 
 
 def model_description(m: FmuModel, identifier: str, guid: str, description: str) -> str:

@@ -18,6 +18,7 @@ binaries/<platform>/<id>.so      the model compiled at export time (``gcc``, or 
 sources/fmu.c, model_data.h      the C sources (the FMI headers come from the importing
 sources/buildDescription.xml     tool), so another platform's tool builds it
 documentation/index.html         what the model is, its source file
+terminalsAndIcons/...xml         FMI 3.0: one terminal per mechanical port (:mod:`.fmi3`)
 ===============================  ==========================================================
 
 The model is the state space of the file (SI units)::
@@ -262,6 +263,7 @@ def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant",
                 f"{escape(h5_path.name)}, exported by fe-reduced-body as an FMI {version}.0 "
                 "FMU: x' = A x + B u, y = C x + D u (SI units). Co-simulation steps are exact "
                 "for piecewise-constant inputs (zero-order hold).</p></body></html>\n"),
+            **fmi.extra_entries(m),
         }
         with atomic_path(out_path) as part, zipfile.ZipFile(part, "w", zipfile.ZIP_DEFLATED) as z:
             for name, text in entries.items():
