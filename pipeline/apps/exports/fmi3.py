@@ -35,7 +35,8 @@ import sys
 from xml.sax.saxutils import escape, quoteattr
 
 from pipeline._version import __version__
-from pipeline.apps.exports.fmu import parameters, unit_definitions, variables_section
+from pipeline.apps.exports.fmu import (output_description, parameters, unit_definitions,
+                                        variables_section)
 from pipeline.apps.exports.fmu_models import FmuModel
 
 __all__ = ["model_description", "platform_folder", "terminals", "extra_entries", "C_API"]
@@ -107,7 +108,8 @@ def model_description(m: FmuModel, identifier: str, guid: str, description: str)
     outputs = list(range(3 + nu, 3 + nu + ss.C.shape[0]))
     for vr, s, u in zip(outputs, ss.output_names, m.output_units):
         rows.append(f'    <Float64 name={quoteattr(s)} valueReference="{vr}" causality="output"'
-                    f' variability="continuous"{unit(u)} description="output"/>')
+                    f' variability="continuous"{unit(u)} '
+                    f'description={quoteattr(output_description(s))}/>')
     base = 3 + nu + ss.C.shape[0]
     for k, (name, start, u, text) in enumerate(parameters(m)):
         rows.append(f'    <Float64 name={quoteattr(name)} valueReference="{base + k}" '

@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["export_fmu", "FmuModel", "fmu_model", "fmi_headers", "FMI_VERSIONS",
            "parameters", "unit_definitions", "default_experiment", "variables_section",
+           "output_description",
            "identifier"]
 
 #: FMI versions written: the module of each (model description, C functions, platform)
@@ -128,6 +129,25 @@ def variables_section(m: FmuModel, rows: list[str]) -> str:
     return ('  <LogCategories>\n    <Category name="logStatusError"/>\n  </LogCategories>\n'
             + default_experiment(m) + "  <ModelVariables>\n" + "\n".join(rows)
             + "\n  </ModelVariables>\n")
+
+
+#: what the connection-point model's signal suffixes are
+_SIGNALS = {"a": "acceleration", "alpha": "angular acceleration", "F": "force", "T": "moment"}
+
+
+def output_description(name: str) -> str:
+    """A short description of the output ``name``: ``<port>/<quantity>`` (and the lumped
+    chain's ``<port>_<quantity>``) -> ``<quantity> of <port>``; the connection model's
+    ``<point>.<signal><axis>`` -> ``<signal> <axis> at <point>``."""
+    port, sep, quantity = name.rpartition("/")
+    if sep:
+        return f"{quantity} of {port}"
+    port, sep, quantity = name.rpartition("_")  # the lumped chain: tip_position ...
+    if sep and quantity in ("position", "velocity", "acceleration"):
+        return f"{quantity} of {port}"
+    point, sep, signal = name.rpartition(".")
+    kind = next((v for k, v in _SIGNALS.items() if signal.rstrip("xyz_") == k), None)
+    return f"{kind} {signal[-1]} at {point}" if sep and kind else "output"
 
 
 def description(m: FmuModel, source: str) -> str:
