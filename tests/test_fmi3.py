@@ -131,7 +131,8 @@ def test_fmi3_fmus_are_valid_with_units_array_state_and_parameters(fmus, result_
                    for n in zipfile.ZipFile(path).namelist())
     v = {x.name: x for x in fmpy.read_model_description(str(fmus["plant"])).modelVariables}
     assert v["tip_force_y"].unit == "N" and v["tip_y/acceleration"].unit == "m/s2"
-    assert v["damping_ratio_1"].variability == "tunable" and float(v["damping_ratio_1"].start) == 0.02
+    assert v["damping_ratio_1"].variability == "tunable"
+    assert float(v["damping_ratio_1"].start) == 0.02
     f = {x.name: x for x in fmpy.read_model_description(str(fmus["filtered"])).modelVariables}
     assert f["filter_cutoff"].unit == "Hz" and float(f["filter_cutoff"].start) == 5000.0
     # which models get which parameters
@@ -160,7 +161,8 @@ def test_fmi3_terminals_group_each_port(fmus):
         if model == "lumped":  # tip_force, tip_position ...: no <port>/ or <port>. names
             assert not any(n.startswith("terminalsAndIcons") for n in names)
             continue
-        doc = etree.fromstring(zipfile.ZipFile(path).read("terminalsAndIcons/terminalsAndIcons.xml"))
+        doc = etree.fromstring(
+            zipfile.ZipFile(path).read("terminalsAndIcons/terminalsAndIcons.xml"))
         assert schema.validate(doc), (model, schema.error_log)
         members[model] = {t.get("name"): [v.get("memberName") for v in t]
                           for t in doc.iter("Terminal")}
@@ -206,7 +208,8 @@ def test_craig_bampton_fmu_is_the_stored_m_and_k(result_h5, fmus):
     A, B, _, D = _linearise(fmus["craig_bampton"], m.ss)
     n = cb.M.shape[0]
     Minv = np.linalg.inv(cb.M)
-    np.testing.assert_allclose(A[n:, :n], -Minv @ cb.K, rtol=0, atol=1e-12 * np.abs(Minv @ cb.K).max())
+    np.testing.assert_allclose(A[n:, :n], -Minv @ cb.K, rtol=0,
+                               atol=1e-12 * np.abs(Minv @ cb.K).max())
     nb = len([c for c in cb.coordinate_names if not c.startswith("mode_")])
     np.testing.assert_allclose(B[n:], Minv[:, :nb], rtol=0, atol=1e-12 * np.abs(Minv).max())
     np.testing.assert_allclose(D[2 * nb:], Minv[:nb, :nb], rtol=0, atol=1e-12 * np.abs(Minv).max())
