@@ -1,6 +1,7 @@
 """FMU export (issue 20): fmpy validates it, simulates it (Model Exchange with CVode,
 Co-Simulation with its own stepping), and the responses equal python-control's on
-``load_model(...).ss``; a C program with no Python loads the binary and steps it.
+``load_model(...).ss``; a C program with no Python loads the binary and steps it (the
+FMI 2.0 and the FMI 3.0 binary; the rest of FMI 3.0 is tests/test_fmi3.py).
 
 Tolerances, from what is computed:
 - Co-Simulation: fmi2DoStep is the zero-order-hold discretisation (exact for the held
@@ -242,29 +243,93 @@ int main(int argc, char **argv) {
 """
 
 
-def test_fmu_binary_runs_from_c_without_python(result_h5, fmus, tmp_path):
-    """A C program (no Python in the process) dlopens the FMU binary, steps it 500 times
-    with a unit step input and prints the tip position, which equals python-control's."""
-    import control
+def _driver_output(path, source: str, version: str, tmp_path) -> np.ndarray:
+    """The tip positions a C program (no Python in the process) prints: it dlopens the
+    binary of the FMU ``path``, steps it with a unit step input and reads the output
+    after the input's value reference."""
     from pipeline.apps.exports.fmu import fmi_headers
 
-    md = fmpy.read_model_description(str(fmus["plant"]))
+    md = fmpy.read_model_description(str(path))
     folder = tmp_path / "unzipped"
-    zipfile.ZipFile(fmus["plant"]).extractall(folder)
+    zipfile.ZipFile(path).extractall(folder)
     lib = next((folder / "binaries").glob("*/*"))
     symbols = subprocess.run(["nm", "-D", "--defined-only", str(lib)], capture_output=True,
                              text=True, check=True).stdout
-    for name in ("fmi2Instantiate", "fmi2DoStep", "fmi2GetDerivatives", "fmi2GetReal"):
-        assert f" {name}\n" in symbols
-    (tmp_path / "driver.c").write_text(DRIVER.replace("#include <stdarg.h>",
-                                                      "#include <stdarg.h>\n#include <stdlib.h>"))
-    subprocess.run(["gcc", "-std=c99", f"-I{fmi_headers()}", "-o", str(tmp_path / "driver"),
-                    str(tmp_path / "driver.c"), "-ldl"], check=True)
+    for name in ("Instantiate" if version == "2" else "InstantiateCoSimulation", "DoStep",
+                 "GetDerivatives" if version == "2" else "GetContinuousStateDerivatives"):
+        assert f" fmi{version}{name}\n" in symbols
+    (tmp_path / "driver.c").write_text(source)
+    subprocess.run(["gcc", "-std=c99", f"-I{fmi_headers(version)}", "-o",
+                    str(tmp_path / "driver"), str(tmp_path / "driver.c"), "-ldl"], check=True)
     u_vr = next(v.valueReference for v in md.modelVariables if v.causality == "input")
     run = subprocess.run([str(tmp_path / "driver"), str(lib), md.guid, str(u_vr)],
                          capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert run.returncode == 0, run.stdout + run.stderr
-    y = np.array([float(v) for v in run.stdout.split()])
+    return np.array([float(v) for v in run.stdout.split()])
+
+
+def test_fmu_binary_runs_from_c_without_python(result_h5, fmus, tmp_path):
+    """A C program (no Python in the process) dlopens the FMU binary, steps it 500 times
+    with a unit step input and prints the tip position, which equals python-control's."""
+    import control
+
+    y = _driver_output(fmus["plant"], DRIVER.replace(
+        "#include <stdarg.h>", "#include <stdarg.h>\n#include <stdlib.h>"), "2", tmp_path)
+    t = np.arange(1, 501) * 1e-4
+    ref = np.squeeze(control.step_response(load_model(result_h5).ss, T=np.r_[0, t]).outputs)[0, 1:]
+    assert np.max(np.abs(y - ref)) <= 1e-9 * np.max(np.abs(ref))
+
+
+DRIVER3 = r"""
+#include <dlfcn.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include "fmi3Functions.h"
+static void logger(fmi3InstanceEnvironment e, fmi3Status s, fmi3String c, fmi3String m) {
+    (void)e; (void)s; (void)c; puts(m);
+}
+int main(int argc, char **argv) {
+    void *lib = dlopen(argv[1], RTLD_NOW);
+    if (!lib) { fprintf(stderr, "%s\n", dlerror()); return 2; }
+    fmi3InstantiateCoSimulationTYPE *inst =
+        (fmi3InstantiateCoSimulationTYPE *)dlsym(lib, "fmi3InstantiateCoSimulation");
+    fmi3EnterInitializationModeTYPE *enter =
+        (fmi3EnterInitializationModeTYPE *)dlsym(lib, "fmi3EnterInitializationMode");
+    fmi3ExitInitializationModeTYPE *leave =
+        (fmi3ExitInitializationModeTYPE *)dlsym(lib, "fmi3ExitInitializationMode");
+    fmi3SetFloat64TYPE *set = (fmi3SetFloat64TYPE *)dlsym(lib, "fmi3SetFloat64");
+    fmi3GetFloat64TYPE *get = (fmi3GetFloat64TYPE *)dlsym(lib, "fmi3GetFloat64");
+    fmi3DoStepTYPE *step = (fmi3DoStepTYPE *)dlsym(lib, "fmi3DoStep");
+    fmi3Instance c = inst("driver", argv[2], "", fmi3False, fmi3False, fmi3False, fmi3False,
+                          NULL, 0, NULL, logger, NULL);
+    fmi3ValueReference u = (fmi3ValueReference)atoi(argv[3]), y = u + 1;
+    double one = 1.0, out, t = 0.0, h = 1e-4, last;
+    fmi3Boolean event, terminate, early;
+    int k;
+    if (!c) return 3;
+    enter(c, fmi3False, 0.0, 0.0, fmi3False, 0.0);
+    leave(c);
+    set(c, &u, 1, &one, 1);
+    for (k = 0; k < 500; k++) {
+        if (step(c, t, h, fmi3True, &event, &terminate, &early, &last) != fmi3OK) return 4;
+        t += h;
+        get(c, &y, 1, &out, 1);
+        printf("%.17g\n", out);
+    }
+    return 0;
+}
+"""
+
+
+def test_fmi3_binary_runs_from_c_without_python(result_h5, tmp_path):
+    """The same with the FMI 3.0 binary (fmi3InstantiateCoSimulation, fmi3DoStep, 500
+    steps): the exact step response."""
+    import control
+
+    from pipeline.cli.export import run_export
+
+    path = run_export(result_h5, "fmu", tmp_path / "p3.fmu", fmi_version="3")
+    y = _driver_output(path, DRIVER3, "3", tmp_path)
     t = np.arange(1, 501) * 1e-4
     ref = np.squeeze(control.step_response(load_model(result_h5).ss, T=np.r_[0, t]).outputs)[0, 1:]
     assert np.max(np.abs(y - ref)) <= 1e-9 * np.max(np.abs(ref))

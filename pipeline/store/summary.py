@@ -118,8 +118,9 @@ class FileSummary:
     schema, schema_version: of the file (checked on opening); pipeline_version,
     created_utc, content, name, config_yaml: root attributes, None where absent;
     body, mesh, modes, run: their sections or None; models: each state-space group the
-    file holds (``statespace``, ``statespace_filtered``, ``lumped``; none in a modes-only
-    file), in that order, by name; lumped_frequencies_hz: the chain's first frequencies
+    file holds (``statespace``, ``statespace_filtered``, ``lumped``, then
+    ``connection/<name>`` and ``craig_bampton`` (n_states None: it stores M and K); none in
+    a modes-only file), in that order, by name; lumped_frequencies_hz: the chain's first frequencies
     (Hz) or None.
     """
 
@@ -249,6 +250,19 @@ def _models(h5) -> dict[str, ModelSummary]:
             static_compliance=(np.atleast_2d(_floats(h5[L.STATESPACE.static_compliance]))
                                if plant and L.STATESPACE.static_compliance in h5 else None),
             matrices=matrices)
+    # the connection-point and Craig-Bampton models, named as load_model(...).models and
+    # the FMU export's --model name them (the Craig-Bampton body stores M and K, no A)
+    if L.CONNECTIONS.path in h5:
+        for cname in sorted(h5[L.CONNECTIONS.path]):
+            g = L.connection_statespace(cname)
+            if g.A in h5:
+                grp = h5[g.path]
+                out[f"connection/{cname}"] = ModelSummary(
+                    f"connection/{cname}", int(h5[g.A].shape[0]),
+                    *(read_names(grp, k) for k in ("input_names", "output_names",
+                                                   "input_units", "output_units")))
+    if L.CRAIG_BAMPTON.M in h5:
+        out["craig_bampton"] = ModelSummary("craig_bampton", None)
     return out
 
 

@@ -92,9 +92,10 @@ def export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None,
     options = {k: v for k, v in options.items() if v is not None}
     extra = sorted(set(options) - set(EXPORTERS[fmt].options))
     if extra:
-        raise ConfigError(f"export --{extra[0].replace('_', '-')}: does not apply to --to {fmt} (it applies to "
+        flag = extra[0].replace("_", "-")
+        raise ConfigError(f"export --{flag}: does not apply to --to {fmt} (it applies to "
                           + (", ".join(f for f, e in EXPORTERS.items() if extra[0] in e.options)
-                             or "no format") + ")", key=f"--{extra[0]}",
+                             or "no format") + ")", key=f"--{flag}",
                           value=options[extra[0]], expected="not given")
     out = (Path(out_path) if out_path is not None
            else default_output(h5_path, fmt, options.get("model")))

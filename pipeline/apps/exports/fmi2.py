@@ -16,10 +16,11 @@ import sys
 from xml.sax.saxutils import escape, quoteattr
 
 from pipeline._version import __version__
-from pipeline.apps.exports.fmu import parameters, unit_definitions, variables_section
+from pipeline.apps.exports.fmu import (output_description, parameters, unit_definitions,
+                                        variables_section)
 from pipeline.apps.exports.fmu_models import FmuModel
 
-__all__ = ["model_description", "platform_folder", "C_API"]
+__all__ = ["model_description", "platform_folder", "extra_entries", "C_API"]
 
 #: the C file of the FMI 2.0 functions (appended to fmu_core.c)
 C_API = "fmi2_api.c"
@@ -33,6 +34,11 @@ def platform_folder() -> tuple[str, str]:
     if sys.platform == "darwin":
         return "darwin" + bits, ".dylib"
     return "linux" + bits, ".so"
+
+
+def extra_entries(m: FmuModel) -> dict[str, str]:
+    """Archive entries beyond the common ones: none for FMI 2.0."""
+    return {}
 
 
 def model_description(m: FmuModel, identifier: str, guid: str, description: str) -> str:
@@ -61,7 +67,8 @@ def model_description(m: FmuModel, identifier: str, guid: str, description: str)
             unit(u) + ' start="0"', "input (held constant over a co-simulation step)")
     outputs = [var(s, 2 * nx + len(ss.input_names) + i,
                    'causality="output" variability="continuous" initial="calculated"', unit(u),
-                   "output") for i, (s, u) in enumerate(zip(ss.output_names, m.output_units))]
+                   output_description(s))
+               for i, (s, u) in enumerate(zip(ss.output_names, m.output_units))]
     base = 2 * nx + len(ss.input_names) + len(ss.output_names)
     for k, (name, start, u, text) in enumerate(parameters(m)):
         var(name, base + k, 'causality="parameter" variability="tunable" initial="exact"',

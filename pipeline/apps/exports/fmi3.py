@@ -18,6 +18,13 @@ vr name             what
 
 Model Exchange and Co-Simulation share the binary; Scheduled Execution, clocks,
 directional derivatives and FMU states are not provided (the capability flags say so).
+
+``terminalsAndIcons/terminalsAndIcons.xml`` groups the variables of each mechanical port
+into one terminal (a connector a tool can wire as one): every input and output named
+``<port>/<member>`` or ``<port>.<member>`` (``tip_y/position``; the connection model's
+``root.ax`` ... ``root.Fx``; the Craig-Bampton body's ``root.Fx`` and ``root.x/position``)
+is a member ``<member>`` of the terminal ``<port>`` (matchingRule ``bus``: members match by
+name; variableKind ``signal``).
 """
 
 from __future__ import annotations
@@ -28,10 +35,11 @@ import sys
 from xml.sax.saxutils import escape, quoteattr
 
 from pipeline._version import __version__
-from pipeline.apps.exports.fmu import parameters, unit_definitions, variables_section
+from pipeline.apps.exports.fmu import (output_description, parameters, unit_definitions,
+                                        variables_section)
 from pipeline.apps.exports.fmu_models import FmuModel
 
-__all__ = ["model_description", "platform_folder", "C_API"]
+__all__ = ["model_description", "platform_folder", "terminals", "extra_entries", "C_API"]
 
 #: the C file of the FMI 3.0 functions (appended to fmu_core.c)
 C_API = "fmi3_api.c"
@@ -47,6 +55,33 @@ def platform_folder() -> tuple[str, str]:
     if sys.platform == "darwin":
         return f"{arch}-darwin", ".dylib"
     return f"{arch}-linux", ".so"
+
+
+def terminals(m: FmuModel) -> str:
+    """terminalsAndIcons.xml: one terminal per port (module docstring); '' without any."""
+    ports: dict[str, list[tuple[str, str]]] = {}
+    for name in m.ss.input_names + m.ss.output_names:
+        cut = min((i for i in (name.find("/"), name.find(".")) if i > 0), default=-1)
+        if cut > 0:
+            ports.setdefault(name[:cut], []).append((name, name[cut + 1:]))
+    if not ports:
+        return ""
+    rows = []
+    for port, members in ports.items():
+        rows.append(f'    <Terminal name={quoteattr(port)} matchingRule="bus" '
+                    f'description={quoteattr(f"port {port}: its inputs and outputs")}>')
+        rows += [f'      <TerminalMemberVariable variableName={quoteattr(v)} '
+                 f'memberName={quoteattr(member)} variableKind="signal"/>'
+                 for v, member in members]
+        rows.append("    </Terminal>")
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n<fmiTerminalsAndIcons fmiVersion="3.0">\n'
+            "  <Terminals>\n" + "\n".join(rows) + "\n  </Terminals>\n</fmiTerminalsAndIcons>\n")
+
+
+def extra_entries(m: FmuModel) -> dict[str, str]:
+    """The archive entries FMI 3.0 adds: the terminals of the ports."""
+    text = terminals(m)
+    return {"terminalsAndIcons/terminalsAndIcons.xml": text} if text else {}
 
 
 def model_description(m: FmuModel, identifier: str, guid: str, description: str) -> str:
@@ -73,7 +108,8 @@ def model_description(m: FmuModel, identifier: str, guid: str, description: str)
     outputs = list(range(3 + nu, 3 + nu + ss.C.shape[0]))
     for vr, s, u in zip(outputs, ss.output_names, m.output_units):
         rows.append(f'    <Float64 name={quoteattr(s)} valueReference="{vr}" causality="output"'
-                    f' variability="continuous"{unit(u)} description="output"/>')
+                    f' variability="continuous"{unit(u)} '
+                    f'description={quoteattr(output_description(s))}/>')
     base = 3 + nu + ss.C.shape[0]
     for k, (name, start, u, text) in enumerate(parameters(m)):
         rows.append(f'    <Float64 name={quoteattr(name)} valueReference="{base + k}" '

@@ -18,6 +18,7 @@ binaries/<platform>/<id>.so      the model compiled at export time (``gcc``, or 
 sources/fmu.c, model_data.h      the C sources (the FMI headers come from the importing
 sources/buildDescription.xml     tool), so another platform's tool builds it
 documentation/index.html         what the model is, its source file
+terminalsAndIcons/...xml         FMI 3.0: one terminal per mechanical port (:mod:`.fmi3`)
 ===============================  ==========================================================
 
 The model is the state space of the file (SI units)::
@@ -55,6 +56,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["export_fmu", "FmuModel", "fmu_model", "fmi_headers", "FMI_VERSIONS",
            "parameters", "unit_definitions", "default_experiment", "variables_section",
+           "output_description",
            "identifier"]
 
 #: FMI versions written: the module of each (model description, C functions, platform)
@@ -127,6 +129,25 @@ def variables_section(m: FmuModel, rows: list[str]) -> str:
     return ('  <LogCategories>\n    <Category name="logStatusError"/>\n  </LogCategories>\n'
             + default_experiment(m) + "  <ModelVariables>\n" + "\n".join(rows)
             + "\n  </ModelVariables>\n")
+
+
+#: what the connection-point model's signal suffixes are
+_SIGNALS = {"a": "acceleration", "alpha": "angular acceleration", "F": "force", "T": "moment"}
+
+
+def output_description(name: str) -> str:
+    """A short description of the output ``name``: ``<port>/<quantity>`` (and the lumped
+    chain's ``<port>_<quantity>``) -> ``<quantity> of <port>``; the connection model's
+    ``<point>.<signal><axis>`` -> ``<signal> <axis> at <point>``."""
+    port, sep, quantity = name.rpartition("/")
+    if sep:
+        return f"{quantity} of {port}"
+    port, sep, quantity = name.rpartition("_")  # the lumped chain: tip_position ...
+    if sep and quantity in ("position", "velocity", "acceleration"):
+        return f"{quantity} of {port}"
+    point, sep, signal = name.rpartition(".")
+    kind = next((v for k, v in _SIGNALS.items() if signal.rstrip("xyz_") == k), None)
+    return f"{kind} {signal[-1]} at {point}" if sep and kind else "output"
 
 
 def description(m: FmuModel, source: str) -> str:
@@ -262,6 +283,7 @@ def export_fmu(h5_path: str | Path, out_path: str | Path, model: str = "plant",
                 f"{escape(h5_path.name)}, exported by fe-reduced-body as an FMI {version}.0 "
                 "FMU: x' = A x + B u, y = C x + D u (SI units). Co-simulation steps are exact "
                 "for piecewise-constant inputs (zero-order hold).</p></body></html>\n"),
+            **fmi.extra_entries(m),
         }
         with atomic_path(out_path) as part, zipfile.ZipFile(part, "w", zipfile.ZIP_DEFLATED) as z:
             for name, text in entries.items():

@@ -50,7 +50,8 @@ from pipeline.store.read import StoredModels, load_model
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FmuModel", "Damping", "OutputFilter", "fmu_model", "model_names", "ALIASES"]
+__all__ = ["FmuModel", "Damping", "OutputFilter", "fmu_model", "check_model_name",
+           "modal_damping", "output_filter", "craig_bampton_model", "ALIASES"]
 
 #: the names ``inspect`` prints (its groups) for the models of :attr:`StoredModels.models`
 ALIASES = {L.STATESPACE.path.strip("/"): "plant", L.STATESPACE_FILTERED.path.strip("/"): "filtered",
@@ -260,7 +261,8 @@ def _units(lm: StoredModels, ss: StateSpace) -> tuple[tuple[str, ...], tuple[str
         return (ss.input_units or ("",) * ss.n_inputs, ss.output_units or ("",) * ss.n_outputs)
     if ss.label == "lumped":  # the chain's tip force (N) and tip motion along it (m)
         return (("N",) * ss.n_inputs,
-                tuple("m" + QUANTITY_SUFFIX.get(n.rsplit("_", 1)[-1], "?") for n in ss.output_names))
+                tuple("m" + QUANTITY_SUFFIX.get(n.rsplit("_", 1)[-1], "?")
+                      for n in ss.output_names))
     u_units = tuple(lm.input_units)
     if len(u_units) != ss.n_inputs:
         u_units = ("",) * ss.n_inputs
@@ -295,11 +297,6 @@ def _nominals(ss: StateSpace) -> np.ndarray:
         d = np.sqrt(np.clip(np.diag(sla.solve_continuous_lyapunov(ss.A, -b @ b.T)), 0.0, None))
         best = np.where(np.isfinite(d) & (d > 0), np.minimum(best, d), best)
     return np.where(np.isfinite(best), best, 1.0)
-
-
-def model_names(lm: StoredModels) -> tuple[str, ...]:
-    """Every model of the file an FMU can hold, by the name ``--model`` takes."""
-    return tuple(lm.models)
 
 
 def check_model_name(model: str) -> str:
