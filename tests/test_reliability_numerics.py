@@ -4,7 +4,8 @@ Each ill-posed problem is detected and reported with what to change, never answe
 with a silently wrong model:
 
 - no supports but a static correction asked (a singular K for statics): ConfigError;
-  a body held by too few supports (a mechanism): SolverError naming the supports;
+  a body its supports leave free to move, with a static correction: ConfigError naming
+  reduction.static_correction and the free motions;
 - a material that makes K indefinite (nu = 0.6, E < 0, set past the config's
   validation with dataclasses.replace): SolverError naming the material;
 - an eigensolver that does not converge: SolverError naming modes.count/tolerance;
@@ -70,12 +71,15 @@ def test_no_supports_with_a_static_correction_is_refused_by_the_config():
 
 
 @pytest.mark.parametrize("solver", ["auto", "superlu"])
-def test_a_mechanism_is_refused_naming_the_supports(tmp_path, solver):
-    """Supports that leave rigid motions free (only u_y fixed at the root) give a singular K,
-    which the factorisation of the modes stage reports with what to check."""
+def test_a_partly_held_body_is_refused_a_static_correction(tmp_path, solver):
+    """Supports that leave rigid motions free (only u_y fixed at the root) leave no static
+    compliance: the static correction is refused before the solve, naming the key and the
+    free motions (the modes of such a body run like a free body's: tests/test_supports.py;
+    the singular-stiffness message is kept for mechanisms the supports do not predict)."""
     cfg = load_config(CONFIG, ["mesh.size=0.02", "supports[0].fix=[y]",
                                f"modes.solver={solver}"])
-    with pytest.raises(SolverError, match=r"singular.*check the supports") as info:
+    with pytest.raises(ConfigError, match=r"reduction.static_correction.*rigid-body motion"
+                       r".*translation_x") as info:
         run_pipeline(cfg, tmp_path / "m.h5", mesh_dir=tmp_path)
     assert not (tmp_path / "m.h5").exists()
     assert len(str(info.value)) < 600
