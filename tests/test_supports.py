@@ -376,6 +376,14 @@ def test_springs_too_soft_to_hold_leave_a_free_body(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "softer than" in proc.stderr and "6 rigid-body mode(s)" in proc.stdout
     assert out.exists()
+    # the Exudyn export's matrices (unsupported body, fixed DOFs removed) cannot carry
+    # springs: refused in one line, nothing written
+    target = tmp_path / "cli_exudyn.npz"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "export", str(out), "--to",
+                           "exudyn", "-o", str(target)], capture_output=True, text=True)
+    assert proc.returncode == 2
+    err = [line for line in proc.stderr.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "supports[0]" in err[0] and not target.exists()
 
 
 def test_a_node_on_the_cylindrical_axis_is_refused_in_one_line(tmp_path):
@@ -405,3 +413,54 @@ def test_more_zero_modes_than_the_supports_leave_is_a_mechanism():
     out = with_rigid_motions(modes, sp.identity(n), np.eye(n)[:, :2] @ [[1.0, 1], [1, -1]],
                              ("translation_x", "rotation_y"))
     assert out.n_rigid == 2 and np.allclose(out.shapes.T @ out.shapes, np.eye(3))
+
+
+def test_shaft_on_radial_springs_keeps_spin_and_axial_translation(tmp_path):
+    """Springs in the cylindrical frame, radial only, on two bands: the spin and the
+    axial translation stay free; the radial stiffness holds the rest."""
+    spring = {"spring": {"total": [1e6, 0, 0]}, "frame": AXIS}
+    fe, modes = solve(shaft([{"region": "band_a", **spring}, {"region": "band_b", **spring}]),
+                      tmp_path)
+    assert fe.n_rigid == 2 and set(modes.labels[:2]) == {"rigid_rotation_x",
+                                                         "rigid_translation_x"}
+    assert modes.frequencies_hz[2] > 1.0
+
+
+def test_springs_against_calculix_grounded_springs(tmp_path):
+    """The block on springs in x, y, z under its base against CalculiX on the same P2 mesh
+    with one grounded SPRING1 element per node and direction (stiffness w_i k): the six
+    frequencies within 5e-6 (CalculiX's 7 printed digits and its eigensolver)."""
+    import shutil
+
+    from pipeline.fe.space import surface_region
+
+    if shutil.which("ccx") is None:
+        pytest.skip("CalculiX (ccx) is not installed")
+    k = 2e8  # N/m^3
+    cfg = config([{"region": "bottom", "spring": {"per_area": [k, k, k]}}], geometry=BLOCK,
+                 size=0.02, order=2, count=6)
+    fe, modes = solve(cfg, tmp_path)
+    region = surface_region(fe.space, "bottom", fe.regions["bottom"])
+    x, elements = fe.space.node_points, fe.space.element_nodes
+    lines = ["*NODE"] + [f"{i + 1}, {a:.17g}, {b:.17g}, {c:.17g}" for i, (a, b, c)
+                         in enumerate(x)]
+    lines += ["*ELEMENT, TYPE=C3D10, ELSET=EALL"]
+    lines += [f"{i + 1}, " + ", ".join(str(n + 1) for n in e) for i, e in enumerate(elements)]
+    eid = len(elements)
+    for node, w in zip(region.nodes, region.weights):
+        if w <= 0:
+            continue
+        for dof in (1, 2, 3):
+            eid += 1
+            lines += [f"*ELEMENT, TYPE=SPRING1, ELSET=S{eid}", f"{eid}, {node + 1}",
+                      f"*SPRING, ELSET=S{eid}", str(dof), f"{w * k:.17g}"]
+    lines += ["*MATERIAL, NAME=STEEL", "*ELASTIC", f"{STEEL['E']}, {STEEL['nu']}",
+              "*DENSITY", f"{STEEL['rho']}", "*SOLID SECTION, ELSET=EALL, MATERIAL=STEEL",
+              "*STEP", "*FREQUENCY", "6", "*END STEP"]
+    (tmp_path / "block.inp").write_text("\n".join(lines) + "\n")
+    subprocess.run(["ccx", "-i", "block"], cwd=tmp_path, check=True, capture_output=True)
+    table = (tmp_path / "block.dat").read_text().split(
+        "E I G E N V A L U E   O U T P U T")[1].splitlines()
+    rows = [line.split() for line in table if line.split()[:1] and line.split()[0].isdigit()]
+    ccx = np.array([float(r[3]) for r in rows[:6]])
+    assert np.abs(modes.frequencies_hz / ccx - 1).max() < 5e-6

@@ -370,3 +370,20 @@ def support_summary(fe, modes) -> list[str]:
     for line in lines:
         log.info("%s", line)
     return lines
+
+
+def refuse_grounded_supports(raw_supports, path) -> None:
+    """Refuse (ConfigError, one line) an Exudyn export of the file ``path`` whose stored
+    config (``raw_supports``: its ``supports`` list as read) has springs, bushings or
+    components held in a local frame: the export's matrices are those of the unsupported
+    body with the fixed DOFs removed, which cannot carry them."""
+    from pipeline._util import validate
+
+    for i, item in enumerate(raw_supports or []):
+        kinds = [k for k in ("spring", "bushing", "frame") if isinstance(item, dict) and k in item]
+        if kinds:
+            raise validate.fail(
+                f"supports[{i}]", kinds[0],
+                f"supports that fix global x, y, z components only, for an Exudyn export "
+                f"(its matrices are the unsupported body's with the fixed DOFs removed; "
+                f"the config stored in {path} has a {kinds[0]})")
