@@ -4,8 +4,7 @@ Each ill-posed problem is detected and reported with what to change, never answe
 with a silently wrong model:
 
 - no supports but a static correction asked (a singular K for statics): ConfigError;
-  a body its supports leave free to move, with a static correction: ConfigError naming
-  reduction.static_correction and the free motions;
+  a body its supports leave partly free runs like a free body for those motions;
 - a material that makes K indefinite (nu = 0.6, E < 0, set past the config's
   validation with dataclasses.replace): SolverError naming the material;
 - an eigensolver that does not converge: SolverError naming modes.count/tolerance;
@@ -71,18 +70,21 @@ def test_no_supports_with_a_static_correction_is_refused_by_the_config():
 
 
 @pytest.mark.parametrize("solver", ["auto", "superlu"])
-def test_a_partly_held_body_is_refused_a_static_correction(tmp_path, solver):
-    """Supports that leave rigid motions free (only u_y fixed at the root) leave no static
-    compliance: the static correction is refused before the solve, naming the key and the
-    free motions (the modes of such a body run like a free body's: tests/test_supports.py;
-    the singular-stiffness message is kept for mechanisms the supports do not predict)."""
+def test_a_partly_held_body_runs_like_a_free_body(tmp_path, solver):
+    """Supports that leave rigid motions free (only u_y fixed at the root): the body runs
+    like a free body for them (issue 35): four rigid modes at 0 Hz, named, the static
+    correction by inertia relief, a floating model (tests/test_supports.py has the
+    checks); the singular-stiffness message is kept for mechanisms the supports do not
+    predict."""
     cfg = load_config(CONFIG, ["mesh.size=0.02", "supports[0].fix=[y]",
                                f"modes.solver={solver}"])
-    with pytest.raises(ConfigError, match=r"reduction.static_correction.*rigid-body motion"
-                       r".*translation_x") as info:
-        run_pipeline(cfg, tmp_path / "m.h5", mesh_dir=tmp_path)
-    assert not (tmp_path / "m.h5").exists()
-    assert len(str(info.value)) < 600
+    result = run_pipeline(cfg, tmp_path / "m.h5", mesh_dir=tmp_path)
+    # u_y = 0 on the plane x = 0 leaves x, z, the turn about y and the turn about the
+    # z axis through the root (u_y = omega x vanishes there)
+    assert result.n_rigid == 4 and list(result.labels[:4]) == [
+        "rigid_translation_x", "rigid_translation_z", "rigid_rotation_y", "rigid_rotation_z"]
+    assert np.all(result.frequencies_hz[:4] == 0) and result.frequencies_hz[4] > 0
+    assert "floating model" in "\n".join(result.extras["summary"])
 
 
 def test_factorising_a_free_body_stiffness_is_refused(free_beam):
