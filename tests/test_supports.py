@@ -351,13 +351,16 @@ def test_radial_support_against_exact_constraint_and_calculix(tmp_path):
     assert np.abs(f / ccx - 1).max() < 5e-6
 
 
-def test_face_normal_hold_equals_the_global_component_on_a_flat_face(tmp_path):
-    """fix: [normal] on the flat bottom face (normal y) holds what fix: [y] holds: the
-    same rigid modes and frequencies within the computed penalty bound."""
+@pytest.mark.parametrize("local, global_", [(["normal"], ["y"]), (["tangential"], ["x", "z"])])
+def test_face_frame_hold_equals_the_global_components_on_a_flat_face(tmp_path, local,
+                                                                      global_):
+    """fix: [normal] on the flat bottom face (normal y) holds what fix: [y] holds, and
+    fix: [tangential] what fix: [x, z] holds: the same rigid modes and frequencies within
+    the computed penalty bound."""
     from pipeline.fe.supports import model_penalty_bound
 
-    _, exact = solve(config([{"region": "bottom", "fix": ["y"]}], size=0.02), tmp_path)
-    fe, modes = solve(config([{"region": "bottom", "fix": ["normal"]}], size=0.02), tmp_path)
+    _, exact = solve(config([{"region": "bottom", "fix": global_}], size=0.02), tmp_path)
+    fe, modes = solve(config([{"region": "bottom", "fix": local}], size=0.02), tmp_path)
     bound = model_penalty_bound(fe, modes)
     assert modes.labels[:3] == exact.labels[:3]
     assert np.all(np.abs(modes.omega2[3:] / exact.omega2[3:] - 1) <= bound[3:] + ROUND_OFF)
