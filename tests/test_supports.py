@@ -5,7 +5,7 @@ Checks and their tolerances:
 - the modes of a partly held body against a dense generalized eigh of the same K and M:
   two solvers of one pencil, eigenvalues within 1e-8 relative (shift-invert Lanczos at
   1e-10 residual gives eigenvalue errors ~1e-18 relative to lambda; the dense solver's
-  round-off ~ eps lambda_max / lambda ~ 1e-12 on these 1.5k-DOF meshes: 1e-8 is a wide
+  round-off ~ eps lambda_max / lambda ~ 1e-12 on these 1k-DOF meshes: 1e-8 is a wide
   margin above both, far below any support effect);
 - M-orthonormality of rigid and elastic modes together: round-off of the Gram-Schmidt
   and projection, 1e-9;
@@ -56,7 +56,7 @@ def test_plate_held_normal_keeps_three_rigid_modes(tmp_path):
     """A plate held only normal to its plane (y on its bottom face) keeps translation
     in x and z and rotation about y, found at 0 Hz, labelled, M-orthonormal with the
     elastic modes, which agree with a dense eigh of the same matrices."""
-    cfg = config([{"region": "bottom", "fix": ["y"]}])
+    cfg = config([{"region": "bottom", "fix": ["y"]}], size=0.015)
     fe, modes = solve(cfg, tmp_path)
     assert fe.n_rigid == 3 and modes.n_rigid == 3
     assert modes.labels[:3] == ("rigid_translation_x", "rigid_translation_z",

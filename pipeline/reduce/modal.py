@@ -541,7 +541,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
             raise validate.fail("reduction.static_correction", static_correction,
                        f"none: the body has {n_rigid} rigid-body mode(s) among the retained "
                        "ones, so it has no static compliance to correct towards")
-        log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
+        log.warning("floating body (%d rigid-body modes): no static compliance computed", n_rigid)
     else:
         X = static_shapes(K, Fd, solve, factorize, lowest_omega2=float(omega2[0]),
                           stiffness_scale=scale)
