@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
 from pipeline.fe.model import build_fe_model
-from pipeline.fe.supports import check_rigid_reduction, support_summary
+from pipeline.fe.supports import refuse_grounded_supports, support_summary
 from pipeline.reduce.build import build_connection_models, build_models
 from pipeline.solve.backends.pardiso import PatternAnalysis
 from pipeline.solve.factorization import resolve_backend
@@ -138,7 +138,6 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     try:
         fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
                             on_stiffness_pattern=analyse_ahead)
-        check_rigid_reduction(cfg, fe)
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress
@@ -237,6 +236,7 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
     raw = yaml.safe_load(mesh.config_yaml) or {}
     if not isinstance(raw, dict):
         raw = {}
+    refuse_grounded_supports(raw.get("supports"), path)
     # only the material and the ports matter here: the stored mesh replaces the geometry (a
     # CAD file need not be here any more; a box of the mesh's extent keeps the size checks
     # meaningful) and holds the regions the selectors made (named here by plain selectors)

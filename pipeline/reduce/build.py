@@ -102,7 +102,8 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
                            factorize=_factorize(cfg.modes.solver,
                                                 solve if solve is not None
                                                 else getattr(modes, "solve", None)),
-                           n_rigid=getattr(modes, "n_rigid", None))
+                           n_rigid=getattr(modes, "n_rigid", None),
+                           inertia_relief=bool(cfg.supports))
     filtered = None
     if cfg.filter.kind != "none":
         filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)

@@ -42,7 +42,7 @@ from pipeline._util import validate
 from pipeline.errors import SolverError
 from pipeline.reduce.statespace import StateSpace
 from pipeline.solve.blas import sparse_times_dense
-from pipeline.reduce.statics import Solve, dense_array, static_shapes
+from pipeline.reduce.statics import relief_shapes, Solve, dense_array, static_shapes
 from pipeline.solve.thresholds import rigid_omega2_threshold, stiffness_scale
 
 log = logging.getLogger(__name__)
@@ -470,7 +470,7 @@ def cluster_start(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) 
 def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
                  input_names: Sequence[str], output_names: Sequence[str],
                  solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6,
-                 n_rigid: int | None = None) -> ReducedModel:
+                 n_rigid: int | None = None, inertia_relief: bool = False) -> ReducedModel:
     """Build the reduced state-space model from the FE matrices and modes.
 
     Parameters
@@ -488,6 +488,9 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
     n_rigid : rigid-body modes among the first (the modes stage's count); default: the
         modes below :func:`pipeline.solve.thresholds.rigid_omega2_threshold`.
+    inertia_relief : a partly held body (its supports leave the rigid modes): the static
+        correction uses the inertia-relief shapes (:func:`relief_shapes`); the model
+        floats (no static compliance).
 
     The static compliance T K^-1 F is always computed, except for a body with rigid-body
     modes (omega^2 below the relative rigid_omega2_threshold) and no correction, where it is None (with a warning);
@@ -528,12 +531,17 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         n_rigid = min(int(n_rigid), n_modes)
     X = None
     G = None
-    if n_rigid:
+    G_relief = None  # a partly held body's inertia-relief compliance (no DC gain: floating)
+    if n_rigid and inertia_relief and static_correction != "none":
+        X = relief_shapes(K, M, Fd, Phi_r[:, :n_rigid], -1e-3 * float(omega2[n_rigid]),
+                          factorize)
+        G_relief = np.asarray(T @ X, dtype=float)
+    elif n_rigid:
         if static_correction != "none":
             raise validate.fail("reduction.static_correction", static_correction,
                        f"none: the body has {n_rigid} rigid-body mode(s) among the retained "
                        "ones, so it has no static compliance to correct towards")
-        log.warning("free body (%d rigid-body modes): no static compliance computed", n_rigid)
+        log.warning("floating body (%d rigid-body modes): no static compliance computed", n_rigid)
     else:
         X = static_shapes(K, Fd, solve, factorize, lowest_omega2=float(omega2[0]),
                           stiffness_scale=scale)
@@ -556,8 +564,10 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     Theta = np.asarray(T @ basis, dtype=float)
     correction = None
     if static_correction == "residual":
-        residual = G - Theta @ (Sigma / w2[:, None])
-        correction = X - basis @ (Sigma / w2[:, None])
+        # rigid modes (omega^2 = 0, inertia relief) carry no static deflection
+        flex = Sigma / np.where(np.arange(w2.size) < n_rigid, np.inf, w2)[:, None]
+        residual = (G if G_relief is None else G_relief) - Theta @ flex
+        correction = X - basis @ flex
     ss = modal_statespace(w2, xi_all, Sigma, Theta, residual=residual,
                           input_names=input_names, output_names=output_names,
                           n_retained=n_modes)
