@@ -1,0 +1,146 @@
+"""What double precision can compute: config values the field checks accept but no
+floating-point run can carry through, refused before any meshing or assembly.
+
+Each bound follows from the arithmetic of the pipeline, not from what engineering solids
+are (that is :mod:`pipeline.config.plausibility`, which only warns):
+
+- **Relative tolerances.** A double carries 53 bits (eps = 2.2e-16). An eigen residual or
+  an integrator's local error is a difference of quantities of size ~1 computed with at
+  least a few hundred roundings (a sparse solve, one Runge-Kutta step of many terms), so a
+  relative tolerance below :data:`MIN_RELATIVE_TOLERANCE` = 1e-13 (about 450 eps) cannot be
+  met: the iteration then runs to its step limit and fails (``modes.tolerance = 1e-300``:
+  block Lanczos ran 261 steps to a residual of 1.5e-16 and gave up; an integrator's
+  ``rtol = 1e-14`` took minutes).
+- **Products that must stay normal doubles.** Element stiffness entries scale as E h,
+  mass entries as rho h^3, eigenvalues as omega^2 ~ E / (rho h^2) (h: an element's size,
+  from half the mesh size (quadratic nodes) up to the body's extent). The solvers form
+  norms and Rayleigh quotients, i.e. squares of these, so each must lie within
+  [:data:`FLOAT_FLOOR`, :data:`FLOAT_CEILING`] = [1e-150, 1e150], whose squares are normal
+  doubles (2.2e-308 to 1.8e308) with margin for sums over n terms. A density of 1e-300
+  (rho h^3 ~ 1e-306, subnormal) failed in the dense eigen solve; E = 1e-300 likewise.
+  Inside the range a run is exact up to scaling: frequencies follow sqrt(E / rho) / L
+  (``tests/test_hostile_values.py`` checks E and rho scaled by 1e-135 together).
+- **Element shapes.** gmsh's OpenCASCADE kernel merges points closer than 1e-7 m, so a
+  body dimension below :data:`MIN_THICKNESS_M` = 1e-6 m cannot be drawn (a box 1e-7 m thin:
+  "OpenCASCADE exception"). An element of size s across a layer of thickness t has aspect
+  ratio s / t; its stiffness spreads as (s / t)^2, on top of the mesh's own (L / s)^2 <=
+  5000^2, and above :data:`MAX_ASPECT` = 1000 the factorisation of K loses the digits that
+  hold the body together (a 0.5 m box 1e-6 m thin at mesh.size 0.02: aspect 2e4, "the
+  stiffness system is singular"; aspect 2000 still solved). So mesh.size <= 1000 t, and as
+  mesh.size >= L / 5000, the thinnest dimension t >= L / 5e6.
+- **Near-incompressible materials.** lambda / mu = 2 nu / (1 - 2 nu): above
+  :data:`MAX_LAMBDA_OVER_MU` = 1e8 the shear stiffness mu is below 1e-8 of the volumetric
+  stiffness in every element and is lost in the factorisation's roundoff together with the
+  mesh's own conditioning (nu = 0.5 - 6e-17: "the stiffness matrix is singular"). So
+  nu <= 0.499999995.
+
+Units: lengths m, E Pa, rho kg/m^3, omega rad/s.
+"""
+
+from __future__ import annotations
+
+from pipeline.config.schema import Config, Geometry
+from pipeline.errors import ConfigError
+
+#: smallest relative tolerance of an eigen residual or an integrator step (see above)
+MIN_RELATIVE_TOLERANCE = 1e-13
+#: E h, rho h^3 and omega^2 stay within this range (their squares are normal doubles)
+FLOAT_FLOOR = 1e-150
+FLOAT_CEILING = 1e150
+#: thinnest body dimension gmsh/OpenCASCADE draws (10x its 1e-7 m confusion tolerance)
+MIN_THICKNESS_M = 1e-6
+#: largest element aspect ratio (mesh.size over the thinnest dimension) K stays solvable at
+MAX_ASPECT = 1000.0
+#: finest mesh relative to the body (as pipeline.config.parse's mesh.size check)
+MAX_ELEMENTS_ALONG = 5000.0
+#: lambda / mu beyond which the shear stiffness is lost in roundoff
+MAX_LAMBDA_OVER_MU = 1e8
+#: the largest nu that keeps lambda / mu <= MAX_LAMBDA_OVER_MU
+MAX_NU = MAX_LAMBDA_OVER_MU / (2.0 * (MAX_LAMBDA_OVER_MU + 1.0))
+
+
+def check_box_thickness(geometry: Geometry) -> None:
+    """Refuse a box dimension too thin to mesh (see the module docstring), naming it."""
+    if geometry.kind != "box":
+        return
+    dims = {"length": geometry.length, "height": geometry.height, "depth": geometry.depth}
+    key = min(dims, key=dims.get)
+    thinnest, largest = dims[key], max(dims.values())
+    need = max(MIN_THICKNESS_M, largest / (MAX_ELEMENTS_ALONG * MAX_ASPECT))
+    if thinnest < need:
+        raise ConfigError(
+            f"config key 'geometry.{key}': got {thinnest:g} m, expected at least {need:g} m "
+            f"(gmsh cannot draw a body thinner than {MIN_THICKNESS_M:g} m, and elements of "
+            f"the finest mesh.size allowed, {largest:g} / {MAX_ELEMENTS_ALONG:g} m, flatter "
+            f"than {MAX_ASPECT:g}:1 make the stiffness matrix singular)",
+            key=f"geometry.{key}", value=thinnest, expected=f"at least {need:g} m")
+
+
+def check_numerics(cfg: Config) -> None:
+    """Refuse, naming the key, the value and the range that works, what double precision
+    cannot carry: mesh elements too flat, E, rho and omega^2 outside [1e-150, 1e150],
+    nu too close to 0.5, an eigen tolerance below 1e-13 (see the module docstring)."""
+    _check_aspect(cfg)
+    _check_material(cfg)
+    tol = cfg.modes.tolerance
+    if 0.0 < tol < MIN_RELATIVE_TOLERANCE:
+        raise ConfigError(
+            f"config key 'modes.tolerance': got {tol:g}, expected 0 (the solver's default) "
+            f"or a relative residual of at least {MIN_RELATIVE_TOLERANCE:g} (double precision "
+            "cannot resolve less: the solver would run to its step limit)",
+            key="modes.tolerance", value=tol, expected=f"0 or >= {MIN_RELATIVE_TOLERANCE:g}")
+
+
+def _check_aspect(cfg: Config) -> None:
+    g = cfg.geometry
+    if g.kind != "box":
+        return
+    thinnest = min(g.length, g.height, g.depth)
+    if cfg.mesh.size > MAX_ASPECT * thinnest:
+        raise ConfigError(
+            f"config key 'mesh.size': got {cfg.mesh.size:g} m, expected at most "
+            f"{MAX_ASPECT * thinnest:g} m ({MAX_ASPECT:g} x the body's thinnest dimension "
+            f"{thinnest:g} m: flatter elements make the stiffness matrix singular)",
+            key="mesh.size", value=cfg.mesh.size,
+            expected=f"at most {MAX_ASPECT * thinnest:g} m")
+
+
+def element_sizes(cfg: Config) -> tuple[float, float]:
+    """(smallest, largest) element or body length h (m) the run's matrices scale with:
+    half the mesh size (or of the thinnest box dimension) up to the body's extent (the
+    mesh size where only the file knows the extent)."""
+    g = cfg.geometry
+    if g.kind == "box":
+        small = 0.5 * min(cfg.mesh.size, g.length, g.height, g.depth)
+        return small, max(g.length, g.height, g.depth)
+    return 0.5 * cfg.mesh.size, cfg.mesh.size
+
+
+def _check_material(cfg: Config) -> None:
+    mat = cfg.material
+    h_min, h_max = element_sizes(cfg)
+    lo, hi = FLOAT_FLOOR, FLOAT_CEILING
+    why = (f"so that stiffness (E h), mass (rho h^3) and omega^2 = E / (rho h^2) stay within "
+           f"[{lo:g}, {hi:g}] for element sizes h of {h_min:g} to {h_max:g} m (their squares "
+           "must be normal doubles)")
+    if mat.E * h_min < lo:
+        _refuse("material.E", mat.E, f"at least {lo / h_min:.3g} Pa", why)
+    if mat.rho * h_min ** 3 < lo:
+        _refuse("material.rho", mat.rho, f"at least {lo / h_min ** 3:.3g} kg/m^3", why)
+    ratio = mat.E / mat.rho
+    if ratio / h_min ** 2 > hi:
+        _refuse("material.E", mat.E, f"E / rho at most {hi * h_min ** 2:.3g} m^2/s^2 (here "
+                f"rho = {mat.rho:g} kg/m^3: E at most {hi * h_min ** 2 * mat.rho:.3g} Pa)", why)
+    if ratio / h_max ** 2 < lo:
+        _refuse("material.E", mat.E, f"E / rho at least {lo * h_max ** 2:.3g} m^2/s^2 (here "
+                f"rho = {mat.rho:g} kg/m^3: E at least {lo * h_max ** 2 * mat.rho:.3g} Pa)", why)
+    if mat.nu > MAX_NU:
+        _refuse("material.nu", mat.nu, f"at most {MAX_NU:.9f}", "(lambda / mu = "
+                f"{2 * mat.nu / (1 - 2 * mat.nu):.3g} above {MAX_LAMBDA_OVER_MU:g}: the shear "
+                "stiffness is lost in the roundoff of the volumetric stiffness; a truly "
+                "incompressible solid needs a mixed formulation this pipeline does not have)")
+
+
+def _refuse(key: str, value: float, expected: str, why: str) -> None:
+    raise ConfigError(f"config key '{key}': got {value!r}, expected {expected} {why}",
+                      key=key, value=value, expected=expected)
