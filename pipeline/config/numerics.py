@@ -39,6 +39,9 @@ Units: lengths m, E Pa, rho kg/m^3, omega rad/s.
 
 from __future__ import annotations
 
+import math
+
+from pipeline.config.plausibility import MAX_EXTENT_M, MIN_EXTENT_M
 from pipeline.config.schema import Config, Geometry
 from pipeline.errors import ConfigError
 
@@ -53,6 +56,16 @@ MIN_THICKNESS_M = 1e-6
 MAX_ASPECT = 1000.0
 #: finest mesh relative to the body (as pipeline.config.parse's mesh.size check)
 MAX_ELEMENTS_ALONG = 5000.0
+#: finest element of drawn or read geometry: half of the smallest body (1e-4 m) over
+#: MAX_ELEMENTS_ALONG
+MIN_ELEMENT_M = 0.5 * MIN_EXTENT_M / MAX_ELEMENTS_ALONG
+#: largest |coordinate| (m) of a selector, gauge or connection point: squared distances
+#: (|x - p|^2, the selectors' test) must stay finite doubles
+MAX_COORDINATE_M = 1e150
+#: a connection point at distance r from a body of size L gives it the inertia m r^2
+#: next to the body's own ~m L^2; the residual mass D_P - L_P^T L_P cancels (r / L)^2 of
+#: its digits, so r <= 1e4 L keeps 8 of them
+MAX_CONNECTION_REACH = 1e4
 #: lambda / mu beyond which the shear stiffness is lost in roundoff
 MAX_LAMBDA_OVER_MU = 1e8
 #: the largest nu that keeps lambda / mu <= MAX_LAMBDA_OVER_MU
@@ -82,6 +95,7 @@ def check_numerics(cfg: Config) -> None:
     nu too close to 0.5, an eigen tolerance below 1e-13 (see the module docstring)."""
     _check_aspect(cfg)
     _check_material(cfg)
+    _check_points(cfg)
     tol = cfg.modes.tolerance
     if 0.0 < tol < MIN_RELATIVE_TOLERANCE:
         raise ConfigError(
@@ -92,7 +106,14 @@ def check_numerics(cfg: Config) -> None:
 
 
 def _check_aspect(cfg: Config) -> None:
+    """mesh.size: at most MAX_ASPECT x a box's thinnest dimension; for drawn geometry at
+    least the finest element of the smallest body (2 MIN_ELEMENT_M = 2e-8 m; the volume
+    over size^3 that estimates the tetrahedra stays finite)."""
     g = cfg.geometry
+    if g.kind in ("step", "geo") and cfg.mesh.size < 2 * MIN_ELEMENT_M:
+        _refuse("mesh.size", cfg.mesh.size, f"at least {2 * MIN_ELEMENT_M:g} m", "(the "
+                f"smallest body the pipeline meshes, {MIN_EXTENT_M:g} m, in at most "
+                f"{MAX_ELEMENTS_ALONG:g} elements along)")
     if g.kind != "box":
         return
     thinnest = min(g.length, g.height, g.depth)
@@ -107,13 +128,15 @@ def _check_aspect(cfg: Config) -> None:
 
 def element_sizes(cfg: Config) -> tuple[float, float]:
     """(smallest, largest) element or body length h (m) the run's matrices scale with:
-    half the mesh size (or of the thinnest box dimension) up to the body's extent (the
-    mesh size where only the file knows the extent)."""
+    for a box half the mesh size (or of its thinnest dimension) up to its largest
+    dimension; where only the file knows the body, from the finest element the pipeline
+    meshes (:data:`MIN_ELEMENT_M`; a finer mesh.size is refused by the tetrahedra count
+    after reading) up to the largest body (MAX_EXTENT_M)."""
     g = cfg.geometry
     if g.kind == "box":
         small = 0.5 * min(cfg.mesh.size, g.length, g.height, g.depth)
         return small, max(g.length, g.height, g.depth)
-    return 0.5 * cfg.mesh.size, cfg.mesh.size
+    return max(0.5 * cfg.mesh.size, MIN_ELEMENT_M), MAX_EXTENT_M
 
 
 def _check_material(cfg: Config) -> None:
@@ -139,6 +162,44 @@ def _check_material(cfg: Config) -> None:
                 f"{2 * mat.nu / (1 - 2 * mat.nu):.3g} above {MAX_LAMBDA_OVER_MU:g}: the shear "
                 "stiffness is lost in the roundoff of the volumetric stiffness; a truly "
                 "incompressible solid needs a mixed formulation this pipeline does not have)")
+
+
+def _check_points(cfg: Config) -> None:
+    """Selector, gauge and connection points with finite squared distances; connection
+    points within MAX_CONNECTION_REACH body sizes of the body (a box's centre; the largest
+    body where only the file knows it)."""
+    points: list[tuple[str, tuple[float, ...] | None]] = []
+    for name, sel in cfg.regions.items():
+        points += [(f"regions.{name}.{k}", getattr(sel, k)) for k in ("point", "lower", "upper")]
+        for k in ("radius", "tolerance"):
+            value = getattr(sel, k)
+            if value is not None and value > MAX_COORDINATE_M:
+                _refuse(f"regions.{name}.{k}", value, f"at most {MAX_COORDINATE_M:g} m",
+                        "(its square must be a finite double)")
+    for side in ("inputs", "outputs"):
+        for i, port in enumerate(getattr(cfg.ports, side)):
+            points.append((f"ports.{side}[{i}].point", port.point))
+            if port.radius > MAX_COORDINATE_M:
+                _refuse(f"ports.{side}[{i}].radius", port.radius,
+                        f"at most {MAX_COORDINATE_M:g} m", "(its square must be a finite double)")
+    points += [(f"connections[{i}].point", c.point) for i, c in enumerate(cfg.connections)]
+    for key, point in points:
+        if point is not None and max(abs(x) for x in point) > MAX_COORDINATE_M:
+            _refuse(key, list(point), f"coordinates within +-{MAX_COORDINATE_M:g} m",
+                    "(squared distances to it must be finite doubles)")
+    g = cfg.geometry
+    if g.kind == "box":
+        size, centre = max(g.length, g.height, g.depth), (g.length / 2, g.height / 2,
+                                                          g.depth / 2)
+    else:
+        size, centre = MAX_EXTENT_M, (0.0, 0.0, 0.0)
+    for i, c in enumerate(cfg.connections):
+        reach = math.dist(c.point, centre)
+        if reach > MAX_CONNECTION_REACH * size:
+            _refuse(f"connections[{i}].point", list(c.point), f"a point within "
+                    f"{MAX_CONNECTION_REACH * size:g} m of the body ({MAX_CONNECTION_REACH:g} x "
+                    f"its size {size:g} m; this one is {reach:.3g} m away)", "(the body's "
+                    "inertia about a farther point cancels the digits of its residual mass)")
 
 
 def _refuse(key: str, value: float, expected: str, why: str) -> None:
