@@ -165,6 +165,7 @@ RUN_CASES = [  # --set values the field checks accept, the key the one line name
       "{name: g, kind: strain, point: [1e300, 0, 0], direction: [1, 0, 0]}]"],
      "ports.outputs[1].point"),                          # on main: IndexError
     (["connections=[{name: c, region: tip, point: [1e150, 0, 0]}]"], "connections[0].point"),
+    (["filter.cutoff_hz=1e-300"], "filter.cutoff_hz"),   # on main: poles underflowed to 0
 ]
 
 

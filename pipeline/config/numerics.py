@@ -28,6 +28,12 @@ are (that is :mod:`pipeline.config.plausibility`, which only warns):
   hold the body together (a 0.5 m box 1e-6 m thin at mesh.size 0.02: aspect 2e4, "the
   stiffness system is singular"; aspect 2000 still solved). So mesh.size <= 1000 t, and as
   mesh.size >= L / 5000, the thinnest dimension t >= L / 5e6.
+- **Filter gains.** The third-order filter's gains are K, K^2, K^3 (K = 2 pi cutoff_hz):
+  K^3 >= FLOAT_FLOOR, so cutoff_hz >= 1.6e-51 Hz (1e-300 Hz underflowed its poles to 0).
+- **Points.** Selector, gauge and connection coordinates (and radii, tolerances) up to
+  :data:`MAX_COORDINATE_M` = 1e150 m, whose squares stay finite (a gauge point at 1e300 m
+  ended in an IndexError, a selector at 1e300 m in an overflow warning); a connection
+  point within :data:`MAX_CONNECTION_REACH` = 1e4 body sizes.
 - **Near-incompressible materials.** lambda / mu = 2 nu / (1 - 2 nu): above
   :data:`MAX_LAMBDA_OVER_MU` = 1e8 the shear stiffness mu is below 1e-8 of the volumetric
   stiffness in every element and is lost in the factorisation's roundoff together with the
@@ -96,6 +102,7 @@ def check_numerics(cfg: Config) -> None:
     _check_aspect(cfg)
     _check_material(cfg)
     _check_points(cfg)
+    _check_filter(cfg)
     tol = cfg.modes.tolerance
     if 0.0 < tol < MIN_RELATIVE_TOLERANCE:
         raise ConfigError(
@@ -162,6 +169,19 @@ def _check_material(cfg: Config) -> None:
                 f"{2 * mat.nu / (1 - 2 * mat.nu):.3g} above {MAX_LAMBDA_OVER_MU:g}: the shear "
                 "stiffness is lost in the roundoff of the volumetric stiffness; a truly "
                 "incompressible solid needs a mixed formulation this pipeline does not have)")
+
+
+def _check_filter(cfg: Config) -> None:
+    """The loop-breaking filter's gains are K, K^2, K^3 (K = 2 pi cutoff_hz, rad/s): K^3
+    must reach FLOAT_FLOOR (below it the filter's poles underflow to 0 and it is no low
+    pass); the field check already caps cutoff_hz at 1e9 (K^3 ~ 2.5e29)."""
+    if cfg.filter.kind == "none":
+        return
+    lowest = FLOAT_FLOOR ** (1.0 / 3.0) / (2.0 * math.pi)
+    if cfg.filter.cutoff_hz < lowest:
+        _refuse("filter.cutoff_hz", cfg.filter.cutoff_hz, f"at least {lowest:.3g} Hz",
+                f"(the filter's gain (2 pi cutoff)^3 must stay above {FLOAT_FLOOR:g}; a "
+                "loop-breaking filter belongs at 5x the highest retained mode)")
 
 
 def _check_points(cfg: Config) -> None:
