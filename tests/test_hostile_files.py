@@ -64,6 +64,22 @@ def test_relative_paths_in_a_piped_config_resolve_against_the_current_directory(
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_scenario_and_batch_files_through_a_pipe(tmp_path):
+    """A scenario file for simulate and a batch file (its cases listed) through process
+    substitution, read once (the command's destination check reads it first)."""
+    cfg = shlex.quote(str(ROOT / "configs/cantilever.yaml"))
+    proc = _sh(f"{PY} -m pipeline -q run {cfg} --set mesh.size=0.02 --set mesh.order=1 "
+               "--set lumped=null -o m.h5 --mesh-dir m && "
+               f"{PY} -m pipeline -q simulate m.h5 <(printf 'kind: step_load\nforce: 1\n"
+               "t_on: 0\nduration: 0.01\noutput_rate: 2000\n') -o sim.h5 && "
+               f"{PY} -m pipeline batch --dry-run <(printf 'batch:\n  name: piped\n  base: "
+               f"{ROOT / 'configs/cantilever.yaml'}\n  cases:\n    - label: one\n      "
+               "set: {material.E: 70.0e9}\n')", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "sim.h5").is_file()
+    assert "batch 'piped'" in proc.stdout and "1 valid cases" in proc.stdout, proc.stdout
+
+
 def test_a_piped_config_is_bounded_like_a_file(tmp_path):
     """An endless writer is refused at the size limit of files (4 MiB), in one line."""
     proc = _sh(f"yes '# padding' | {PY} -m pipeline run /dev/stdin -o x.h5", tmp_path)
