@@ -246,3 +246,41 @@ def test_free_body_rigid_modes_pass_the_stability_check(tmp_path):
         worst = scipy.linalg.eigvals(A).real.max()
         assert worst <= stability_tolerance(A), (model.label, worst, stability_tolerance(A))
         assert stability_tolerance(A) < 0.1  # 1/s: a doubling time of over 7 s
+
+
+@pytest.fixture(scope="module")
+def with_fe(tmp_path_factory) -> Path:
+    """A file with /fe (sparse M and K), a Craig-Bampton model and connection models."""
+    tmp = tmp_path_factory.mktemp("fe")
+    cfg = load_config(ROOT / "configs/cantilever_connection.yaml",
+                      ["mesh.size=0.02", "mesh.order=1"])
+    return run_pipeline(cfg, tmp / "fe.h5", mesh_dir=tmp).output
+
+
+def _negative_fe_mass(h5):
+    key = L.csr_group(L.FE.mass_matrix).data
+    _replace(h5, key, -h5[key][()])
+
+
+def _indefinite_craig_bampton_K(h5):
+    K = h5[L.CRAIG_BAMPTON.K][()]
+    K[-1, -1] = -abs(K).max()
+    _replace(h5, L.CRAIG_BAMPTON.K, K)
+
+
+@pytest.mark.parametrize("edit, pattern", [
+    (_negative_fe_mass, r"fe/mass_matrix has \d+ diagonal entr\(ies\) <= 0"),
+    (_indefinite_craig_bampton_K, r"craig_bampton/K is indefinite"),
+], ids=["negative_fe_mass", "indefinite_craig_bampton_K"])
+def test_resigned_fe_and_craig_bampton_matrices_are_checked(with_fe, tmp_path, edit, pattern):
+    """The honest file (free-body rigid modes, connection models, FFRF invariants) loads;
+    an edited /fe mass matrix or Craig-Bampton stiffness is refused by every reader."""
+    import re
+
+    load_model(with_fe)
+    read_fe_model(with_fe)
+    bad = _resigned(with_fe, tmp_path, edit)
+    for reader in (load_model, summarize, read_fe_model):
+        with pytest.raises(FileFormatError) as info:
+            reader(bad)
+        assert re.search(pattern, str(info.value)), str(info.value)
