@@ -64,6 +64,22 @@ def test_relative_paths_in_a_piped_config_resolve_against_the_current_directory(
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_scenario_and_batch_files_through_a_pipe(tmp_path):
+    """A scenario file for simulate and a batch file (its cases listed) through process
+    substitution, read once (the command's destination check reads it first)."""
+    cfg = shlex.quote(str(ROOT / "configs/cantilever.yaml"))
+    proc = _sh(f"{PY} -m pipeline -q run {cfg} --set mesh.size=0.02 --set mesh.order=1 "
+               "--set lumped=null -o m.h5 --mesh-dir m && "
+               f"{PY} -m pipeline -q simulate m.h5 <(printf 'kind: step_load\nforce: 1\n"
+               "t_on: 0\nduration: 0.01\noutput_rate: 2000\n') -o sim.h5 && "
+               f"{PY} -m pipeline batch --dry-run <(printf 'batch:\n  name: piped\n  base: "
+               f"{ROOT / 'configs/cantilever.yaml'}\n  cases:\n    - label: one\n      "
+               "set: {material.E: 70.0e9}\n')", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "sim.h5").is_file()
+    assert "batch 'piped'" in proc.stdout and "1 valid cases" in proc.stdout, proc.stdout
+
+
 def test_a_piped_config_is_bounded_like_a_file(tmp_path):
     """An endless writer is refused at the size limit of files (4 MiB), in one line."""
     proc = _sh(f"yes '# padding' | {PY} -m pipeline run /dev/stdin -o x.h5", tmp_path)
@@ -230,3 +246,41 @@ def test_free_body_rigid_modes_pass_the_stability_check(tmp_path):
         worst = scipy.linalg.eigvals(A).real.max()
         assert worst <= stability_tolerance(A), (model.label, worst, stability_tolerance(A))
         assert stability_tolerance(A) < 0.1  # 1/s: a doubling time of over 7 s
+
+
+@pytest.fixture(scope="module")
+def with_fe(tmp_path_factory) -> Path:
+    """A file with /fe (sparse M and K), a Craig-Bampton model and connection models."""
+    tmp = tmp_path_factory.mktemp("fe")
+    cfg = load_config(ROOT / "configs/cantilever_connection.yaml",
+                      ["mesh.size=0.02", "mesh.order=1"])
+    return run_pipeline(cfg, tmp / "fe.h5", mesh_dir=tmp).output
+
+
+def _negative_fe_mass(h5):
+    key = L.csr_group(L.FE.mass_matrix).data
+    _replace(h5, key, -h5[key][()])
+
+
+def _indefinite_craig_bampton_K(h5):
+    K = h5[L.CRAIG_BAMPTON.K][()]
+    K[-1, -1] = -abs(K).max()
+    _replace(h5, L.CRAIG_BAMPTON.K, K)
+
+
+@pytest.mark.parametrize("edit, pattern", [
+    (_negative_fe_mass, r"fe/mass_matrix has \d+ diagonal entr\(ies\) <= 0"),
+    (_indefinite_craig_bampton_K, r"craig_bampton/K is indefinite"),
+], ids=["negative_fe_mass", "indefinite_craig_bampton_K"])
+def test_resigned_fe_and_craig_bampton_matrices_are_checked(with_fe, tmp_path, edit, pattern):
+    """The honest file (free-body rigid modes, connection models, FFRF invariants) loads;
+    an edited /fe mass matrix or Craig-Bampton stiffness is refused by every reader."""
+    import re
+
+    load_model(with_fe)
+    read_fe_model(with_fe)
+    bad = _resigned(with_fe, tmp_path, edit)
+    for reader in (load_model, summarize, read_fe_model):
+        with pytest.raises(FileFormatError) as info:
+            reader(bad)
+        assert re.search(pattern, str(info.value)), str(info.value)

@@ -144,3 +144,106 @@ def test_zero_state_model_is_refused_by_every_consumer(zero_states, tmp_path, co
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert "statespace/A has 0 states" in lines[0] and str(zero_states.name) in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- run configs
+RUN_CASES = [  # --set values the field checks accept, the key the one line names
+    (["geometry.height=5e-324"], "geometry.height"),
+    (["geometry.length=1e-300", "geometry.height=1e-300", "geometry.depth=1e-300",
+      "mesh.size=1e-300"], "geometry.length"),
+    (["geometry.height=1e-5"], "mesh.size"),          # elements 2000:1 flat at size 0.02
+    (["material.rho=1e-300"], "material.rho"),
+    (["material.E=5e-324"], "material.E"),
+    (["material.rho=1e-140", "material.E=1e13"], "material.E"),   # omega^2 ~ 1e157
+    (["material.nu=0.4999999999"], "material.nu"),
+    (["modes.tolerance=1e-300"], "modes.tolerance"),
+    ([f"geometry={{kind: geo, path: {ROOT / 'meshes/slender_beam.geo'}, scale: 0.001}}",
+      "lumped=null", "mesh.size=1e-300"], "mesh.size"),   # on main: ZeroDivisionError
+    (["regions={far: {kind: sphere, point: [1e300, 0, 0], radius: 1}}",
+      "ports.inputs[0].region=far"], "regions.far.point"),
+    (["ports.outputs=[{name: tip_y, region: tip, kind: displacement, direction: [0, 1, 0]}, "
+      "{name: g, kind: strain, point: [1e300, 0, 0], direction: [1, 0, 0]}]"],
+     "ports.outputs[1].point"),                          # on main: IndexError
+    (["connections=[{name: c, region: tip, point: [1e150, 0, 0]}]"], "connections[0].point"),
+    (["filter.cutoff_hz=1e-300"], "filter.cutoff_hz"),   # on main: poles underflowed to 0
+]
+
+
+@pytest.mark.parametrize("sets, key", RUN_CASES, ids=[" ".join(s) for s, _ in RUN_CASES])
+def test_run_config_values_double_precision_cannot_carry_are_refused(tmp_path, sets, key):
+    """Values the field checks accept but the FE or the solver choked on (on main: a
+    ZeroDivisionError, a LinAlgError, a singular K, a solver running to its step limit):
+    one line naming the key, exit code 2, before meshing (no mesh, no output)."""
+    args = ["run", ROOT / "configs/cantilever.yaml", "--set", "mesh.size=0.02"]
+    for s in sets:
+        args += ["--set", s]
+    proc = _cli(*args, "-o", tmp_path / "out.h5", "--mesh-dir", tmp_path / "mesh")
+    assert proc.returncode == ConfigError.exit_code, proc.stderr[-2000:]
+    lines = [line for line in proc.stderr.strip().splitlines() if "WARNING" not in line]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert f"config key '{key}'" in lines[0] and "expected" in lines[0], lines[0]
+    assert [p for p in tmp_path.rglob("*") if not p.is_dir()] == []
+
+
+def test_extreme_but_valid_materials_follow_the_physical_scaling(tmp_path):
+    """Inside the range double precision carries, a run is exact up to scaling: the
+    frequencies follow sqrt(E / rho) / L. E and rho scaled together by 1e-135 (E h and
+    rho h^3 near the 1e-150 floor) give the reference frequencies; E x 1e-20 gives them
+    x 1e-10; rho x 1e-100 gives them x 1e50 (omega^2 ~ 1e110). Tolerance 1e-9: the
+    eigensolver's relative residual is 1e-10 and a symmetric problem's eigenvalue error is
+    below it (measured: 2e-12 to 1e-11)."""
+    def freqs(*sets):
+        cfg = load_config(ROOT / "configs/cantilever.yaml",
+                          ["mesh.size=0.02", "mesh.order=1", "lumped=null", "filter.kind=none",
+                           *sets])
+        out = run_pipeline(cfg, tmp_path / f"{len(list(tmp_path.glob('*.h5')))}.h5",
+                           mesh_dir=tmp_path).output
+        with h5py.File(out) as h5:
+            return h5["modes/frequencies_hz"][()]
+
+    E, rho = 69.0e9, 2700.0
+    ref = freqs()
+    for sets, factor in (((f"material.E={E * 1e-135!r}", f"material.rho={rho * 1e-135!r}"),
+                          1.0),
+                         ((f"material.E={E * 1e-20!r}",), 1e-10),
+                         ((f"material.rho={rho * 1e-100!r}",), 1e50)):
+        np.testing.assert_allclose(freqs(*sets), ref * factor, rtol=1e-9, err_msg=str(sets))
+
+
+def test_modes_count_near_the_free_dofs_runs_dense(tmp_path):
+    """500 modes of a mesh with 795 free DOFs (on main: block Lanczos stalled after 32 s,
+    residual 0.64) run with a dense eigh; its lowest 10 agree with block Lanczos' 10 to
+    1e-9 (Lanczos' relative residual 1e-10 bounds a symmetric eigenvalue's error)."""
+    base = ["mesh.size=0.02", "mesh.order=1", "lumped=null", "filter.kind=none"]
+    outs = {}
+    for count in (10, 500):
+        cfg = load_config(ROOT / "configs/cantilever.yaml", base + [f"modes.count={count}"])
+        res = run_pipeline(cfg, tmp_path / f"m{count}.h5", mesh_dir=tmp_path)
+        with h5py.File(res.output) as h5:
+            outs[count] = h5["modes/frequencies_hz"][()]
+    assert outs[500].size == 500
+    np.testing.assert_allclose(outs[500][:10], outs[10], rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- integrator
+def test_integrator_tolerance_below_double_precision_is_refused(good, tmp_path):
+    """rtol 1e-14 (on main: accepted, and Radau ran for minutes): refused by the field
+    check, below 1e-13; Radau at rtol 1e-13 on the step load (an estimated 4.6e6
+    right-hand-side calls, measured 1.8e6 calls in 140 s at 1e-14) by the step budget,
+    which names the tolerance that fits. One line each, nothing written."""
+    cases = (("LSODA", "1.0e-14", ConfigError, "rtol': got 1e-14, expected a number in "
+              "[1e-13, 0.001]"),
+             ("Radau", "1.0e-13", SolverError, "integrator.rtol = 1e-13 alone does this: "
+              "use rtol >= "))
+    for method, rtol, cls, says in cases:
+        sc = tmp_path / "sc.yaml"
+        sc.write_text("kind: step_load\nforce: 1\nt_on: 0\nduration: 0.2\noutput_rate: 2000\n"
+                      f"integrator: {{method: {method}, rtol: {rtol}, atol: {rtol}}}\n")
+        out = tmp_path / "out"
+        out.mkdir()
+        proc = _cli("simulate", good, sc, "-o", out / "r.h5")
+        assert proc.returncode == cls.exit_code, proc.stderr[-2000:]
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr[-2000:]
+        assert says in proc.stderr, proc.stderr
+        assert list(out.iterdir()) == []
+        out.rmdir()

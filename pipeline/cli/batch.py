@@ -63,7 +63,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
         for name in ("distributed", "tornado", "bokeh"):
             logging.getLogger(name).setLevel(logging.WARNING)
     try:
-        result = run_batch(args.file, args.output, workers=args.workers,
+        result = run_batch(getattr(args, "batch_spec", None) or args.file, args.output,
+                           workers=args.workers,
                            scheduler=args.scheduler, verify=args.verify,
                            compute=not args.report_only)
     except KeyboardInterrupt as exc:

@@ -142,6 +142,7 @@ def _batch(args) -> None:
     from pipeline.apps.batch import load_batch
 
     spec = load_batch(args.file)
+    args.batch_spec = spec  # kept for cmd_batch: a batch file from a pipe is read once
     outdir = Path(args.output) if args.output else Path("outputs") / spec.name
     check_output_dir(outdir, marker=_batch_folder, force=args.force, what="batch folder")
 

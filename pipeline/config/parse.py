@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence, get_args
 from pipeline._util import validate as v
 from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
 from pipeline.config.gauges import AREA_KEYS, gauge_area
+from pipeline.config.numerics import check_box_thickness, check_numerics
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.supports import parse_support
@@ -310,6 +311,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     base_dir = str(Path(source).parent) if source and not is_stream(source) else ""
     geometry = _geometry(raw["geometry"], base_dir)
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
+    check_box_thickness(geometry)  # a box too thin to mesh, before mesh.size is checked
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
     modes_raw = v.mapping(_section(raw, "modes"), "modes", ("count", "solver", "tolerance",
                                                               "precision", "method"))
@@ -382,6 +384,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         raise v.fail("modes.precision", "mixed", "'auto' or 'double' with modes.method: "
                     "multigrid (mixed precision is a property of a sparse factor; the "
                     "multigrid solver has none)")
+    check_numerics(cfg)  # what double precision cannot carry: refused
     check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg
 

@@ -51,12 +51,21 @@ _LENGTH_UNITS = ((1e-3, "mm"), (1e-2, "cm"), (1e-6, "micrometres"))
 
 
 def check_geometry(geometry: Geometry) -> None:
-    """Refuse box dimensions no machine part has, naming the key and the likely unit."""
+    """Refuse box dimensions no machine part has (largest outside MIN_EXTENT_M to
+    MAX_EXTENT_M), naming the key and the likely unit."""
     if geometry.kind != "box":
         return  # drawn geometry: checked after reading (fe.mesh.common.check_dimensions)
     dims = {"length": geometry.length, "height": geometry.height, "depth": geometry.depth}
     largest_key = max(dims, key=dims.get)
     largest = dims[largest_key]
+    if largest < MIN_EXTENT_M:  # as drawn geometry (fe.mesh.common.check_dimensions)
+        hint = _unit_hint(largest, MIN_EXTENT_M, MAX_EXTENT_M,
+                          ((1e3, "km (lengths are in m)"),))
+        raise ConfigError(
+            f"config key 'geometry.{largest_key}': got {largest:g} m as the body's largest "
+            f"dimension, expected at least {MIN_EXTENT_M:g} m (the smallest body the pipeline "
+            f"meshes){hint}", key=f"geometry.{largest_key}", value=largest,
+            expected=f"at least {MIN_EXTENT_M:g} m")
     if largest > MAX_EXTENT_M:
         hint = ""
         for factor, unit in _LENGTH_UNITS:

@@ -10,7 +10,8 @@ if the chosen path gives up. :func:`pipeline.solve.eigen.solve_modes` executes i
 The methods (see :mod:`pipeline.solve.eigen` for the algorithms):
 
 ``dense``
-    a dense generalized ``eigh``, up to :data:`DENSE_MAX` free DOFs;
+    a dense generalized ``eigh``, up to :data:`DENSE_MAX` free DOFs (up to
+    :data:`DENSE_WIDE_MAX` when the modes asked for are a large fraction of them);
 ``lanczos``
     shift-invert block Lanczos on a factor with forward and backward half-solves;
 ``arpack``
@@ -44,6 +45,17 @@ Method = Literal["dense", "lanczos", "arpack", "mixed", "multigrid"]
 METHODS = ("auto", "lanczos", "arpack", "dense", "factor", "multigrid")
 
 DENSE_MAX = 600  # up to this many free DOFs, a dense generalized eigh
+#: and up to this many when the modes asked for are more than DENSE_FRACTION of the free
+#: DOFs: block Lanczos needs a Krylov space several times the modes wanted, which then
+#: spans most of the space, and it stalls (500 modes of 795 DOFs: 149 steps, residual
+#: 0.64, 32 s); a dense eigh of 4000 DOFs takes seconds and 3 x 128 MB
+DENSE_WIDE_MAX = 4000
+DENSE_FRACTION = 0.1
+
+
+def dense_wanted(n: int, count: int) -> bool:
+    """Whether ``auto`` solves ``count`` modes of ``n`` free DOFs with a dense eigh."""
+    return n <= DENSE_MAX or (n <= DENSE_WIDE_MAX and count > DENSE_FRACTION * n)
 # under method auto: the two-grid trial is given up for the factor path as soon as it
 # projects more sweeps than this (5 times the cantilever's 8). At 1M DOFs the two paths
 # break even near 22 sweeps; 40 lets a body that converges steadily but slowly
@@ -143,7 +155,7 @@ def plan_modes(problem: EigenProblem, machine: Machine) -> EigenPlan:
     check_problem(problem)
     p = problem
     method, precision = p.method, p.precision
-    dense = method == "dense" or (method in ("auto", "factor") and p.n <= DENSE_MAX)
+    dense = method == "dense" or (method in ("auto", "factor") and dense_wanted(p.n, p.count))
     # a GPU factor lives in GPU memory, checked by its backend: no host-memory rule
     # applies, and no multigrid trial (its factor is fast)
     gpu = not dense and method != "multigrid" and machine.gpu
@@ -189,7 +201,7 @@ def factor_expected(problem: EigenProblem, machine: Machine) -> bool:
     shift 0, judged before the values exist (so that a pattern analysis started during
     the assembly is used); a wrong guess costs only that background analysis."""
     p = problem
-    return (p.supported and p.n > DENSE_MAX and p.precision != "mixed"
+    return (p.supported and not dense_wanted(p.n, p.count) and p.precision != "mixed"
             and (p.method == "factor" or (p.method == "auto" and p.n < MULTIGRID_AUTO_DOFS))
             and machine.backend == "pardiso"
             and factor_path_bytes(p.n, p.count) <= machine.usable_bytes)

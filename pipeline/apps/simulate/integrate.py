@@ -108,7 +108,8 @@ def integrate(sys: SteppedSystem, z0: np.ndarray, segments: Sequence[Segment],
     The system is linear, so it is stepped with z0 and w divided by their largest
     magnitude and the states scaled back: a load of 1e-300 N (or 1e300) is integrated
     like one of 1 N, never with subnormal tolerances that stall the integrator."""
-    check_step_budget(sys.A, float(t[-1] - t[0]) if t.size else 0.0, integ.method)
+    check_step_budget(sys.A, float(t[-1] - t[0]) if t.size else 0.0, integ.method,
+                      rtol=integ.rtol)
     scale = max([float(np.abs(z0).max(initial=0.0))]
                 + [float(np.abs(seg.w).max(initial=0.0)) for seg in segments])
     if scale > 0 and math.isfinite(scale) and scale != 1.0:

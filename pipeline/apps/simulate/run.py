@@ -28,7 +28,7 @@ from pipeline.apps.simulate.measure import (decay_damping_ratio, fft_peak_freque
                                             zero_crossing_frequency)
 from pipeline.apps.simulate.output import write_outputs
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult, SimulationResults
-from pipeline.apps.simulate.scenarios import Scenario, as_scenarios
+from pipeline.apps.simulate.scenarios import Scenario, as_scenarios, check_step_budget
 from pipeline.apps.simulate.stress import add_stress_outputs, gauge_ports
 from pipeline.apps.simulate.systems import (SteppedSystem, coupled_system, directions,
                                             filtered_for, lumped_for, mount_for, step_system,
@@ -251,7 +251,9 @@ def check_against_model(mf: ModelFile, sc: Scenario) -> None:
     """Ports, directions, filtered model and mount geometry of ``sc`` against the file
     (the same checks the run makes, done up front)."""
     inp, port = scenario_ports(mf, sc)
-    if sc.kind == "step_load":
+    if sc.kind == "step_load":  # the plant is the stepped system: its budget, up front
+        check_step_budget(mf.plant.A, sc.duration, sc.integrator.method, sc.name,
+                          rtol=sc.integrator.rtol)
         return
     _, d_out, _ = directions(mf, sc, inp, port)
     if sc.loop == "filtered":

@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
+from pipeline.config.numerics import MIN_RELATIVE_TOLERANCE
 from pipeline.errors import ConfigError, SolverError
 
 __all__ = ["KINDS", "METHODS", "LOOPS", "DEFAULT_GRAVITY", "MAX_SAMPLES", "SCENARIO_KEYS",
@@ -34,12 +35,22 @@ DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
 MAX_SAMPLES = 2_000_000
 #: Fewest samples a run needs to measure anything.
 MIN_SAMPLES = 16
-#: Most integrator steps one segment may need (estimated before integrating, see
-#: :func:`check_step_budget`); LSODA takes ~20 us per step on these small systems, so
-#: this is about a minute. The shipped scenarios need at most ~1e4.
+#: Most right-hand-side evaluations (in LSODA-call equivalents) one segment may need,
+#: estimated before integrating (:func:`check_step_budget`); one takes ~20 us on these
+#: small systems, so this is about a minute. The shipped scenarios need ~4e4.
 MAX_STEPS = 3_000_000
-#: Steps per period of the fastest oscillation that an integrator needs to resolve it.
-STEPS_PER_PERIOD = 20
+#: Cost model of each method: (right-hand-side calls per period of the fastest
+#: oscillation at rtol = 1e-8, p, cost of one call relative to LSODA's), calls growing as
+#: (rtol / 1e-8)^(-1/p). Measured on the cantilever's step_load (195 periods of its 976 Hz
+#: fastest mode, rtol 1e-6 to 1e-14): LSODA 8.1e3 to 5.4e4 calls, RK45 1.1e4 to 3.5e5,
+#: DOP853 9.6e3 to 5.8e4, Radau 2.2e4 to 1.8e6 (140 s at 1e-14), BDF 7.8e3 to 1.5e5 (its
+#: calls carry Jacobian factorisations: 190 us each, Radau 75 us, the others ~20 us).
+INTEGRATOR_COST = {"LSODA": (70.0, 10.0, 1.0), "RK45": (130.0, 5.0, 1.0),
+                   "DOP853": (70.0, 10.0, 0.6), "Radau": (330.0, 4.0, 4.0),
+                   "BDF": (85.0, 6.0, 10.0)}
+#: Right-hand-side calls an explicit method spends per unit of duration x max|lambda|
+#: (stability: its stages over its stability radius, 6 / 3.3 for RK45, 12 / 6 for DOP853)
+EXPLICIT_CALLS_PER_RATE = 2.0
 #: Largest |load| (N: force, preload), |gravity| (m/s^2) and mass (kg) a scenario takes:
 #: far beyond any engineering case (a rocket engine ~1e7 N, a gun shock ~1e6 m/s^2, a ship
 #: 1e8 kg) and far below where the responses' squares (energies) overflow double precision.
@@ -174,8 +185,10 @@ def _integrator(raw: Mapping, path: str) -> Integrator:
         return Integrator()
     v.mapping(integ_raw, where, _INTEGRATOR_KEYS)
     return Integrator(v.choice(integ_raw, "method", where, METHODS, Integrator.method),
-                      v.number(integ_raw, "rtol", where, Integrator.rtol, lo=1e-14, hi=1e-3),
-                      v.number(integ_raw, "atol", where, Integrator.atol, lo=1e-16, hi=1e-2))
+                      v.number(integ_raw, "rtol", where, Integrator.rtol,
+                               lo=MIN_RELATIVE_TOLERANCE, hi=1e-3),
+                      v.number(integ_raw, "atol", where, Integrator.atol,
+                               lo=MIN_RELATIVE_TOLERANCE, hi=1e-2))
 
 
 def _masses(raw: Mapping, path: str) -> tuple[float, ...]:
@@ -362,39 +375,52 @@ def as_scenarios(scenario: Any) -> list[Scenario]:
     return parse_scenarios(list(scenario) if isinstance(scenario, tuple) else scenario)
 
 
-def check_step_budget(A: np.ndarray, duration: float, method: str, name: str = "") -> float:
+def check_step_budget(A: np.ndarray, duration: float, method: str, name: str = "",
+                      rtol: float = Integrator.rtol) -> float:
     """Refuse (SolverError, one line) a coupled system the integrator cannot step through
-    in :data:`MAX_STEPS`: extreme but valid scenario numbers (a 1e30 kg mass, a 1e30 N m/rad
-    spring) make its eigenvalues lambda huge. An explicit method needs ~ duration max|lambda|
-    steps (stability); an implicit one (LSODA, BDF, Radau) ~ duration max|Im lambda| / (2 pi)
-    x STEPS_PER_PERIOD (to resolve the fastest oscillation). Non-finite A is refused too.
-    Returns the estimate."""
+    within :data:`MAX_STEPS` right-hand-side calls (about a minute): extreme but valid
+    scenario numbers (a 1e30 kg mass, a 1e30 N m/rad spring) make its eigenvalues lambda
+    huge, and a tight ``rtol`` multiplies the steps per period. The estimate, in LSODA-call
+    equivalents: duration x f_max (periods of the fastest oscillation, f_max =
+    max|Im lambda| / 2 pi) x calls per period at ``rtol`` (:data:`INTEGRATOR_COST`), for an
+    explicit method at least :data:`EXPLICIT_CALLS_PER_RATE` x duration x max|lambda|
+    (stability), times the method's cost per call. Non-finite A is refused too. Returns
+    the estimate."""
     if not np.all(np.isfinite(A)):
         raise SolverError(f"{_which(name)}: the coupled system has non-finite entries "
                           "(a mass, stiffness or load beyond double precision); use values "
                           "within engineering ranges")
     lam = np.linalg.eigvals(A) if A.size else np.zeros(0)
-    if method in ("LSODA", "BDF", "Radau"):
-        rate = float(np.abs(lam.imag).max(initial=0.0)) / (2 * math.pi) * STEPS_PER_PERIOD
-    else:
-        rate = float(np.abs(lam).max(initial=0.0))
-    steps = duration * rate
-    span = duration * float(np.abs(lam).max(initial=0.0))
+    rate = float(np.abs(lam).max(initial=0.0))
+    f_max = float(np.abs(lam.imag).max(initial=0.0)) / (2 * math.pi)
+    per_period, order, weight = INTEGRATOR_COST.get(method, INTEGRATOR_COST["LSODA"])
+    tightening = (rtol / Integrator.rtol) ** (-1.0 / order)
+    calls = duration * f_max * per_period * tightening
+    if method not in ("LSODA", "BDF", "Radau"):
+        calls = max(calls, EXPLICIT_CALLS_PER_RATE * duration * rate)
+    steps = calls * weight
+    span = duration * rate
     if not math.isfinite(span) or span > MAX_TIME_SCALE_SPAN:
         raise SolverError(
             f"{_which(name)}: the coupled system's fastest rate |lambda| = "
-            f"{float(np.abs(lam).max(initial=0.0)):.3g} 1/s over {duration:g} s spans "
+            f"{rate:.3g} 1/s over {duration:g} s spans "
             f"{span:.2g} time scales (more than {MAX_TIME_SCALE_SPAN:.0e}, beyond double "
             "precision); a mass, stiffness or cutoff far outside the model's range does "
             "this: use values of the order of the body's own")
     if not math.isfinite(steps) or steps > MAX_STEPS:
-        f_max = float(np.abs(lam.imag).max(initial=0.0)) / (2 * math.pi)
+        looser = ""
+        if math.isfinite(steps) and steps / tightening <= MAX_STEPS:
+            need = Integrator.rtol * (steps / tightening / MAX_STEPS) ** order
+            looser = (f"; with {method}, integrator.rtol = {rtol:g} alone does this: use "
+                      f"rtol >= {need:.2g}" + ("" if method in ("LSODA", "DOP853") else
+                                               " or method LSODA"))
         raise SolverError(
             f"{_which(name)}: the coupled system oscillates up to {f_max:.3g} Hz "
-            f"(fastest |lambda| {float(np.abs(lam).max(initial=0.0)):.3g} 1/s), so "
-            f"integrating {duration:g} s would take ~{steps:.2g} steps (more than "
-            f"{MAX_STEPS:.0e}); a mass, stiffness or cutoff far outside the model's range "
-            "does this: use values of the order of the body's own, or a shorter duration")
+            f"(fastest |lambda| {rate:.3g} 1/s), so integrating {duration:g} s with "
+            f"{method} at rtol {rtol:g} would take ~{steps:.2g} right-hand-side calls (more "
+            f"than {MAX_STEPS:.0e}, about a minute){looser}; otherwise a mass, stiffness or "
+            "cutoff far outside the model's range does this: use values of the order of the "
+            "body's own, or a shorter duration")
     return steps
 
 
