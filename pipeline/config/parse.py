@@ -15,6 +15,7 @@ from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
+from pipeline.config.materials import parse_masses, parse_materials
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
@@ -286,7 +287,7 @@ def _connections(raw: Any) -> tuple[Connection, ...]:
 
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
             "ports", "damping", "reduction", "filter", "lumped", "connections",
-            "craig_bampton")
+            "craig_bampton", "materials", "masses")
 
 
 def _section(raw: Mapping, key: str) -> Any:
@@ -298,7 +299,8 @@ def _section(raw: Mapping, key: str) -> Any:
 
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
-    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh", "material"))
+    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "mesh") + (
+        () if isinstance(raw, Mapping) and raw.get("materials") else ("material",)))
     geometry = _geometry(raw["geometry"], str(Path(source).parent) if source else "")
     check_geometry(geometry)  # a length in mm is named here, not blamed on mesh.size
     constraints = v.mapping(_section(raw, "constraints"), "constraints", ("in_plane",))
@@ -318,7 +320,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         name=v.name(raw, "name", ""),
         geometry=geometry,
         mesh=_mesh(raw["mesh"], geometry),
-        material=_material(raw["material"]),
+        material=_material(raw["material"]) if "material" in raw else None,
         supports=_supports(raw.get("supports")),
         constraints=Constraints(in_plane=v.boolean(constraints, "in_plane", "constraints", False)),
         modes=modes,
@@ -332,6 +334,8 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         craig_bampton_modes=v.integer(v.mapping(_section(raw, "craig_bampton"), "craig_bampton",
                                               ("modes",)), "modes", "craig_bampton", 0,
                                      lo=0, hi=500),
+        materials=parse_materials(raw.get("materials")),
+        masses=parse_masses(raw.get("masses")),
         source=source,
     )
     known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
@@ -340,6 +344,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)
              if p.region]
     used += [(f"connections[{i}].region", c.region) for i, c in enumerate(cfg.connections)]
+    used += [(f"masses[{i}].region", m.region) for i, m in enumerate(cfg.masses) if m.region]
     for path, region in used:
         if known and region not in known:
             raise v.fail(path, region, "a region the geometry names or 'regions' defines: "
@@ -354,6 +359,9 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                     "free body has no static deflection to correct with); add supports, e.g. "
                     "supports: [{region: root, fix: all}], or set "
                     "reduction.static_correction: none")
+    if cfg.lumped is not None and (cfg.materials or cfg.masses):
+        raise v.fail("lumped", raw.get("lumped"), "no lumped chain with 'materials' or "
+                    "'masses' (the chain is built from one material and no added mass)")
     if cfg.lumped is not None and geometry.kind != "box":
         raise v.fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
                     f"straight beam; geometry.kind is '{geometry.kind}')")

@@ -81,6 +81,8 @@ def material_warnings(cfg: Config) -> list[str]:
     """Warnings on E, rho and the box mass outside engineering solids, and on locking."""
     mat = cfg.material
     out = []
+    if mat is None:  # ``materials`` claim every element: their ranges were checked on parsing
+        return out
     if not E_RANGE[0] <= mat.E <= E_RANGE[1]:
         hint = _unit_hint(mat.E, *E_RANGE, ((1e6, "MPa (E is in Pa: multiply by 1e6)"),
                                             (1e9, "GPa (E is in Pa: multiply by 1e9)"),

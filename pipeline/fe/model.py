@@ -25,7 +25,10 @@ import scipy.sparse as sp
 from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
-from pipeline.fe.body import BodyProperties, body_properties
+from pipeline.fe.added_mass import added_mass_matrix
+from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
+                              rigid_body_modes)
+from pipeline.fe.materials import ElementMaterials, assign_materials
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline._util.resources import check_memory
@@ -52,6 +55,7 @@ class FEModel:
     props: mass, centre of mass, inertia and rigid mass matrix from M.
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
+    materials: the material of every element (``material`` and ``materials``).
     """
 
     space: FESpace
@@ -66,6 +70,7 @@ class FEModel:
     K_full: sp.csr_matrix | None = None
     M_full: sp.csr_matrix | None = None
     mesh_sha256: str = ""
+    materials: ElementMaterials | None = None
 
 
 @contextlib.contextmanager
@@ -95,6 +100,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        materials = assign_materials(space, cfg.material, cfg.materials, cfg.masses)
+        added = added_mass_matrix(space, regions, cfg.masses)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
@@ -109,12 +116,17 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
             assembled = assemble_on_nodes(
-                space, cfg.material, nodes, pattern=pattern, progress=update,
+                space, materials, nodes, pattern=pattern, progress=update,
                 on_layout=on_stiffness_pattern if nodes is not None else None)
         del pattern
         props = body_properties(assembled.node_mass, space.node_points)
         K, M = assembled.K, assembled.M
         del assembled
+        if added is not None:  # point and area masses: in M and in the rigid properties
+            R = rigid_body_modes(space.node_points)
+            props = properties_from_rigid_mass(props.rigid_mass + R.T @ (added @ R))
+            M = M + (added if M.shape[0] == space.n_dofs else
+                     added[nodes_dofs(nodes)][:, nodes_dofs(nodes)])
         if cfg.connections:
             full = (K, M)
             K, M = restrict(K, free), restrict(M, free)
@@ -125,4 +137,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
-                   K_full=full[0], M_full=full[1])
+                   K_full=full[0], M_full=full[1], materials=materials)
+
+
+def nodes_dofs(nodes: np.ndarray) -> np.ndarray:
+    """All three DOFs 3 p + c of the sorted ``nodes``, sorted."""
+    return (3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()

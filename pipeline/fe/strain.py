@@ -52,7 +52,8 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.errors import RegionError
-from pipeline.fe.kernels import inverse_jacobians, lame_parameters, scatter_add
+from pipeline.fe.kernels import inverse_jacobians, scatter_add
+from pipeline.fe.materials import isotropic_stiffness
 from pipeline.fe.space import FESpace
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
@@ -64,12 +65,7 @@ CHUNK = 20000
 
 def elasticity_matrix(material: Material) -> np.ndarray:
     """(6, 6) isotropic D in Pa: sigma (Voigt) = D eps (Voigt, engineering shear)."""
-    lam, mu = lame_parameters(material)
-    D = np.zeros((6, 6))
-    D[:3, :3] = lam
-    D[[0, 1, 2], [0, 1, 2]] += 2.0 * mu
-    D[[3, 4, 5], [3, 4, 5]] = mu
-    return D
+    return isotropic_stiffness(material)
 
 
 def shared_parts(space: FESpace) -> dict:
@@ -194,9 +190,12 @@ def element_volumes(space: FESpace) -> np.ndarray:
     return np.abs(np.linalg.det(v[:, 1:] - v[:, :1])) / 6.0
 
 
-def nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
+def nodal_strains(space: FESpace, U: np.ndarray, element_D=None) -> np.ndarray:
     """(n_nodes, 6, n_s): the volume-weighted average (module docstring) at every node of
-    the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk."""
+    the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk.
+    ``element_D``, if given, maps element indices (n,) to their stiffness (n, 6, 6) Pa:
+    then the element-nodal STRESSES D_e eps_e(x_n) are averaged (Pa; several materials:
+    a node on an interface gets the volume-weighted mean of both sides' stresses)."""
     U = np.asarray(U, dtype=float)
     U = U[:, None] if U.ndim == 1 else U
     en = space.element_nodes
@@ -205,6 +204,8 @@ def nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
                          minlength=space.n_nodes)
     out = np.zeros((space.n_nodes, 6 * U.shape[1]))
     for sel, values in _element_nodal_chunks(space, U):
+        if element_D is not None:
+            values = np.einsum("eij,eqjs->eqis", element_D(sel), values)
         values *= vol[sel, None, None, None]
         # each (element, node) row added onto its node's row in place: a bincount per
         # column would pass over all n_nodes once per column
@@ -228,7 +229,9 @@ class StressFields:
 def stress_fields(space: FESpace, material: Material, U: np.ndarray) -> StressFields:
     """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m."""
     eps = nodal_strains(space, U)
-    return StressFields(eps, stresses_from_strains(eps, material))
+    if getattr(material, "uniform", material) is None:  # several laws: each element its own
+        return StressFields(eps, nodal_strains(space, U, material.element_D))
+    return StressFields(eps, stresses_from_strains(eps, getattr(material, "uniform", material)))
 
 
 # --------------------------------------------------------------------------- gauges
@@ -289,9 +292,21 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
     if kind == "stress":
         if material is None:
             raise ValueError(f"{key}: a stress gauge needs the material (pass material=)")
+        laws = material
+        material = getattr(laws, "uniform", laws)
+        if material is None:  # per-element laws: D_e^T w, element by element
+            return _gauge_row_per_element(space, laws, w, triangles, point, radius, key)
         w = elasticity_matrix(material).T @ w  # w . (D eps) = (D^T w) . eps
     if triangles is None and radius == 0.0:
         return w @ _point_strain_row(space, point, key)
+    elements = _gauge_elements(space, triangles, point, radius, key)
+    E, vol = element_strain_operator(space, elements)
+    weights = np.kron(vol / vol.sum(), w)  # (6 n_sel,)
+    return np.asarray(E.T @ weights).ravel()
+
+
+def _gauge_elements(space: FESpace, triangles, point, radius: float, key: str) -> np.ndarray:
+    """The elements a region or sphere gauge averages over (RegionError if none)."""
     if triangles is not None:
         elements = elements_on_surface(space, triangles)
         where = "has no element face on it"
@@ -302,9 +317,21 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
     if elements.size == 0:
         raise RegionError(f"config key '{key}': the gauge region {where}; expected at least "
                           "one element (enlarge the radius or pick a boundary region)")
+    return elements
+
+
+def _gauge_row_per_element(space: FESpace, laws, w: np.ndarray, triangles, point,
+                           radius: float, key: str) -> np.ndarray:
+    """A stress gauge's row with each element's own stiffness D_e (Voigt weights D_e^T w)."""
+    if triangles is None and radius == 0.0:
+        row = _point_strain_row(space, point, key)
+        mesh = space.skfem_mesh
+        e = int(mesh.element_finder()(*[np.array([c]) for c in np.asarray(point, float)])[0])
+        return (laws.element_D(np.array([e]))[0].T @ w) @ row
+    elements = _gauge_elements(space, triangles, point, radius, key)
     E, vol = element_strain_operator(space, elements)
-    weights = np.kron(vol / vol.sum(), w)  # (6 n_sel,)
-    return np.asarray(E.T @ weights).ravel()
+    weights = (vol / vol.sum())[:, None] * np.einsum("eji,j->ei", laws.element_D(elements), w)
+    return np.asarray(E.T @ weights.ravel()).ravel()
 
 
 def modal_stress_fields(space: FESpace, material: Material, free: np.ndarray,

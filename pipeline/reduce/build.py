@@ -17,6 +17,7 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.errors import ConfigError
+from pipeline.fe.materials import config_materials
 from pipeline.fe.ports import port_matrices
 from pipeline.reduce.connection import build_connection_model, effective_mass_table
 from pipeline.reduce.craig_bampton import build_craig_bampton
@@ -92,7 +93,7 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
 
     ``solve``: b -> K^-1 b for this K; default: the factorisation the modes stage kept
     (``modes.solve``), else K is factorised here."""
-    ports = port_matrices(space, regions, cfg.ports, material=cfg.material)
+    ports = port_matrices(space, regions, cfg.ports, material=config_materials(space, cfg))
     F = ports.F[free].toarray()
     T = ports.T[:, free]
     check_ports_act(cfg, ports, F, T)
