@@ -528,3 +528,14 @@ def test_stress_gauges_use_the_law_of_their_elements(bimaterial):
     only_steel = gauge_row(fe.space, Material(**STEEL), "stress", d, point=(0.05, 0.01, 0.01),
                            radius=0.02)
     assert not np.allclose(both, only_steel)
+
+
+def test_a_modulus_in_gpa_is_warned_about(caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING):
+        config(material=ALU, materials=[{"name": "s", "E": 210.0, "nu": 0.3, "rho": 2.7,
+                                         "elements": "all"}])
+    text = caplog.text
+    assert "'materials[0].E' = 210 Pa" in text and "GPa" in text
+    assert "'materials[0].rho' = 2.7" in text and "g/cm^3" in text
