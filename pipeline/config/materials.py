@@ -307,6 +307,24 @@ def parse_masses(raw: Any) -> tuple[AddedMass, ...]:
     return tuple(out)
 
 
+def lumped_mass_problem(height: float, depth: float, masses) -> tuple[str, Any, str] | None:
+    """(key, value, expected) of the first ``masses`` entry the lumped chain cannot carry,
+    or None: the chain takes point masses on the beam axis (y = height/2, z = depth/2)
+    with principal inertia along x, y, z (they keep its joint families uncoupled)."""
+    tol = 1e-9 * max(height, depth)
+    for i, m in enumerate(masses):
+        if m.kind != "point":
+            return (f"masses[{i}].kind", m.kind, "point with a lumped chain (it carries "
+                    "point masses only)")
+        if abs(m.point[1] - height / 2) > tol or abs(m.point[2] - depth / 2) > tol:
+            return (f"masses[{i}].point", list(m.point), f"a point on the beam axis (y = "
+                    f"{height / 2:g}, z = {depth / 2:g}) with a lumped chain")
+        if any(m.inertia[3:]):
+            return (f"masses[{i}].inertia", list(m.inertia), "no products of inertia with a "
+                    "lumped chain (principal axes along x, y, z)")
+    return None
+
+
 # --------------------------------------------------------------------------- YAML back
 def selector_dict(sel: ElementSelector) -> Any:
     """An element selector as its YAML value."""

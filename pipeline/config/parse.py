@@ -15,7 +15,7 @@ from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
-from pipeline.config.materials import parse_masses, parse_materials
+from pipeline.config.materials import lumped_mass_problem, parse_masses, parse_materials
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
@@ -359,9 +359,13 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                     "free body has no static deflection to correct with); add supports, e.g. "
                     "supports: [{region: root, fix: all}], or set "
                     "reduction.static_correction: none")
-    if cfg.lumped is not None and (cfg.materials or cfg.masses):
-        raise v.fail("lumped", raw.get("lumped"), "no lumped chain with 'materials' or "
-                    "'masses' (the chain is built from one material and no added mass)")
+    if cfg.lumped is not None and (cfg.materials or cfg.material is None):
+        raise v.fail("lumped", raw.get("lumped"), "no lumped chain with 'materials' (the "
+                    "chain is built from one material)")
+    if cfg.lumped is not None and geometry.kind == "box" and cfg.masses:
+        problem = lumped_mass_problem(geometry.height, geometry.depth, cfg.masses)
+        if problem is not None:
+            raise v.fail(*problem)
     if cfg.lumped is not None and geometry.kind != "box":
         raise v.fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
                     f"straight beam; geometry.kind is '{geometry.kind}')")
