@@ -164,7 +164,8 @@ def check_positive_definite(D: np.ndarray, path: str, what: str) -> None:
     if not w[0] > 1e-12 * w[-1]:
         raise ConfigError(f"config key '{path}': the {what} has eigenvalue {w[0]:.6g} (largest "
                           f"{w[-1]:.6g}); expected a positive definite matrix (every eigenvalue "
-                          "> 0)", key=path, expected="a positive definite 6x6 matrix")
+                          "> 1e-12 x the largest)", key=path,
+                          expected="a positive definite 6x6 matrix")
 
 
 def _selector(raw: Any, path: str) -> ElementSelector:
@@ -292,9 +293,12 @@ def parse_masses(raw: Any) -> tuple[AddedMass, ...]:
             if coupling == "rigid":
                 raise v.fail(f"{path}.coupling", coupling, "distributing (a rigid coupling of "
                             "an added mass is not built: it would stiffen the region)")
+            point = v.vector(item, "point", path)
+            if max(abs(c) for c in point) > 1e6:  # its rigid fit would overflow
+                raise v.fail(f"{path}.point", list(point), "a point within 1e6 m of the origin")
             out.append(AddedMass(name=name, kind=kind,
                                  mass=v.number(item, "mass", path, lo=0.0, lo_open=True, hi=1e9),
-                                 inertia=inertia, point=v.vector(item, "point", path),
+                                 inertia=inertia, point=point,
                                  region=v.name(item, "region", path), coupling=coupling))
         elif kind == "area":
             out.append(AddedMass(name=name, kind=kind, region=v.name(item, "region", path),

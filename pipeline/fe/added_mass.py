@@ -4,7 +4,9 @@ of the rigid-body properties.
 - point mass (``kind: point``), distributing coupling (RBE3): a rigid body of mass m and
   inertia J (about its point P) whose six motions q = [u_P; theta_P] follow the region's
   nodes by the weighted least-squares rigid fit q = G u_r, G = (R^T W R)^-1 R^T W (R: the
-  region nodes' rigid modes at P, 3 n_r x 6; W: their consistent area weights). Its
+  region nodes' rigid modes at P, 3 n_r x 6; W: their consistent area weights; built at
+  the weights' centroid c and carried to P, u_P = u_c + theta x (P - c): the same G, its
+  conditioning independent of the distance to P). Its
   kinetic energy 1/2 q'^T M6 q' gives M_add = G^T M6 G, M6 = diag(m I_3, J): mass, no
   stiffness. G R = I_6, so in a rigid motion of the body the point moves rigidly with it
   and the body's rigid mass matrix gains exactly the point's own.
@@ -26,7 +28,7 @@ import scipy.sparse as sp
 
 from pipeline.config.materials import AddedMass
 from pipeline.errors import RegionError
-from pipeline.fe.body import rigid_body_modes
+from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
 from pipeline.fe.space import FESpace, surface_region
 
@@ -43,13 +45,19 @@ def point_rigid_mass(mass: float, inertia: Sequence[float]) -> np.ndarray:
 def _distributing_map(space: FESpace, name: str, tris: np.ndarray, point, key: str):
     """(nodes (n_r,), G (6, 3 n_r)): the RBE3 fit of the region at ``point``."""
     sr = surface_region(space, name, tris)
-    R = rigid_body_modes(space.node_points[sr.nodes], point)
+    x = space.node_points[sr.nodes]
+    c = sr.weights @ x / sr.weights.sum()
+    # the fit at the weights' centroid c (its conditioning does not depend on how far the
+    # point lies), then carried to the point: u_P = u_c + theta x (P - c)
+    R = rigid_body_modes(x, c)
     w = np.repeat(sr.weights, 3)
     A = R.T @ (w[:, None] * R)
     if np.linalg.cond(A) > 1e12:
         raise RegionError(f"config key '{key}': region '{name}' cannot carry a distributing "
                           "mass (its weighted nodes lie on a line); expected a surface region")
-    return sr.nodes, np.linalg.solve(A, R.T * w)
+    T = np.eye(6)
+    T[:3, 3:] = -skew(np.asarray(point, dtype=float) - c)  # theta x d = -d x theta
+    return sr.nodes, T @ np.linalg.solve(A, R.T * w)
 
 
 def _area_mass(space: FESpace, tris: np.ndarray, density: float):
