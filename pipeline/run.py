@@ -242,7 +242,9 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
     extent = np.ptp(mesh.points, axis=0)
     # materials by box or sphere selector resolve on the stored mesh as in the run
     laws = {k: raw[k] for k in ("material", "materials", "masses") if raw.get(k)}
-    raw = {"name": raw.get("name", "stored"), "material": raw.get("material", {}), **laws,
+    if not laws.get("materials"):
+        laws["material"] = raw.get("material", {})
+    raw = {"name": raw.get("name", "stored"), **laws,
            "ports": raw.get("ports") or {},
            "geometry": {"kind": "box", "length": float(extent[0]), "height": float(extent[1]),
                         "depth": float(extent[2])},
