@@ -594,3 +594,59 @@ def test_file_mass_properties_are_the_sum_over_materials_and_masses(tmp_path):
     again = stored_fe_data(out, assemble=True)
     R = rigid_body_modes(fe.space.node_points)
     assert (R.T @ (again.M_full @ R))[0, 0] == pytest.approx(total, rel=1e-13)
+
+
+BAR_GEO = """// a bar of two parts: root segment 0..A, tip segment A..L (mm), 10 mm square
+SetFactory("OpenCASCADE");
+L = 200; A = 80; a = 10; eps = 1e-3;
+Box(1) = {0, 0, 0, A, a, a};
+Box(2) = {A, 0, 0, L - A, a, a};
+BooleanFragments{ Volume{1}; Delete; }{ Volume{2}; Delete; }
+Physical Surface("root") = Surface In BoundingBox {-eps, -eps, -eps, eps, a + eps, a + eps};
+Physical Volume("inner") = {1};
+Physical Volume("outer") = {2};
+"""
+
+
+def _two_segment_axial_hz(m1, m2, a, b):
+    """Lowest axial frequency of a clamped-free rod of two segments (lengths a, b):
+    u1 = sin(k1 x), u2 ~ cos(k2 (L - x)), continuity of u and of the force E A u' at x = a:
+    E1 k1 cos(k1 a) cos(k2 b) = E2 k2 sin(k1 a) sin(k2 b), k_i = omega sqrt(rho_i / E_i)."""
+    from scipy.optimize import brentq
+
+    def f(om):
+        k1, k2 = om * np.sqrt(m1["rho"] / m1["E"]), om * np.sqrt(m2["rho"] / m2["E"])
+        return m1["E"] * k1 * np.cos(k1 * a) * np.cos(k2 * b) - m2["E"] * k2 * np.sin(k1 * a) \
+            * np.sin(k2 * b)
+
+    om = np.linspace(1.0, 2 * np.pi * 2e4, 20000)
+    v = f(om)
+    i = int(np.flatnonzero(np.sign(v[:-1]) != np.sign(v[1:]))[0])
+    return brentq(f, om[i], om[i + 1]) / (2 * np.pi)
+
+
+def test_gmsh_volume_groups_and_the_bimaterial_bar(tmp_path):
+    """Materials by gmsh physical volume name: the elements of each volume exactly (mass
+    sum of rho_i V_i to round-off), and the axial frequency of the bar against the
+    two-segment rod (1-D) within 0.5 %: the 3-D bar's own deviation (its clamped root
+    face holds the Poisson contraction) is +0.21 % for one material, and the bimaterial
+    bars measure +0.19 % and +0.31 %."""
+    geo = tmp_path / "bar.geo"
+    geo.write_text(BAR_GEO)
+    for m1, m2 in ((ALU, ALU), (STEEL, ALU), (ALU, STEEL)):
+        raw = {"name": "bar", "geometry": {"kind": "geo", "path": str(geo), "scale": 0.001},
+               "mesh": {"order": 2, "size": 0.005},
+               "supports": [{"region": "root", "fix": "all"}],
+               "materials": [{"name": "i", **m1, "elements": "inner"},
+                             {"name": "o", **m2, "elements": "outer"}]}
+        fe = build_fe_model(config_from_dict(raw), tmp_path)
+        assert fe.props.mass == pytest.approx((m1["rho"] * 0.08 + m2["rho"] * 0.12) * 1e-4,
+                                              rel=1e-12)
+        w, V = sla.eigsh(fe.K.tocsc(), 12, fe.M.tocsc(), sigma=0)
+        U = np.zeros((fe.space.n_dofs, V.shape[1]))
+        U[fe.free] = V
+        axial = (U.reshape(-1, 3, V.shape[1])[:, 0, :] ** 2).sum(0) / (U ** 2).sum(0)
+        k = int(np.argmax(axial))
+        assert axial[k] > 0.99
+        f = np.sqrt(w[k]) / (2 * np.pi)
+        assert f / _two_segment_axial_hz(m1, m2, 0.08, 0.12) - 1 == pytest.approx(0.0, abs=5e-3)

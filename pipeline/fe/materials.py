@@ -114,12 +114,13 @@ def element_centroids(space: FESpace) -> np.ndarray:
 
 def select_elements(space: FESpace, selector: ElementSelector, key: str,
                     centroids: np.ndarray | None = None) -> np.ndarray:
-    """(n_e,) bool, the elements ``selector`` claims (``key``: the config key, for errors)."""
+    """(n_e,) bool, the elements ``selector`` claims (``key``: the config key, for errors);
+    a name is one of the mesh file's element sets (``space.body.element_sets``)."""
     n_e = space.body.n_tetrahedra
     if selector.kind == "all":
         return np.ones(n_e, dtype=bool)
     if selector.kind == "group":
-        groups = getattr(space.body, "element_sets", None) or {}
+        groups = space.body.element_sets
         if selector.name not in groups:
             raise RegionError(f"config key '{key}': no volume group or element set named "
                               f"'{selector.name}' in the mesh '{space.body.source}'; expected "

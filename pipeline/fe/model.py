@@ -28,7 +28,7 @@ from pipeline.fe.pattern import block_pattern
 from pipeline.fe.added_mass import added_mass_matrix
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
                               rigid_body_modes)
-from pipeline.fe.materials import ElementMaterials, assign_materials
+from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline._util.resources import check_memory
@@ -100,7 +100,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
-        materials = assign_materials(space, cfg.material, cfg.materials, cfg.masses)
+        materials = config_materials(space, cfg)
         added = added_mass_matrix(space, regions, cfg.masses)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)

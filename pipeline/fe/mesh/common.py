@@ -72,12 +72,15 @@ class BodyMesh:
     tetrahedra: (n_t, 4) int64 vertex indices, positively oriented.
     regions: name -> (n_f, 3) int64 vertex indices of the boundary triangles.
     source: the file the mesh was read from.
+    element_sets: name -> sorted indices of the tetrahedra of the file's named volume
+        groups / element sets (:mod:`pipeline.fe.element_sets`).
     """
 
     vertices: np.ndarray
     tetrahedra: np.ndarray
     regions: Mapping[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
+    element_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:

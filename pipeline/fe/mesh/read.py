@@ -20,6 +20,7 @@ from pipeline.errors import MeshError
 from pipeline.fe.mesh.common import (TET_TYPES, VOLUME_TYPES, BodyMesh, check_dimensions,
                                      z_order)
 from pipeline.fe.mesh.registry import SOURCES
+from pipeline.fe.element_sets import element_sets_of
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,8 @@ def read_mesh(path: str | Path) -> BodyMesh:
             regions[name] = tri
     log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
              tets.shape[0], ", ".join(sorted(regions)) or "none")
-    return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path))
+    return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path),
+                    element_sets=element_sets_of(mesh, renumber, tets))
 
 
 def read_foreign(geometry: Geometry) -> BodyMesh:
@@ -144,7 +146,8 @@ def read_foreign(geometry: Geometry) -> BodyMesh:
     body = read_mesh(path)
     if geometry.scale != 1.0:
         body = BodyMesh(vertices=body.vertices * geometry.scale, tetrahedra=body.tetrahedra,
-                        regions=body.regions, source=body.source)
+                        regions=body.regions, source=body.source,
+                        element_sets=body.element_sets)
     extent = body.vertices.max(axis=0) - body.vertices.min(axis=0)
     check_dimensions(extent, geometry, str(path))
     return body
