@@ -650,3 +650,14 @@ def test_gmsh_volume_groups_and_the_bimaterial_bar(tmp_path):
         assert axial[k] > 0.99
         f = np.sqrt(w[k]) / (2 * np.pi)
         assert f / _two_segment_axial_hz(m1, m2, 0.08, 0.12) - 1 == pytest.approx(0.0, abs=5e-3)
+
+
+def test_a_mass_on_a_line_region_is_refused(bimaterial):
+    """A region of edges or points (a line or point group) carries no distributing mass."""
+    from pipeline.config.materials import AddedMass
+    from pipeline.fe.added_mass import added_mass_matrix
+
+    regions = dict(bimaterial.regions, edge=np.array([[0, 1]]))
+    mass = AddedMass(name="m", mass=1.0, point=(0.0, 0.0, 0.0), region="edge")
+    with pytest.raises(RegionError, match="'masses\\[0\\].region'.*not a face"):
+        added_mass_matrix(bimaterial.space, regions, [mass])

@@ -85,6 +85,10 @@ def added_mass_matrix(space: FESpace, regions: Mapping[str, np.ndarray],
         if m.kind == "volume":
             continue
         tris = get_region(regions, m.region, f"{key}.region")
+        if tris.ndim != 2 or tris.shape[1] != 3:  # a line or point region
+            raise RegionError(f"config key '{key}.region': region '{m.region}' is not a face "
+                              "(a line or a point); expected a surface region for a "
+                              f"{'distributing' if m.kind == 'point' else 'per-area'} mass")
         if m.kind == "point":
             nodes, G = _distributing_map(space, m.region, tris, m.point, f"{key}.region")
             dofs = (3 * nodes[:, None] + np.arange(3)).ravel()

@@ -78,7 +78,8 @@ def port_vector(space: FESpace, region: SurfaceRegion, port: Port, key: str) -> 
 
 def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
                   material: Material | None = None) -> PortMatrices:
-    """Assemble F and T for the configured ports (``material``: for stress outputs)."""
+    """Assemble F and T for the configured ports (``material``: for stress outputs, a
+    Material or the per-element :class:`~pipeline.fe.materials.ElementMaterials`)."""
     cache: dict[str, SurfaceRegion] = {}
 
     def columns(items: Sequence[Port], side: str) -> sp.csc_matrix:

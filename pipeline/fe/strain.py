@@ -226,8 +226,9 @@ class StressFields:
     stress: np.ndarray
 
 
-def stress_fields(space: FESpace, material: Material, U: np.ndarray) -> StressFields:
-    """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m."""
+def stress_fields(space: FESpace, material, U: np.ndarray) -> StressFields:
+    """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m; ``material``:
+    a Material or the per-element :class:`~pipeline.fe.materials.ElementMaterials`."""
     eps = nodal_strains(space, U)
     if getattr(material, "uniform", material) is None:  # several laws: each element its own
         return StressFields(eps, nodal_strains(space, U, material.element_D))
@@ -282,12 +283,13 @@ def _point_strain_row(space: FESpace, point, key: str) -> np.ndarray:
     return row
 
 
-def gauge_row(space: FESpace, material: Material | None, kind: str, direction, direction2=None,
+def gauge_row(space: FESpace, material, kind: str, direction, direction2=None,
               triangles: np.ndarray | None = None, point=None, radius: float = 0.0,
               key: str = "ports.outputs") -> np.ndarray:
     """(n_dofs,) sensor row of a strain (1) or stress (Pa) gauge per metre of nodal
     displacement; located on a boundary region (``triangles``), in a sphere (``point``,
-    ``radius`` > 0) or at a ``point`` (module docstring)."""
+    ``radius`` > 0) or at a ``point`` (module docstring). ``material``: a Material, the
+    per-element :class:`~pipeline.fe.materials.ElementMaterials`, or None (strain only)."""
     w = voigt_weights(kind, direction, direction2)
     if kind == "stress":
         if material is None:
@@ -334,7 +336,7 @@ def _gauge_row_per_element(space: FESpace, laws, w: np.ndarray, triangles, point
     return np.asarray(E.T @ weights.ravel()).ravel()
 
 
-def modal_stress_fields(space: FESpace, material: Material, free: np.ndarray,
+def modal_stress_fields(space: FESpace, material, free: np.ndarray,
                         basis: np.ndarray, correction: np.ndarray | None = None
                         ) -> StressFields:
     """Stress and strain of the reduced basis (n_free, n_b) and of the static correction
