@@ -289,7 +289,11 @@ def test_cli_end_to_end_bimaterial(tmp_path, bimaterial):
     raw = {"name": "bi", "geometry": BOX, "mesh": {"order": 2, "size": 0.01},
            "supports": [{"region": "root", "fix": "all"}], "material": ALU,
            "materials": [{"name": "steel", **STEEL, "elements": ROOT_HALF}],
-           "modes": {"count": 6}}
+           "modes": {"count": 6},
+           "ports": {"inputs": [{"name": "f", "region": "tip", "kind": "force",
+                                 "direction": [0, -1, 0]}],
+                     "outputs": [{"name": "s", "kind": "stress", "region": "top",
+                                  "direction": [1, 0, 0]}]}}
     path = tmp_path / "bi.yaml"
     path.write_text(yaml.safe_dump(raw))
     out = tmp_path / "bi.h5"
@@ -306,8 +310,10 @@ def test_cli_end_to_end_bimaterial(tmp_path, bimaterial):
     assert stored.names == ("material", "steel")
     np.testing.assert_array_equal(stored.element_material, bimaterial.materials.index)
     np.testing.assert_array_equal(stored.stiffness, bimaterial.materials.D)
-    # the exporter's re-assembly from the file: the run's own matrices
+    # the exporter's re-assembly from the file: the run's own matrices (and its ports,
+    # a stress gauge among them, with the file's per-element materials)
     again = stored_fe_data(out, assemble=True)
+    assert again.input_names == ("f",)
     free = bimaterial.free
     K = again.K_full[free][:, free]
     assert abs(K - bimaterial.K).max() <= 1e-14 * abs(bimaterial.K).max()

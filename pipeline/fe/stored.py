@@ -76,7 +76,7 @@ def matrices_of_stored_mesh(cfg: Config, points: np.ndarray, cells: np.ndarray,
     F = np.zeros((space.n_dofs, 0))
     names: tuple[str, ...] = ()
     if n_u:
-        ports = port_matrices(space, regions, cfg.ports)
+        ports = port_matrices(space, regions, cfg.ports, material=materials)
         F, names = ports.F.toarray(), tuple(ports.input_names)
     if assemble:
         log.info("re-assembled K and M of %s on its stored mesh (%d DOFs)", what, space.n_dofs)
