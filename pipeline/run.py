@@ -28,9 +28,10 @@ from pipeline.solve.factorization import resolve_backend
 from pipeline.solve.stage import ModesInput, compute_modes, expects_factor
 from pipeline.store.h5file import write_file
 from pipeline.store.layout import ROOT
+from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.strain import modal_stress_fields
-from pipeline.store.schema import (core_datasets, core_group_attrs, models_tree,
-                                   run_group_attrs, stress_modes_datasets)
+from pipeline.store.schema import (core_datasets, core_group_attrs, materials_datasets,
+                                   models_tree, run_group_attrs, stress_modes_datasets)
 from pipeline.store.tree import Dataset
 
 log = logging.getLogger(__name__)
@@ -187,6 +188,8 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
 
     modes.release_factorization()  # idempotent: freed when K was dropped
     tree.update(core_datasets(space, regions, fixed, props, modes, shapes, labels))
+    if cfg.materials or cfg.masses:
+        tree.update(materials_datasets(config_materials(space, cfg)))
     multigrid = modes.stats and modes.stats.get("method") == "multigrid-lobpcg"
     group_attrs.update(core_group_attrs(
         space, cfg.mesh.order, free.size, "" if mesh_path is None else str(mesh_path),
@@ -209,7 +212,7 @@ def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:
     """The ``stress_modes`` group: stress and strain of the reduced basis and of the
     residual-flexibility shapes, recovered to the mesh points (pipeline.fe.strain)."""
     reduced = models.reduced
-    fields = modal_stress_fields(space, cfg.material, free, reduced.basis,
+    fields = modal_stress_fields(space, config_materials(space, cfg), free, reduced.basis,
                                  reduced.correction_shapes)
     log.info("stress modes: %d shapes at %d mesh points", fields.stress.shape[2], space.n_nodes)
     return stress_modes_datasets(fields.stress, fields.strain, reduced, models.input_units)
@@ -225,7 +228,7 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
     from pipeline.config.parse import config_from_dict
     from pipeline.config import BOX_FACES
     from pipeline.fe.stored import matrices_of_stored_mesh
-    from pipeline.store.read import read_stored_mesh
+    from pipeline.store.read import read_materials, read_stored_mesh
 
     mesh = read_stored_mesh(path)
     if assemble is None:
@@ -241,7 +244,11 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
     # CAD file need not be here any more; a box of the mesh's extent keeps the size checks
     # meaningful) and holds the regions the selectors made (named here by plain selectors)
     extent = np.ptp(mesh.points, axis=0)
-    raw = {"name": raw.get("name", "stored"), "material": raw.get("material", {}),
+    # materials by box or sphere selector resolve on the stored mesh as in the run
+    laws = {k: raw[k] for k in ("material", "materials", "masses") if raw.get(k)}
+    if not laws.get("materials"):
+        laws["material"] = raw.get("material", {})
+    raw = {"name": raw.get("name", "stored"), **laws,
            "ports": raw.get("ports") or {},
            "geometry": {"kind": "box", "length": float(extent[0]), "height": float(extent[1]),
                         "depth": float(extent[2])},
@@ -251,5 +258,9 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
                               "normal": [0.0, 0.0, 1.0]} for name in mesh.regions
                        if name not in BOX_FACES}}
     cfg = config_from_dict(raw, source="")
+    stored = read_materials(path)  # the run's own element assignment, where it was stored
+    materials = None if stored is None else ElementMaterials(
+        stored.names, stored.stiffness, stored.density, stored.element_material,
+        stored.element_density, None)
     return matrices_of_stored_mesh(cfg, mesh.points, mesh.cells, mesh.regions, str(path),
-                                   assemble=assemble)
+                                   assemble=assemble, materials=materials)

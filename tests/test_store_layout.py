@@ -195,15 +195,18 @@ def test_the_doc_names_importable_readers():
 # --------------------------------------------------------------------------- a written file
 @pytest.fixture(scope="module")
 def written(tmp_path_factory) -> list[Path]:
-    """Two small runs: every model of the cantilever (plant, filtered, lumped, stress modes),
-    and the connection-point, Craig-Bampton and FE-matrix groups."""
+    """Three small runs: every model of the cantilever (plant, filtered, lumped, stress modes),
+    the connection-point, Craig-Bampton and FE-matrix groups, and the materials group."""
     tmp = tmp_path_factory.mktemp("layout")
     plant = load_config(ROOT / "configs" / "cantilever.yaml",
                         ["mesh.size=0.025", "modes.count=4"])
     conn = load_config(ROOT / "configs" / "cantilever_connection.yaml",
                        ["mesh.size=0.025", "modes.count=4", "craig_bampton.modes=4"])
+    materials = load_config(ROOT / "configs" / "cantilever_materials.yaml",
+                            ["mesh.size=0.025", "modes.count=4"])
     return [run_pipeline(plant, tmp / "plant.h5", mesh_dir=tmp).output,
-            run_pipeline(conn, tmp / "conn.h5", mesh_dir=tmp).output]
+            run_pipeline(conn, tmp / "conn.h5", mesh_dir=tmp).output,
+            run_pipeline(materials, tmp / "materials.h5", mesh_dir=tmp).output]
 
 
 def _group_of(path: str) -> L.Group | None:

@@ -18,6 +18,7 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
 from pipeline.config.gauges import AREA_KEYS, gauge_area
 from pipeline.config.numerics import check_box_thickness, check_numerics
+from pipeline.config.materials import lumped_mass_problem, parse_masses, parse_materials
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
 from pipeline.config.supports import parse_support
@@ -293,7 +294,7 @@ def _connections(raw: Any) -> tuple[Connection, ...]:
 
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
             "ports", "damping", "reduction", "filter", "lumped", "connections",
-            "craig_bampton")
+            "craig_bampton", "materials", "masses")
 
 
 def _section(raw: Mapping, key: str) -> Any:
@@ -305,7 +306,8 @@ def _section(raw: Mapping, key: str) -> Any:
 
 def config_from_dict(raw: Any, source: str = "") -> Config:
     """Validate a raw mapping (as parsed from YAML) and return a :class:`Config`."""
-    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry", "material"))
+    raw = v.mapping(raw, "", TOP_KEYS, ("name", "geometry") + (
+        () if isinstance(raw, Mapping) and raw.get("materials") else ("material",)))
     # relative paths: against the config's folder; a config read from a pipe or
     # /dev/stdin has none, so against the current directory
     base_dir = str(Path(source).parent) if source and not is_stream(source) else ""
@@ -329,7 +331,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         name=v.name(raw, "name", ""),
         geometry=geometry,
         mesh=_mesh(_section(raw, "mesh"), geometry),
-        material=_material(raw["material"]),
+        material=_material(raw["material"]) if "material" in raw else None,
         supports=_supports(raw.get("supports")),
         constraints=Constraints(in_plane=v.boolean(constraints, "in_plane", "constraints", False)),
         modes=modes,
@@ -343,6 +345,8 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         craig_bampton_modes=v.integer(v.mapping(_section(raw, "craig_bampton"), "craig_bampton",
                                               ("modes",)), "modes", "craig_bampton", 0,
                                      lo=0, hi=500),
+        materials=parse_materials(raw.get("materials")),
+        masses=parse_masses(raw.get("masses")),
         source=source,
     )
     # a box's and a CAD file's region names are all known here (its faces, the selectors);
@@ -355,6 +359,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     used += [(f"ports.outputs[{i}].region", p.region) for i, p in enumerate(cfg.ports.outputs)
              if p.region]
     used += [(f"connections[{i}].region", c.region) for i, c in enumerate(cfg.connections)]
+    used += [(f"masses[{i}].region", m.region) for i, m in enumerate(cfg.masses) if m.region]
     for path, region in used:
         if known and region not in known:
             raise v.fail(path, region, "a region the geometry names or 'regions' defines: "
@@ -369,6 +374,13 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                     "free body has no static deflection to correct with); add supports, e.g. "
                     "supports: [{region: root, fix: all}], or set "
                     "reduction.static_correction: none")
+    if cfg.lumped is not None and (cfg.materials or cfg.material is None):
+        raise v.fail("lumped", raw.get("lumped"), "no lumped chain with 'materials' (the "
+                    "chain is built from one material)")
+    if cfg.lumped is not None and geometry.kind == "box" and cfg.masses:
+        problem = lumped_mass_problem(geometry.height, geometry.depth, cfg.masses)
+        if problem is not None:
+            raise v.fail(*problem)
     if cfg.lumped is not None and geometry.kind != "box":
         raise v.fail("lumped", raw.get("lumped"), "a box geometry (the lumped chain needs a "
                     f"straight beam; geometry.kind is '{geometry.kind}')")

@@ -90,6 +90,8 @@ def material_warnings(cfg: Config) -> list[str]:
     """Warnings on E, rho and the box mass outside engineering solids, and on locking."""
     mat = cfg.material
     out = []
+    if mat is None:  # ``materials`` claim every element: their ranges were checked on parsing
+        return out
     if not E_RANGE[0] <= mat.E <= E_RANGE[1]:
         hint = _unit_hint(mat.E, *E_RANGE, ((1e6, "MPa (E is in Pa: multiply by 1e6)"),
                                             (1e9, "GPa (E is in Pa: multiply by 1e9)"),
@@ -135,7 +137,7 @@ def check_plausibility(cfg: Config) -> tuple[str, ...]:
     """Refuse ports that act on nothing (:func:`check_ports`); log every plausibility
     warning for ``cfg`` (logging.WARNING) and return them."""
     check_ports(cfg)
-    warnings = tuple(material_warnings(cfg) + check_lumped(cfg))
+    warnings = tuple(material_warnings(cfg) + check_lumped(cfg) + materials_warnings(cfg))
     for message in warnings:
         log.warning("%s", message)
     return warnings
@@ -181,3 +183,24 @@ def check_lumped(cfg: Config) -> list[str]:
                 "but this body's supports differ; its comparison with the FE body is not "
                 "like for like"]
     return []
+
+
+def materials_warnings(cfg: Config) -> list[str]:
+    """Warnings on the moduli and densities of ``materials`` entries outside engineering
+    solids (a unit slip: MPa or GPa for Pa, g/cm^3 for kg/m^3)."""
+    out = []
+    for i, m in enumerate(cfg.materials):
+        key = f"materials[{i}]"
+        moduli = {"isotropic": [("E", m.E)], "orthotropic": list(zip(("E[0]", "E[1]", "E[2]"),
+                  m.moduli or ()))}.get(m.kind, [])
+        for name, E in moduli:
+            if not E_RANGE[0] <= E <= E_RANGE[1]:
+                out.append(f"config key '{key}.{name}' = {E:g} Pa is outside what engineering "
+                           f"solids have ({E_RANGE[0]:g} to {E_RANGE[1]:g} Pa)"
+                           + _unit_hint(E, *E_RANGE, ((1e6, "MPa (multiply by 1e6)"),
+                                                      (1e9, "GPa (multiply by 1e9)"))))
+        if not RHO_RANGE[0] <= m.rho <= RHO_RANGE[1]:
+            out.append(f"config key '{key}.rho' = {m.rho:g} kg/m^3 is outside what "
+                       f"engineering solids have ({RHO_RANGE[0]:g} to {RHO_RANGE[1]:g} kg/m^3)"
+                       + _unit_hint(m.rho, *RHO_RANGE, ((1e3, "g/cm^3 (multiply by 1000)"),)))
+    return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Mapping, get_args
 
+from pipeline.config.materials import AddedMass, MaterialEntry
 from pipeline.config.supports import BushingSpec, SpringSpec, SupportFrame
 
 GeometryKind = Literal["box", "step", "geo", "mesh"]
@@ -230,7 +231,7 @@ class Config:
     name: str
     geometry: Geometry = field(default_factory=Geometry)
     mesh: MeshSpec = field(default_factory=MeshSpec)
-    material: Material = field(default_factory=Material)
+    material: Material | None = field(default_factory=Material)  # None: ``materials`` claim every element
     supports: tuple[Support, ...] = ()
     constraints: Constraints = field(default_factory=Constraints)
     modes: ModesConfig = field(default_factory=ModesConfig)
@@ -242,4 +243,6 @@ class Config:
     lumped: Lumped | None = None
     connections: tuple[Connection, ...] = ()
     craig_bampton_modes: int = 0
+    materials: tuple[MaterialEntry, ...] = ()  # first match wins; the rest take ``material``
+    masses: tuple[AddedMass, ...] = ()
     source: str = ""  # the file the config came from (not part of the YAML contract)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, fields
 from typing import Any
 
+from pipeline.config.materials import mass_dict, material_dict
 from pipeline.config.schema import Config
 from pipeline.config.supports import support_dict
 
@@ -41,6 +42,11 @@ def config_to_dict(cfg: Config) -> dict:
         elif f.name == "craig_bampton_modes":
             if value:
                 out["craig_bampton"] = {"modes": value}
+            continue
+        elif f.name in ("materials", "masses"):
+            if value:
+                out[f.name] = [(material_dict if f.name == "materials" else mass_dict)(m)
+                               for m in value]
             continue
         elif f.name == "connections":
             value = [asdict(c) for c in value]

@@ -31,7 +31,9 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import release_free_heap, usable_cores
 from pipeline.config import Material
-from pipeline.fe.kernels import element_factors, lame_parameters, reference_data, scatter_add
+from pipeline.fe.kernels import (element_factors, element_factors_general, lame_parameters,
+                                 reference_data, scatter_add)
+from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
 from pipeline.fe.pattern import (INT32_MAX, BlockPattern, StiffnessLayout, block_pattern,
                                  index_dtype, mass_csr, stiffness_layout)
 from pipeline.fe.space import FESpace
@@ -75,21 +77,32 @@ def element_groups(space: FESpace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.flatnonzero(~(lower_all | upper_all)))
 
 
-def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam: float,
-                       mu: float, rho: float, pattern: BlockPattern, layout: StiffnessLayout,
-                       elements: np.ndarray, spare: int, chunk_size: int, kdata: np.ndarray,
-                       mblock: np.ndarray, progress, stop) -> None:
+def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray,
+                       material: Material | ElementMaterials, pattern: BlockPattern,
+                       layout: StiffnessLayout, elements: np.ndarray, spare: int,
+                       chunk_size: int, kdata: np.ndarray, mblock: np.ndarray, progress,
+                       stop) -> None:
     """Add ``elements`` into kdata (n_rows, 3) and mblock (n_blocks,); the dropped
     nodes' blocks go to kdata's row ``spare`` (one per concurrent caller). Returns early
-    once the event ``stop`` is set (checked before each chunk)."""
+    once the event ``stop`` is set (checked before each chunk). ``material``: one
+    isotropic Material (scalar Lame parameters) or the per-element materials."""
     offsets = np.arange(3, dtype=layout.base.dtype)
-    m_ref = rho * mass_ref.reshape(-1)
     first_spare = layout.nnz // 3
+    if isinstance(material, Material):
+        lam, mu = lame_parameters(material)
+        m_ref = material.rho * mass_ref.reshape(-1)
+    else:
+        C_laws = voigt_to_tensor(material.D)
     for start in range(0, elements.size, chunk_size):
         if stop.is_set():
             return
         chunk = elements[start:start + chunk_size]
-        F, vol = element_factors(space, lam, mu, chunk)
+        if isinstance(material, Material):
+            F, vol = element_factors(space, lam, mu, chunk)
+            m_e = np.outer(vol, m_ref)
+        else:  # (rho_e m_ref) vol_e: the same products as the uniform path
+            F, vol = element_factors_general(space, C_laws[material.index[chunk]], chunk)
+            m_e = (material.rho[chunk, None] * mass_ref.reshape(1, -1)) * vol[:, None]
         block = np.matmul(R, F)  # (m, nb^2, 9): [element, pair, 3 i + j]
         del F
         slots = pattern.slots[chunk].reshape(-1)
@@ -98,12 +111,12 @@ def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray, lam:
             rows[rows == first_spare] = spare
         scatter_add(rows.reshape(-1), block.reshape(-1, 3), kdata)
         del block, rows
-        scatter_add(slots, np.outer(vol, m_ref).reshape(-1, 1), mblock.reshape(-1, 1))
+        scatter_add(slots, m_e.reshape(-1, 1), mblock.reshape(-1, 1))
         if progress is not None:
             progress(chunk.size)
 
 
-def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | None = None,
+def assemble_on_nodes(space: FESpace, material: Material | ElementMaterials, nodes: np.ndarray | None = None,
                       pattern: BlockPattern | None = None, chunk_size: int = 2048,
                       progress=None, threads: int | None = None,
                       on_layout=None) -> Assembled:
@@ -114,6 +127,9 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     ``on_layout(indptr, indices)``, if given, is called with K's CSR structure as soon as
     it is known, before any value is summed (the solver can analyse the pattern
     meanwhile: :class:`pipeline.solve.backends.pardiso.PatternAnalysis`).
+    ``material``: one isotropic Material, or the per-element materials
+    (:func:`pipeline.fe.materials.assign_materials`; one uniform isotropic law takes the
+    single-material path, bit for bit).
 
     Per chunk of ``chunk_size`` elements: the element factors F_e (9 x 9), one batched
     GEMM R (nb^2 x 9) @ F_e giving each (element, pair) row its 9 values (i, j), and one
@@ -125,7 +141,10 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     the cut layer. Every entry is summed in the same order whatever the thread count, so
     K does not depend on the machine to the last bit.
     """
-    lam, mu = lame_parameters(material)
+    if isinstance(material, ElementMaterials) and material.uniform is not None:
+        material = material.uniform
+    if isinstance(material, Material):
+        lame_parameters(material)  # refuse a bad material before any work
     if threads is None:
         threads = usable_cores()
     if pattern is None:
@@ -140,7 +159,7 @@ def assemble_on_nodes(space: FESpace, material: Material, nodes: np.ndarray | No
     held = [np.zeros(layout.nnz + 9)]
     kdata = held[0].reshape(-1, 3)
     mblock = np.zeros(pattern.n_blocks)
-    args = (space, R, mass_ref, lam, mu, material.rho, pattern, layout)
+    args = (space, R, mass_ref, material, pattern, layout)
 
     stop = threading.Event()
 

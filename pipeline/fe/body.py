@@ -58,6 +58,12 @@ def body_properties(M: sp.spmatrix, node_points: np.ndarray) -> BodyProperties:
         D = sum(R[c::3].T @ (M @ R[c::3]) for c in range(3))
     else:
         D = R.T @ (M @ R)
+    return properties_from_rigid_mass(D)
+
+
+def properties_from_rigid_mass(D: np.ndarray) -> BodyProperties:
+    """Mass, centre of mass and inertia about it from the (6, 6) rigid mass matrix D at
+    the origin (R_O^T M R_O; a sum of such matrices for a body with added masses)."""
     D = 0.5 * (D + D.T)
     m = D[0, 0]
     # translational-rotational block: R_t^T M R_r = -m skew(G)

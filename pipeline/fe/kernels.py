@@ -23,7 +23,7 @@ from pipeline.errors import SolverError
 from pipeline.fe.space import FESpace
 
 __all__ = ["check_material", "lame_parameters", "reference_data", "inverse_jacobians",
-           "element_factors", "scatter_add"]
+           "element_factors", "element_factors_general", "scatter_add"]
 
 
 def check_material(material: Material) -> None:
@@ -91,6 +91,21 @@ def element_factors(space: FESpace, lam: float, mu: float, elems: np.ndarray):
     GG = np.einsum("nkm,nlm->nkl", G, G)
     for i in range(3):
         F[:, :, :, i, i] += mu * GG
+    F *= vol[:, None, None, None, None]
+    return F.reshape(-1, 9, 9), vol
+
+
+def element_factors_general(space: FESpace, C: np.ndarray, elems: np.ndarray):
+    """F (n, 9, 9) as :func:`element_factors` for a general stiffness tensor per element,
+    C (n, 3, 3, 3, 3) Pa (sigma_ij = C_ijpq eps_pq):
+
+        F[e, kl, ij] = |det J| sum_pq G[k, p] G[l, q] C[i, p, j, q]
+
+    (K_e[ai, bj] = int dphi_a/dx_p C_ipjq dphi_b/dx_q); for an isotropic C it equals
+    :func:`element_factors` to round-off."""
+    G, vol = inverse_jacobians(space, elems)
+    T = np.einsum("nkp,nipjq->nkijq", G, C, optimize=True)
+    F = np.einsum("nlq,nkijq->nklij", G, T, optimize=True)
     F *= vol[:, None, None, None, None]
     return F.reshape(-1, 9, 9), vol
 

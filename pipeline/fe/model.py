@@ -26,7 +26,10 @@ from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
 from pipeline.fe.ports import check_gauges
-from pipeline.fe.body import BodyProperties, body_properties
+from pipeline.fe.added_mass import added_mass_matrix
+from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
+                              rigid_body_modes)
+from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (RigidFreedoms, SupportStiffness, rigid_freedoms,
@@ -58,6 +61,7 @@ class FEModel:
     springs, bushings and local-frame penalties on all DOFs (:mod:`pipeline.fe.supports`).
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
+    materials: the material of every element (``material`` and ``materials``).
     """
 
     space: FESpace
@@ -80,6 +84,7 @@ class FEModel:
         """Rigid-body modes the supports leave (6 for a free body), known before the
         eigen solve (:func:`pipeline.fe.supports.rigid_freedoms`)."""
         return 6 if self.rigid is None else self.rigid.count
+    materials: ElementMaterials | None = None
 
 
 @contextlib.contextmanager
@@ -110,10 +115,12 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
         check_region_uses(cfg, space, regions)
+        materials = config_materials(space, cfg)
+        added = added_mass_matrix(space, regions, cfg.masses)
         extra = support_stiffness(space, regions, cfg.supports)
         log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
-    check_gauges(space, regions, cfg.ports, cfg.material)  # a misplaced gauge: before assembly
+    check_gauges(space, regions, cfg.ports, materials)  # a misplaced gauge: before assembly
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
 
     with stage("assemble"):
@@ -128,13 +135,18 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
             assembled = assemble_on_nodes(
-                space, cfg.material, nodes, pattern=pattern, progress=update,
+                space, materials, nodes, pattern=pattern, progress=update,
                 on_layout=on_stiffness_pattern if nodes is not None and not grounded
                 else None)
         del pattern
         props = body_properties(assembled.node_mass, space.node_points)
         K, M = assembled.K, assembled.M
         del assembled
+        if added is not None:  # point and area masses: in M and in the rigid properties
+            R = rigid_body_modes(space.node_points)
+            props = properties_from_rigid_mass(props.rigid_mass + R.T @ (added @ R))
+            M = M + (added if M.shape[0] == space.n_dofs else
+                     added[nodes_dofs(nodes)][:, nodes_dofs(nodes)])
         if cfg.connections:
             full = (K, M)
             K, M = restrict(K, free), restrict(M, free)
@@ -154,4 +166,10 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                  f" ({', '.join(rigid.names)})" if 0 < rigid.count < 6 else "")
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
-                   K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra)
+                   K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra,
+                   materials=materials)
+
+
+def nodes_dofs(nodes: np.ndarray) -> np.ndarray:
+    """All three DOFs 3 p + c of the sorted ``nodes``, sorted."""
+    return (3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()

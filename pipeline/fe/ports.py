@@ -87,7 +87,8 @@ def _gauge_row(space: FESpace, regions: Mapping[str, np.ndarray], port: Port,
 
 def port_matrices(space: FESpace, regions: Mapping[str, np.ndarray], ports: Ports,
                   material: Material | None = None) -> PortMatrices:
-    """Assemble F and T for the configured ports (``material``: for stress outputs)."""
+    """Assemble F and T for the configured ports (``material``: for stress outputs, a
+    Material or the per-element :class:`~pipeline.fe.materials.ElementMaterials`)."""
     cache: dict[str, WeightedRegion] = {}
 
     def columns(items: Sequence[Port], side: str) -> sp.csc_matrix:

@@ -24,7 +24,9 @@ import scipy.sparse as sp
 
 from pipeline.config import Config, Ports
 from pipeline.errors import MeshError
+from pipeline.fe.added_mass import added_mass_matrix
 from pipeline.fe.assemble import assemble_stiffness_mass
+from pipeline.fe.materials import config_materials
 from pipeline.fe.mesh.common import BodyMesh
 from pipeline.fe.ports import port_matrices
 from pipeline.fe.space import build_space
@@ -48,11 +50,12 @@ class StoredFE:
 
 def matrices_of_stored_mesh(cfg: Config, points: np.ndarray, cells: np.ndarray,
                             regions: Mapping[str, np.ndarray], what: str,
-                            assemble: bool = True) -> StoredFE:
+                            assemble: bool = True, materials=None) -> StoredFE:
     """Assemble K and M of the unsupported body on the stored mesh (``points`` (n_p, 3),
     ``cells`` (n_t, 4 | 10) meshio order, boundary ``regions``) with ``cfg``'s material
     (None, None without ``assemble``), and the port loads of ``cfg.ports.inputs``.
-    ``what`` names the file in errors."""
+    ``what`` names the file in errors. ``materials``: the file's per-element materials
+    (:class:`pipeline.fe.materials.ElementMaterials`; None: resolve ``cfg``'s on the mesh)."""
     n_vertices = int(cells[:, :4].max()) + 1
     body = BodyMesh(np.asarray(points[:n_vertices], float), np.asarray(cells[:, :4], np.int64),
                     {k: np.asarray(v, np.int64) for k, v in regions.items()}, what)
@@ -63,7 +66,12 @@ def matrices_of_stored_mesh(cfg: Config, points: np.ndarray, cells: np.ndarray,
                         "nodes in another order); cannot re-assemble its matrices",
                         key=what, value="different node order",
                         expected="the pipeline's own edge numbering")
-    K, M = assemble_stiffness_mass(space, cfg.material) if assemble else (None, None)
+    materials = materials if materials is not None else config_materials(space, cfg)
+    K, M = (assemble_stiffness_mass(space, materials) if assemble
+            else (None, None))
+    added = added_mass_matrix(space, regions, cfg.masses) if assemble else None
+    if added is not None:
+        M = (M + added).tocsr()
     n_u = len(cfg.ports.inputs)
     F = np.zeros((space.n_dofs, 0))
     names: tuple[str, ...] = ()

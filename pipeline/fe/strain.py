@@ -56,7 +56,8 @@ import scipy.sparse as sp
 from pipeline.config import Material
 from pipeline.errors import RegionError
 from pipeline.fe.gauges import grid_patch, region_patch, strain_row
-from pipeline.fe.kernels import inverse_jacobians, lame_parameters, scatter_add
+from pipeline.fe.kernels import inverse_jacobians, scatter_add
+from pipeline.fe.materials import isotropic_stiffness
 from pipeline.fe.space import FESpace
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
@@ -68,12 +69,7 @@ CHUNK = 20000
 
 def elasticity_matrix(material: Material) -> np.ndarray:
     """(6, 6) isotropic D in Pa: sigma (Voigt) = D eps (Voigt, engineering shear)."""
-    lam, mu = lame_parameters(material)
-    D = np.zeros((6, 6))
-    D[:3, :3] = lam
-    D[[0, 1, 2], [0, 1, 2]] += 2.0 * mu
-    D[[3, 4, 5], [3, 4, 5]] = mu
-    return D
+    return isotropic_stiffness(material)
 
 
 def shared_parts(space: FESpace) -> dict:
@@ -198,9 +194,12 @@ def element_volumes(space: FESpace) -> np.ndarray:
     return np.abs(np.linalg.det(v[:, 1:] - v[:, :1])) / 6.0
 
 
-def nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
+def nodal_strains(space: FESpace, U: np.ndarray, element_D=None) -> np.ndarray:
     """(n_nodes, 6, n_s): the volume-weighted average (module docstring) at every node of
-    the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk."""
+    the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk.
+    ``element_D``, if given, maps element indices (n,) to their stiffness (n, 6, 6) Pa:
+    then the element-nodal STRESSES D_e eps_e(x_n) are averaged (Pa; several materials:
+    a node on an interface gets the volume-weighted mean of both sides' stresses)."""
     U = np.asarray(U, dtype=float)
     U = U[:, None] if U.ndim == 1 else U
     en = space.element_nodes
@@ -209,6 +208,8 @@ def nodal_strains(space: FESpace, U: np.ndarray) -> np.ndarray:
                          minlength=space.n_nodes)
     out = np.zeros((space.n_nodes, 6 * U.shape[1]))
     for sel, values in _element_nodal_chunks(space, U):
+        if element_D is not None:
+            values = np.einsum("eij,eqjs->eqis", element_D(sel), values)
         values *= vol[sel, None, None, None]
         # each (element, node) row added onto its node's row in place: a bincount per
         # column would pass over all n_nodes once per column
@@ -229,10 +230,13 @@ class StressFields:
     stress: np.ndarray
 
 
-def stress_fields(space: FESpace, material: Material, U: np.ndarray) -> StressFields:
-    """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m."""
+def stress_fields(space: FESpace, material, U: np.ndarray) -> StressFields:
+    """Nodal strain and stress of the displacement fields U (n_dofs, n_s), m; ``material``:
+    a Material or the per-element :class:`~pipeline.fe.materials.ElementMaterials`."""
     eps = nodal_strains(space, U)
-    return StressFields(eps, stresses_from_strains(eps, material))
+    if getattr(material, "uniform", material) is None:  # several laws: each element its own
+        return StressFields(eps, nodal_strains(space, U, material.element_D))
+    return StressFields(eps, stresses_from_strains(eps, getattr(material, "uniform", material)))
 
 
 # --------------------------------------------------------------------------- gauges
@@ -283,7 +287,7 @@ def _point_strain_row(space: FESpace, point, key: str) -> np.ndarray:
     return row
 
 
-def gauge_row(space: FESpace, material: Material | None, kind: str, direction, direction2=None,
+def gauge_row(space: FESpace, material, kind: str, direction, direction2=None,
               triangles: np.ndarray | None = None, point=None, radius: float = 0.0,
               key: str = "ports.outputs", length: float = 0.0, width: float = 0.0,
               average: str = "surface") -> np.ndarray:
@@ -291,24 +295,55 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
     displacement; located on a boundary region (``triangles``), around a ``point`` on the
     surface (a ``length`` x ``width`` grid along ``direction`` or a disc of ``radius``, m),
     in a sphere (``point``, ``radius`` > 0, ``average="volume"``) or at a ``point``
-    (module docstring)."""
-    w = voigt_weights(kind, direction, direction2)
+    (module docstring). ``material``: a Material, the per-element
+    :class:`~pipeline.fe.materials.ElementMaterials`, or None (strain only)."""
+    w0 = voigt_weights(kind, direction, direction2)
+    laws = None  # per-element stiffness where the elements' laws differ
     D = np.eye(6)
     if kind == "stress":
         if material is None:
             raise ValueError(f"{key}: a stress gauge needs the material (pass material=)")
-        D = elasticity_matrix(material)
-        w = D.T @ w  # w . (D eps) = (D^T w) . eps
+        uniform = material if isinstance(material, Material) else material.uniform
+        if uniform is None:
+            laws = material
+        else:
+            D = elasticity_matrix(uniform)
+    w = D.T @ w0  # w . (D eps) = (D^T w) . eps
+
+    def per_element(weights: np.ndarray, elements: np.ndarray) -> np.ndarray:
+        """(n, 6): D_e^T w_e of each element's own law (rows of ``weights`` or one row)."""
+        rows = np.broadcast_to(weights, (elements.size, 6))
+        return np.einsum("eji,ej->ei", laws.element_D(elements), rows)
+
     if triangles is None and radius == 0.0 and length == 0.0:
-        return w @ _point_strain_row(space, point, key)
+        row = _point_strain_row(space, point, key)
+        if laws is not None:
+            mesh = space.skfem_mesh
+            e = mesh.element_finder()(*[np.array([c]) for c in np.asarray(point, float)])
+            w = per_element(w0, np.asarray(e, dtype=np.int64)[:1])[0]
+        return w @ row
     if average == "surface":
         patch = region_patch(space, triangles, key) if triangles is not None else \
             grid_patch(space, point, direction, length, width, radius, key)
         if patch.rotations is not None:  # each piece's own directions (pipeline.fe.gauges)
             d2 = direction if direction2 is None else direction2
-            w = np.stack([voigt_weights(kind, R @ direction, R @ d2)
-                          for R in patch.rotations]) @ D
+            w0 = np.stack([voigt_weights(kind, R @ direction, R @ d2)
+                           for R in patch.rotations])
+            w = w0 @ D
+        if laws is not None:
+            w = per_element(w0, patch.elements)
         return strain_row(space, patch, w)
+    elements = _gauge_elements(space, triangles, point, radius, key)
+    E, vol = element_strain_operator(space, elements)
+    if laws is not None:
+        weights = ((vol / vol.sum())[:, None] * per_element(w0, elements)).ravel()
+    else:
+        weights = np.kron(vol / vol.sum(), w)  # (6 n_sel,)
+    return np.asarray(E.T @ weights).ravel()
+
+
+def _gauge_elements(space: FESpace, triangles, point, radius: float, key: str) -> np.ndarray:
+    """The elements a region or sphere gauge averages over (RegionError if none)."""
     if triangles is not None:
         elements = elements_on_surface(space, triangles)
         where = "has no element face on it"
@@ -319,12 +354,10 @@ def gauge_row(space: FESpace, material: Material | None, kind: str, direction, d
     if elements.size == 0:
         raise RegionError(f"config key '{key}': the gauge region {where}; expected at least "
                           "one element (enlarge the radius or pick a boundary region)")
-    E, vol = element_strain_operator(space, elements)
-    weights = np.kron(vol / vol.sum(), w)  # (6 n_sel,)
-    return np.asarray(E.T @ weights).ravel()
+    return elements
 
 
-def modal_stress_fields(space: FESpace, material: Material, free: np.ndarray,
+def modal_stress_fields(space: FESpace, material, free: np.ndarray,
                         basis: np.ndarray, correction: np.ndarray | None = None
                         ) -> StressFields:
     """Stress and strain of the reduced basis (n_free, n_b) and of the static correction

@@ -17,6 +17,7 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.errors import ConfigError
+from pipeline.fe.materials import config_materials
 from pipeline.fe.ports import port_matrices
 from pipeline.reduce.connection import build_connection_model, effective_mass_table
 from pipeline.reduce.craig_bampton import build_craig_bampton
@@ -92,7 +93,7 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
 
     ``solve``: b -> K^-1 b for this K; default: the factorisation the modes stage kept
     (``modes.solve``), else K is factorised here."""
-    ports = port_matrices(space, regions, cfg.ports, material=cfg.material)
+    ports = port_matrices(space, regions, cfg.ports, material=config_materials(space, cfg))
     F = ports.F[free].toarray()
     T = ports.T[:, free]
     check_ports_act(cfg, ports, F, T)
@@ -171,15 +172,17 @@ def build_lumped(cfg: Config, modes, labels, fe_deflection):
         d_out = cfg.ports.outputs[0].direction
     ratio = cfg.damping.ratio if cfg.damping.kind == "uniform" else (
         cfg.damping.ratios[0] if cfg.damping.kind == "per_mode" else 0.0)
+    # point masses on the axis (the config refuses others with a chain)
+    masses = tuple((m.point[0], m.mass, m.inertia[:3]) for m in cfg.masses)
     model = lumped_model(section, mat.E, mat.nu, mat.rho, g.length, cfg.lumped.elements,
                          cfg.lumped.constants, ratio, input_direction=d_in,
-                         output_direction=d_out)
+                         output_direction=d_out, point_masses=masses)
     fe_bending = [f for f, lab in zip(modes.frequencies_hz, labels or [])
                   if lab.startswith("bending_z_")][:3]
     ns = sorted({1, 2, 3, 5, 10, 20, cfg.lumped.elements})
     rows = comparison_table(section, mat.E, mat.nu, mat.rho, g.length, ns=ns,
                             fe_frequencies_hz=fe_bending or None,
-                            fe_tip_deflection=fe_deflection)
+                            fe_tip_deflection=fe_deflection, point_masses=masses)
     lines = [f"lumped chain: {cfg.lumped.elements} elements, {cfg.lumped.constants} constants; "
              "x-y bending, 1 N tip force:"]
     lines += ["  " + line for line in format_comparison(rows).splitlines()]

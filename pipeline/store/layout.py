@@ -17,7 +17,7 @@ from typing import Iterator
 
 __all__ = ["Group", "Names", "ROOT", "MESH", "BODY", "MODES", "STATESPACE",
            "STATESPACE_FILTERED", "STRESS_MODES", "LUMPED", "RUN", "CONNECTIONS",
-           "CRAIG_BAMPTON", "FFRF", "FE", "GROUPS", "connection", "csr_group",
+           "CRAIG_BAMPTON", "FFRF", "FE", "MATERIALS", "GROUPS", "connection", "csr_group",
            "STATESPACE_DATASETS", "CELL_TYPES", "cells", "region",
            "connection_statespace", "LUMPED_STATESPACE", "CSR_DATASETS", "SIMULATION_CONTENT",
            "RESULT_ROOT", "RESULT_SUMMARY", "result_run", "result_stress", "result_fit"]
@@ -253,5 +253,10 @@ def result_fit(scenario: str, key: str) -> Group:
 
 # --------------------------------------------------------------------------- every group
 #: every fixed group, in the doc's order (connections/<name> are made by :func:`connection`)
+# --------------------------------------------------------------------------- /materials
+#: the material of every element (present when the config has ``materials`` or ``masses``)
+MATERIALS = Group("materials", ("material_names", "stiffness", "density", "element_material",
+                                "element_density"))
+
 GROUPS: tuple[Group, ...] = (MESH, BODY, MODES, STATESPACE, STRESS_MODES, STATESPACE_FILTERED,
-                             LUMPED, RUN, CONNECTIONS, CRAIG_BAMPTON, FFRF, FE)
+                             LUMPED, RUN, CONNECTIONS, CRAIG_BAMPTON, FFRF, FE, MATERIALS)

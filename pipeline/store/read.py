@@ -44,12 +44,12 @@ from pipeline.store import layout as L
 from pipeline.store.h5file import read_strings
 from pipeline.store.physics import check_physics
 from pipeline.store.records import (ModelFile, StoredBasis, StoredCraigBampton, StoredFEModel,
-                                    StoredMesh, StoredModels, StressModes)
+                                    StoredMaterials, StoredMesh, StoredModels, StressModes)
 
 __all__ = ["load_model", "StoredModels", "StoredCraigBampton", "ModelFile", "read_model_file",
            "StoredMesh", "read_stored_mesh", "StoredFEModel", "StoredBasis", "read_fe_model",
            "open_verified", "read_strings", "StressModes",
-           "read_stress_modes", "read_csr", "read_names", "LAYOUT_ERRORS", "layout_error"]
+           "read_stress_modes", "read_csr", "StoredMaterials", "read_materials", "read_names", "LAYOUT_ERRORS", "layout_error"]
 
 
 #: what h5py and numpy raise on content that does not have the documented layout
@@ -516,3 +516,20 @@ def read_csr(h5, group: str):
     if storage == "upper":
         A = (A + sp.triu(A, k=1, format="csr").T).tocsr()
     return A
+
+
+def read_materials(path: str | Path) -> StoredMaterials | None:
+    """The material of every element (``/materials``), None for a file without it (one
+    material: the stored config's ``material``); shapes checked against each other."""
+    with open_verified(path) as h5:
+        if L.MATERIALS.path not in h5:
+            return None
+        names = tuple(read_strings(h5[L.MATERIALS.material_names]))
+        n = len(names)
+        index = _array(h5, L.MATERIALS.element_material, "i", (None,))
+        if index.size and (index.min() < 0 or index.max() >= n):
+            raise FileFormatError(f"file '{path}': {L.MATERIALS.element_material} refers to "
+                                  f"materials outside 0..{n - 1}", key=L.MATERIALS.element_material)
+        return StoredMaterials(names, _array(h5, L.MATERIALS.stiffness, "f", (n, 6, 6)),
+                               _array(h5, L.MATERIALS.density, "f", (n,)), index,
+                               _array(h5, L.MATERIALS.element_density, "f", (index.size,)))

@@ -311,3 +311,16 @@ class StressModes:
     n_basis: int
     n_correction: int
     input_names: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class StoredMaterials:
+    """The material of every element of a file (``/materials``): names (n_laws,),
+    stiffness (n_laws, 6, 6) Pa global frame (Voigt, engineering shear), density
+    (n_laws,) kg/m^3, element_material (n_t,) index, element_density (n_t,) kg/m^3."""
+
+    names: tuple[str, ...]
+    stiffness: np.ndarray
+    density: np.ndarray
+    element_material: np.ndarray
+    element_density: np.ndarray

@@ -38,7 +38,7 @@ from pipeline.reduce.filters import check_filter, filtered_model
 from pipeline.reduce.lumped import DOF_AXIS, DOF_KIND, ComparisonRow, LumpedModel
 from pipeline.reduce.modal import ReducedModel, StateSpaceModel
 from pipeline.reduce.models import Models
-from pipeline.store.layout import (BODY, LUMPED, MESH, MODES, RUN, STATESPACE,
+from pipeline.store.layout import (BODY, LUMPED, MATERIALS, MESH, MODES, RUN, STATESPACE,
                                    STATESPACE_FILTERED, STRESS_MODES, cells, region)
 from pipeline.store.schema_interfaces import (connection_datasets, craig_bampton_datasets,
                                               csr_datasets, exudyn_datasets, ffrf_datasets)
@@ -48,6 +48,7 @@ __all__ = [
     "models_tree",
     "core_datasets",
     "core_group_attrs",
+    "materials_datasets",
     "run_group_attrs",
     "statespace_datasets",
     "filter_datasets",
@@ -424,3 +425,22 @@ def lumped_group_attrs(model: LumpedModel, prefix: str = LUMPED.path) -> dict[st
         "damping_rule": "stiffness-proportional C = beta K, beta = 2 xi / omega_ref",
         "coordinates": "joint coordinates q, joint-major; linearised about the straight beam",
     }}
+
+
+def materials_datasets(materials) -> dict[str, Dataset]:
+    """The ``materials`` group: the laws (names, global-frame 6x6 stiffness, density) and
+    each element's law and density (:class:`pipeline.fe.materials.ElementMaterials`)."""
+    return {
+        MATERIALS.material_names: Dataset(list(materials.names), "1", "material names; 0: the default "
+                                 "'material'"),
+        MATERIALS.stiffness: Dataset(np.asarray(materials.D, float), "Pa",
+                                     "6x6 stiffness of each material in the global frame, "
+                                     "Voigt [xx, yy, zz, yz, xz, xy], engineering shear"),
+        MATERIALS.density: Dataset(np.asarray(materials.law_rho, float), "kg/m^3",
+                                   "density of each material"),
+        MATERIALS.element_material: Dataset(np.asarray(materials.index, np.int64), "1",
+                                            "material index of each element (cells order)"),
+        MATERIALS.element_density: Dataset(np.asarray(materials.rho, float), "kg/m^3",
+                                           "density of each element, with the mass per "
+                                           "volume of 'masses' added"),
+    }

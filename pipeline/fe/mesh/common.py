@@ -80,6 +80,8 @@ class BodyMesh:
         ``*NSET``), made into regions by :func:`pipeline.fe.regions.resolve_regions`;
         node_set_edges: name -> (n, 2) sorted vertex pairs of the edges whose mid-edge
         node a set holds (files of quadratic cells only).
+    element_sets: name -> sorted indices of the tetrahedra of the file's named volume
+        groups / element sets (:mod:`pipeline.fe.element_sets`).
     """
 
     vertices: np.ndarray
@@ -89,6 +91,7 @@ class BodyMesh:
     other_groups: Mapping[str, str] = field(default_factory=dict)
     node_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
     node_set_edges: Mapping[str, np.ndarray] = field(default_factory=dict)
+    element_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:

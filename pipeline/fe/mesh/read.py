@@ -25,6 +25,7 @@ from pipeline.errors import MeshError
 from pipeline.fe.mesh.common import (TET_TYPES, VOLUME_TYPES, BodyMesh, check_dimensions,
                                      z_order)
 from pipeline.fe.mesh.registry import SOURCES
+from pipeline.fe.element_sets import element_sets_of
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,8 @@ def read_mesh(path: str | Path) -> BodyMesh:
     log.info("mesh '%s': %d vertices, %d tetrahedra, regions: %s", path.name, vertices.shape[0],
              tets.shape[0], ", ".join(sorted(set(regions) | set(node_sets))) or "none")
     return BodyMesh(vertices=vertices, tetrahedra=tets, regions=regions, source=str(path),
-                    other_groups=other, node_sets=node_sets, node_set_edges=node_set_edges)
+                    other_groups=other, node_sets=node_sets, node_set_edges=node_set_edges,
+                    element_sets=element_sets_of(mesh, renumber, tets))
 
 
 def named_node_sets(mesh, renumber: np.ndarray, source: str

@@ -239,7 +239,9 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
                  input_direction: Sequence[float] = (0.0, -1.0, 0.0),
                  output_direction: Sequence[float] = (0.0, 1.0, 0.0),
                  tip_force: float = 1.0,
-                 damping_reference_hz: float | None = None) -> LumpedModel:
+                 damping_reference_hz: float | None = None,
+                 point_masses: Sequence[tuple[float, float, Sequence[float]]] = ()
+                 ) -> LumpedModel:
     """The clamped chain of ``n`` rigid elements, linearised about the straight beam.
 
     Bodies: body b spans joint b to joint b + 1 (the last to the tip), mass rho A l_b,
@@ -253,6 +255,10 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
     damping_ratio: xi >= 0 at ``damping_reference_hz`` (default: the lowest mode).
     input_direction: unit tip force direction (default -y). output_direction: measured
     tip displacement direction (default +y). tip_force: N, for ``tip_deflection``.
+    point_masses: rigid masses on the beam axis, each (x m, mass kg, (Jxx, Jyy, Jzz) kg m^2
+    about the point), carried by the body whose span holds x (the last body beyond the
+    tip): M += J_p^T diag(m I, J) J_p with J_p the twist of the axis point x (on the axis
+    with principal inertia along x, y, z they keep the joint-DOF families uncoupled).
     """
     import scipy.linalg as sla
 
@@ -285,6 +291,9 @@ def lumped_model(section: SectionProperties, E: float, nu: float, rho: float, le
         Mb[:3, :3] = mass[b] * np.eye(3)
         Mb[3:, 3:] = inertia[b]
         M += body_J[b].T @ Mb @ body_J[b]
+    for x_p, m_p, J_p in point_masses:
+        Jp = _point_jacobian(float(x_p), xj, int(np.count_nonzero(xj <= x_p)), dofs)
+        M += Jp.T @ np.diag([m_p, m_p, m_p, *J_p]) @ Jp
     M = 0.5 * (M + M.T)
     kdiag = np.concatenate([[constants.stiffness(d)[j] for d in dofs] for j in range(n)])
     K = np.diag(kdiag)

@@ -19,6 +19,7 @@ from pipeline.reduce.lumped.chain import lumped_model
 from pipeline.reduce.lumped.section import SectionProperties, poisson_ratio, positive, raw_field
 
 __all__ = ["cantilever_beta_l", "beam_theory_frequencies_hz", "beam_theory_tip_deflection",
+           "tip_mass_frequencies_hz",
            "ComparisonRow", "comparison_table", "format_comparison"]
 
 _AXES = ("bending_z", "bending_y", "axial", "torsion")
@@ -97,6 +98,37 @@ def beam_theory_frequencies_hz(section: SectionProperties, E: float, rho: float,
     return omega / (2.0 * math.pi)
 
 
+def tip_mass_frequencies_hz(section: SectionProperties, E: float, rho: float, length: float,
+                            mass: float, inertia: float, count: int = 3,
+                            axis: str = "bending_z") -> np.ndarray:
+    """(count,) Hz: Euler-Bernoulli cantilever with a tip mass ``mass`` (kg) and rotary
+    inertia ``inertia`` (kg m^2, about the bending axis) [Blevins 1979, table 8-1]: the
+    roots b_k of, with r = mass / (rho A L) and j = inertia / (rho A L^3),
+
+        1 + cos b cosh b + r b (cos b sinh b - sin b cosh b)
+          - j b^3 (cosh b sin b + sinh b cos b) + r j b^4 (1 - cos b cosh b) = 0,
+
+    omega_k = b_k^2 sqrt(E I / (rho A L^4))."""
+    from scipy.optimize import brentq
+
+    L = positive(length, "geometry.length")
+    m_beam = rho * section.area * L
+    r, j = mass / m_beam, inertia / (m_beam * L**2)
+
+    def f(b):
+        c, s, ch, sh = np.cos(b), np.sin(b), np.cosh(b), np.sinh(b)
+        # divided by cosh b (the terms grow like e^b; the roots are the same)
+        return ((1 + c * ch + r * b * (c * sh - s * ch) - j * b**3 * (ch * s + sh * c)
+                 + r * j * b**4 * (1 - c * ch)) / ch)
+
+    grid = np.linspace(1e-3, (count + 1) * math.pi, 400 * (count + 1))
+    values = f(grid)
+    cross = np.flatnonzero(np.sign(values[:-1]) != np.sign(values[1:]))[:count]
+    b = np.array([brentq(f, grid[k], grid[k + 1]) for k in cross])
+    EI = E * section.second_moment(axis)
+    return b**2 * math.sqrt(EI / (rho * section.area * L**4)) / (2.0 * math.pi)
+
+
 def beam_theory_tip_deflection(section: SectionProperties, E: float, length: float,
                                load: float = 1.0, axis: str = "bending_z",
                                nu: float | None = None) -> float:
@@ -154,18 +186,29 @@ def comparison_table(section: SectionProperties, E: float, nu: float, rho: float
                      kinds: Sequence[str] = ("simple", "refined"), *, axis: str = "bending_z",
                      count: int = 3, load: float = 1.0,
                      fe_frequencies_hz: Sequence[float] | None = None,
-                     fe_tip_deflection: float | None = None) -> list[ComparisonRow]:
+                     fe_tip_deflection: float | None = None,
+                     point_masses: Sequence[tuple[float, float, Sequence[float]]] = ()
+                     ) -> list[ComparisonRow]:
     """Rows: beam theory, FE (when given), then each kind for each n.
 
     axis: the bending plane compared, ``bending_z`` (x-y plane, tip force along y, the
     default) or ``bending_y``. count: how many frequencies per row (3: f1, f2, f3).
     load: tip force magnitude (N). fe_frequencies_hz: the FE model's lowest frequencies of
     the same bending family (Hz), fe_tip_deflection: its static tip deflection (m, along
-    the force) under ``load``; the caller fills these from the FE run.
+    the force) under ``load``; the caller fills these from the FE run. point_masses: on
+    the axis, (x, mass, (Jxx, Jyy, Jzz)) as :func:`lumped_model` takes them; beam theory is
+    then the tip-mass frequency equation (:func:`tip_mass_frequencies_hz`) when they all
+    sit at the tip, else not given (NaN).
     """
     axis = validate.choice(raw_field("axis", axis), "axis", "", ("bending_z", "bending_y"))
     force_dir = (0.0, -1.0, 0.0) if axis == "bending_z" else (0.0, 0.0, -1.0)
     f_beam = beam_theory_frequencies_hz(section, E, rho, length, count, axis)
+    if point_masses:
+        at_tip = all(abs(x - length) <= 1e-9 * length for x, _, _ in point_masses)
+        J = sum(float(j[2 if axis == "bending_z" else 1]) for _, _, j in point_masses)
+        m = sum(m for _, m, _ in point_masses)
+        f_beam = (tip_mass_frequencies_hz(section, E, rho, length, m, J, count, axis)
+                  if at_tip else np.full(count, math.nan))
     d_beam = beam_theory_tip_deflection(section, E, length, load, axis)
     f_fe = None if fe_frequencies_hz is None else _padded(fe_frequencies_hz, count)
     d_fe = None if fe_tip_deflection is None else float(fe_tip_deflection)
@@ -186,7 +229,8 @@ def comparison_table(section: SectionProperties, E: float, nu: float, rho: float
     for kind in kinds:
         for n in ns:
             m = lumped_model(section, E, nu, rho, length, n, kind, 0.0,
-                             input_direction=force_dir, output_direction=force_dir, tip_force=load)
+                             input_direction=force_dir, output_direction=force_dir, tip_force=load,
+                             point_masses=point_masses)
             rows.append(row(kind, int(n), _padded(m.frequencies_of(axis), count),
                             m.tip_compliance * load))
     return rows
