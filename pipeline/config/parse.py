@@ -17,6 +17,7 @@ from pipeline._util import validate as v
 from pipeline._util.yamlio import parse_yaml, read_text_bounded
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
+from pipeline.config.rotation import parse_rotation
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, GAUGE_KINDS, GEOMETRY_KINDS,
                                     PRECISIONS, SOLVERS,
                                     Config, Connection, Constraints, Coupling, Damping, Filter,
@@ -286,7 +287,7 @@ def _connections(raw: Any) -> tuple[Connection, ...]:
 
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
             "ports", "damping", "reduction", "filter", "lumped", "connections",
-            "craig_bampton")
+            "craig_bampton", "rotation")
 
 
 def _section(raw: Mapping, key: str) -> Any:
@@ -333,6 +334,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                                               ("modes",)), "modes", "craig_bampton", 0,
                                      lo=0, hi=500),
         source=source,
+        rotation=parse_rotation(raw.get("rotation")),
     )
     known = set(regions) | (set(BOX_FACES) if geometry.kind == "box" else set())
     used = [(f"supports[{i}].region", s.region) for i, s in enumerate(cfg.supports)]
@@ -369,6 +371,12 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         raise v.fail("modes.precision", "mixed", "'auto' or 'double' with modes.method: "
                     "multigrid (mixed precision is a property of a sparse factor; the "
                     "multigrid solver has none)")
+    if cfg.rotation is not None and not cfg.supports:
+        raise v.fail("rotation", raw.get("rotation"), "a body with supports (the static "
+                    "centrifugal stress of a free body has no equilibrium to solve for)")
+    if cfg.rotation is not None and cfg.rotation.correction_shapes > cfg.modes.count:
+        raise v.fail("rotation.correction_shapes", cfg.rotation.correction_shapes,
+                    f"at most modes.count = {cfg.modes.count} (one per mode)")
     check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg
 

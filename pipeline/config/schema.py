@@ -9,7 +9,10 @@ checked values, and everything downstream trusts them. Units are SI throughout
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Mapping, get_args
+from typing import TYPE_CHECKING, Literal, Mapping, get_args
+
+if TYPE_CHECKING:
+    from pipeline.config.rotation import Rotation
 
 GeometryKind = Literal["box", "step", "geo", "mesh"]
 MeshAlgorithm = Literal["delaunay", "hxt", "frontal"]
@@ -218,3 +221,4 @@ class Config:
     connections: tuple[Connection, ...] = ()
     craig_bampton_modes: int = 0
     source: str = ""  # the file the config came from (not part of the YAML contract)
+    rotation: "Rotation | None" = None  # pipeline.config.rotation
