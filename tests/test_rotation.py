@@ -205,3 +205,77 @@ def test_restricted_mass_is_the_pipelines(body):
     m = ps.node_mass_matrix(fe.space, ALUMINIUM.rho)
     diff = restrict(ps.tensor_mass(m, np.eye(3)), fe.free) - fe.M
     assert abs(diff).max() < 1e-12 * abs(fe.M).max()
+
+
+# --------------------------------------------------------------------------- end to end
+SPIN_CONFIG = """\
+name: spin
+geometry: {kind: box, length: 0.5, height: 0.02, depth: 0.05}
+mesh: {order: 2, size: 0.025}
+material: {E: 69.0e9, nu: 0.33, rho: 2700.0}
+supports: [{region: root, fix: all}]
+modes: {count: 4}
+ports:
+  inputs:  [{name: pull, region: tip, kind: force, direction: [1, 0, 0]}]
+  outputs: [{name: tip_y, region: tip, kind: displacement, direction: [0, 1, 0]}]
+reduction: {modes: 4, static_correction: residual}
+rotation: {axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: %s}
+"""
+
+
+def _cli(*args, cwd):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_cli_run_writes_the_rotation_group(tmp_path):
+    from pipeline.reduce.spin import reduced_frequencies
+    from pipeline.store.read import load_model, read_rotation
+
+    (tmp_path / "spin.yaml").write_text(SPIN_CONFIG % "[-100, 0, 100, 800]")
+    proc = _cli("run", "spin.yaml", "-o", "spin.h5", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    model = read_rotation(tmp_path / "spin.h5")
+    assert load_model(tmp_path / "spin.h5").plant is not None
+    np.testing.assert_allclose(model.speeds_rad_s, [-100, 0, 100, 800])
+    np.testing.assert_allclose(model.axis, [0, 0, 1])
+    assert model.frequencies_hz.shape == (4, 4) and model.geometric.shape == (6, 4, 4)
+    assert model.input_names == ("pull",) and model.preload.shape == (1, 4, 4)
+    np.testing.assert_allclose(model.frequencies_hz[0], model.frequencies_hz[2], rtol=1e-6)
+    assert np.all(model.frequencies_hz[3] > model.frequencies_hz[1])  # stiffened
+    # the stored terms rebuild the stored reduced frequencies, at any speed
+    np.testing.assert_allclose(reduced_frequencies(model), model.frequencies_reduced_hz,
+                               rtol=1e-12)
+    ratio = model.frequencies_reduced_hz / model.frequencies_hz
+    assert np.all((ratio > 1 - 1e-8) & (ratio < 1.01))
+    # a tension preload stiffens, a compression softens
+    up, down = (reduced_frequencies(model, [0.0], preload=[s * 1e4])[0, 0] for s in (1, -1))
+    assert up > model.frequencies_hz[1, 0] > down
+
+
+def test_cli_names_the_unstable_speed_and_writes_nothing(tmp_path):
+    """Spun about its own length the beam softens: past w0 (~413 rad/s) it is unstable."""
+    text = SPIN_CONFIG.replace("axis: [0, 0, 1]", "axis: [1, 0, 0]") % "[0, 300, 900]"
+    (tmp_path / "spin.yaml").write_text(text)
+    proc = _cli("run", "spin.yaml", "-o", "spin.h5", cwd=tmp_path)
+    assert proc.returncode == SolverError.exit_code, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "rotation.speeds_rad_s" in line and "900 rad/s" in line
+    assert not (tmp_path / "spin.h5").exists()
+
+
+def test_version_1_files_without_rotation_still_load(tmp_path, monkeypatch):
+    from pipeline.config import load_config
+    from pipeline.run import run_pipeline
+    from pipeline.store import h5file
+    from pipeline.store.read import load_model, read_rotation
+
+    monkeypatch.setattr(h5file, "SCHEMA_VERSION", 1)
+    cfg = load_config(__import__("pathlib").Path(__file__).parents[1] / "configs"
+                      / "cantilever.yaml", ["mesh.size=0.025", "modes.count=4"])
+    out = run_pipeline(cfg, tmp_path / "v1.h5").output
+    monkeypatch.undo()
+    assert load_model(out).plant is not None and read_rotation(out) is None

@@ -23,6 +23,8 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from pipeline._util import validate as v
 
 log = logging.getLogger(__name__)
@@ -31,6 +33,32 @@ log = logging.getLogger(__name__)
 MAX_SPEEDS = 200
 #: the largest speed accepted, rad/s (a body at 1e6 rad/s has left linear elasticity)
 MAX_SPEED = 1e6
+
+#: the six entries (i, j), i <= j, of the angular-velocity tensor W = omega omega^T,
+#: in the order of every stored (6, ...) array
+TENSOR_ENTRIES: tuple[tuple[int, int], ...] = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+#: their names (x, y, z components of omega)
+TENSOR_NAMES: tuple[str, ...] = ("xx", "yy", "zz", "xy", "xz", "yz")
+
+
+def entry_matrix(i: int, j: int) -> np.ndarray:
+    """A_ij (3 x 3): the centrifugal force density per unit rho W_ij and unit distance
+    (A_ii = I - e_i e_i^T; A_ij = -(e_i e_j^T + e_j e_i^T) for i != j)."""
+    A = np.zeros((3, 3))
+    if i == j:
+        A[:] = np.eye(3)
+        A[i, i] = 0.0
+    else:
+        A[i, j] = A[j, i] = -1.0
+    return A
+
+
+def tensor_weights(omega: np.ndarray) -> np.ndarray:
+    """(6,) the entries W_ij = omega_i omega_j (i <= j, :data:`TENSOR_ENTRIES`) of the
+    angular-velocity tensor of ``omega`` (3,) (rad/s, or a unit axis for the weights per
+    unit Omega^2)."""
+    omega = np.asarray(omega, dtype=float)
+    return np.array([omega[i] * omega[j] for i, j in TENSOR_ENTRIES])
 
 
 @dataclass(frozen=True)

@@ -43,15 +43,18 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.config.rotation import Rotation
+from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
 from pipeline.errors import SolverError
 from pipeline.fe.assemble import restrict
 from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
                                    geometric_stiffness, node_mass_matrix, tensor_mass,
                                    tensor_weights)
+
+__all__ = ["PrestressTerms", "prestress_terms", "RotationModel", "reduced_basis", "project",
+           "reduced_frequencies", "full_frequencies", "build_rotation", "rotation_model"]
 from pipeline.reduce.statics import static_shapes
 from pipeline.solve.eigen import solve_modes
 from pipeline.solve.factorization import factorize
@@ -85,12 +88,6 @@ class PrestressTerms:
     def centrifugal_shape(self, axis) -> np.ndarray:
         """(n_s,) the static displacement per unit Omega^2 of a spin about ``axis`` (m s^2)."""
         return self.centrifugal_shapes @ tensor_weights(unit(axis))
-
-
-def unit(axis) -> np.ndarray:
-    """``axis`` (3,) scaled to unit length (a zero axis is refused by the config)."""
-    axis = np.asarray(axis, dtype=float)
-    return axis / np.linalg.norm(axis)
 
 
 def _weighted(matrices, weights) -> sp.csr_matrix:
@@ -127,37 +124,6 @@ def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
                           tuple(geometric[k:]))
 
 
-@dataclass(frozen=True)
-class RotationModel:
-    """The rotating body's results (the ``/rotation`` group of the file).
-
-    axis (3,), point (3,) m: the spin axis of the config (axis of unit length).
-    speeds_rad_s: (n_speeds,) rad/s.
-    frequencies_hz: (n_speeds, n_m) full FE prestressed frequencies, ascending per speed.
-    frequencies_reduced_hz: (n_speeds, n_b) the reduced model's, ascending per speed.
-    stiffness, mass: (n_b, n_b) K_r (N/m) and M_r (kg) of the basis.
-    geometric, softening: (6, n_b, n_b) G_ij (N/m per rad^2/s^2) and S_ij (kg), in
-    :data:`~pipeline.fe.prestress.TENSOR_ENTRIES` order.
-    preload: (n_in, n_b, n_b) P_k (N/m per unit input); input_names: (n_in,).
-    n_modes: the number of modes at the head of the basis (the rest: the centrifugal
-    static shape when ``static_shape``, then the correction shapes).
-    """
-
-    axis: np.ndarray
-    point: np.ndarray
-    speeds_rad_s: np.ndarray
-    frequencies_hz: np.ndarray
-    frequencies_reduced_hz: np.ndarray
-    stiffness: np.ndarray
-    mass: np.ndarray
-    geometric: np.ndarray
-    softening: np.ndarray
-    preload: np.ndarray
-    input_names: tuple[str, ...]
-    n_modes: int
-    static_shape: bool
-
-
 def reduced_basis(shapes: np.ndarray, M: sp.spmatrix, extra: np.ndarray | None = None
                   ) -> np.ndarray:
     """V (n_s x n_b): the M-orthonormal ``shapes`` (n_s x n_m), then the columns of
@@ -181,37 +147,6 @@ def project(V: np.ndarray, matrices) -> np.ndarray:
     return np.array([V.T @ (A @ V) for A in matrices]).reshape(-1, V.shape[1], V.shape[1])
 
 
-def reduced_frequencies(model: RotationModel, speeds_rad_s=None, axis=None,
-                        preload=None) -> np.ndarray:
-    """(n_speeds, n_b) Hz, ascending per speed: the reduced model's frequencies at each
-    spin (``speeds_rad_s`` (n_speeds,) rad/s about ``axis``; defaults: the model's),
-    with the input ``preload`` values (n_in,) (None: none). A speed where the reduced
-    stiffness is not positive definite raises SolverError naming it."""
-    speeds = model.speeds_rad_s if speeds_rad_s is None else np.asarray(speeds_rad_s, float)
-    weights = tensor_weights(unit(model.axis if axis is None else axis))
-    spin = np.tensordot(weights, model.geometric - model.softening, axes=1)
-    K0 = model.stiffness.copy()
-    if preload is not None and len(model.input_names):
-        K0 = K0 + np.tensordot(np.asarray(preload, float), model.preload, axes=1)
-    out = np.empty((speeds.size, K0.shape[0]))
-    for n, speed in enumerate(speeds):
-        Ks = K0 + speed ** 2 * spin
-        w2 = sla.eigh(0.5 * (Ks + Ks.T), 0.5 * (model.mass + model.mass.T), eigvals_only=True)
-        if w2[0] <= 0.0:
-            raise unstable(speed, "the reduced model")
-        out[n] = np.sqrt(w2) / (2 * np.pi)
-    return out
-
-
-def unstable(speed: float, where: str) -> SolverError:
-    """The one-line error for a speed at which the prestressed stiffness is indefinite."""
-    return SolverError(
-        f"config key 'rotation.speeds_rad_s': at {speed:g} rad/s the prestressed stiffness "
-        f"K + Omega^2 (K_G - M_perp) of {where} is not positive definite (a spin-softening "
-        "instability or buckling under the centrifugal stress); expected speeds below it",
-        key="rotation.speeds_rad_s", value=float(speed))
-
-
 def full_frequencies(K: sp.spmatrix, M: sp.spmatrix, K_G1: sp.spmatrix, M_perp: sp.spmatrix,
                      speeds_rad_s, count: int, backend: str = "auto") -> np.ndarray:
     """(n_speeds, count) Hz: the ``count`` lowest prestressed frequencies of the full FE
@@ -229,6 +164,21 @@ def full_frequencies(K: sp.spmatrix, M: sp.spmatrix, K_G1: sp.spmatrix, M_perp: 
         log.info("rotation: %g rad/s: f = %s Hz", speed,
                  ", ".join(f"{f:.4g}" for f in modes.frequencies_hz[:4]))
     return out
+
+
+def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.spmatrix,
+                   modes) -> RotationModel:
+    """:func:`build_rotation` for the config ``cfg`` (its ``rotation`` section, material,
+    force and moment input ports as preloads, eigensolver backend) and the modes stage's
+    :class:`~pipeline.solve.modes.Modes` (its kept factor of ``K`` is used)."""
+    from pipeline.config import Ports
+    from pipeline.fe.ports import port_matrices
+
+    inputs = tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment"))
+    F = port_matrices(space, regions, Ports(inputs=inputs)).F if inputs else None
+    return build_rotation(cfg.rotation, space, cfg.material, free, K, M, modes.shapes,
+                          modes.omega2, F, tuple(p.name for p in inputs), modes.solve,
+                          cfg.modes.solver)
 
 
 def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.spmatrix,
