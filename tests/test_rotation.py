@@ -346,3 +346,18 @@ def test_prestressed_frequencies_agree_with_calculix(body, terms, tmp_path):
     bending = [0, 1, 2, 3]  # the torsion mode is the fifth
     assert np.all(error[bending] < 1e-4) and np.all(error < 3e-4)
     assert np.all(spinning[:6] > at_rest[:6])
+
+
+def test_inspect_prints_and_plot_draws_the_campbell_diagram(tmp_path):
+    from pipeline.apps.summary import summarize
+
+    (tmp_path / "spin.yaml").write_text(SPIN_CONFIG % "[0, 400]")
+    proc = _cli("run", "spin.yaml", "-o", "spin.h5", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    text = summarize(tmp_path / "spin.h5")
+    assert "rotation  axis [0.0, 0.0, 1.0]" in text and "max rel. diff" in text
+    pytest.importorskip("matplotlib")
+    from pipeline.apps.plots import plot_file
+
+    written = plot_file(tmp_path / "spin.h5", tmp_path / "plots", modes=1)
+    assert (tmp_path / "plots" / "campbell.png") in written
