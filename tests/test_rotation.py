@@ -361,3 +361,20 @@ def test_inspect_prints_and_plot_draws_the_campbell_diagram(tmp_path):
 
     written = plot_file(tmp_path / "spin.h5", tmp_path / "plots", modes=1)
     assert (tmp_path / "plots" / "campbell.png") in written
+
+
+def test_compressive_preload_buckles_at_the_euler_load(body, terms):
+    """K - P K_G(unit tip tension) turns singular at the first buckling load: for the
+    clamped-free column P_cr = pi^2 E I / (4 L^2), I = B H^3 / 12 (the weak direction).
+    The 3D column differs by shear (P_cr E I / (G A L^2)-sized, 1e-3 here), the
+    distributed tip load and the mesh: 1 %."""
+    import scipy.sparse.linalg as spla
+
+    fe, _ = body
+    K_G = terms.preload_geometric[0]
+    lu = spla.splu(fe.K.tocsc())
+    op = spla.LinearOperator(fe.K.shape, matvec=lambda x: lu.solve(K_G @ x), dtype=float)
+    mu = spla.eigs(op, k=1, which="LR", return_eigenvectors=False)  # K_G phi = mu K phi
+    p_cr = 1.0 / float(np.real(mu[0]))
+    euler = np.pi ** 2 * ALUMINIUM.E * B * H ** 3 / 12.0 / (4.0 * L ** 2)
+    assert p_cr == pytest.approx(euler, rel=0.01)
