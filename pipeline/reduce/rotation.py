@@ -148,13 +148,18 @@ def project(V: np.ndarray, matrices) -> np.ndarray:
 
 
 def full_frequencies(K: sp.spmatrix, M: sp.spmatrix, K_G1: sp.spmatrix, M_perp: sp.spmatrix,
-                     speeds_rad_s, count: int, backend: str = "auto") -> np.ndarray:
+                     speeds_rad_s, count: int, backend: str = "auto",
+                     rest_hz: np.ndarray | None = None) -> np.ndarray:
     """(n_speeds, count) Hz: the ``count`` lowest prestressed frequencies of the full FE
     model at each speed (rad/s), each solved by shift-invert at 0 (an indefinite
-    K(Omega) raises SolverError naming the speed)."""
+    K(Omega) raises SolverError naming the speed); ``rest_hz`` (count,): the frequencies
+    at rest when known (a speed 0 is then not solved again)."""
     out = np.empty((len(speeds_rad_s), count))
     spin = (K_G1 - M_perp).tocsr()
     for n, speed in enumerate(speeds_rad_s):
+        if speed == 0 and rest_hz is not None:
+            out[n] = rest_hz
+            continue
         Ks = (K + speed ** 2 * spin).tocsr() if speed else K
         try:
             modes = solve_modes(Ks, M, count, supported=True, backend=backend)
@@ -191,6 +196,7 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
     ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed)."""
     _check_point(rotation.point, space.node_points)
     axis = unit(rotation.axis)
+    _check_stress(rotation, axis, space.node_points, material)
     own = None
     if solve is None:
         own = factorize(K, backend, positive_definite=True)
@@ -219,7 +225,8 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         preload=project(V, terms.preload_geometric), input_names=tuple(input_names),
         n_modes=n_m, static_shape=rotation.static_shape)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
-    full = full_frequencies(K, M, K_G1, M_perp, model.speeds_rad_s, n_m, backend)
+    full = full_frequencies(K, M, K_G1, M_perp, model.speeds_rad_s, n_m, backend,
+                            rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 
 
@@ -235,3 +242,18 @@ def _check_point(point, node_points: np.ndarray) -> None:
         log.warning("rotation.point %s lies %.3g m from the body (largest extent %.3g m): "
                     "the centrifugal load grows with that distance; intended?",
                     point.tolist(), gap, size)
+
+
+def _check_stress(rotation: Rotation, axis: np.ndarray, node_points: np.ndarray,
+                  material) -> None:
+    """Log a warning when the centrifugal stress at the top speed, estimated as
+    rho Omega^2 R^2 / 2 (R: the largest distance of the body from the axis, Pa), exceeds
+    1 % of E: the strain is then beyond the small strains the linear prestress assumes."""
+    r = node_points - np.asarray(rotation.point, dtype=float)
+    radius = float(np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1)))
+    top = float(np.max(np.abs(rotation.speeds_rad_s)))
+    stress = 0.5 * material.rho * top ** 2 * radius ** 2
+    if stress > 0.01 * material.E:
+        log.warning("rotation.speeds_rad_s: at %g rad/s the centrifugal stress reaches about "
+                    "%.3g Pa, %.3g times E: beyond the small strains of the linear prestress "
+                    "(its frequencies are not physical there)", top, stress, stress / material.E)
