@@ -233,9 +233,12 @@ def _cli(*args, cwd):
 
 @pytest.fixture(scope="module")
 def spin_file(tmp_path_factory):
-    """A run of SPIN_CONFIG through the command line (speeds -100, 0, 100, 800 rad/s)."""
+    """A run of SPIN_CONFIG through the command line (speeds -100, 0, 100, 800 rad/s; the
+    basis: 4 modes, the centrifugal static shape, 2 correction shapes)."""
     tmp = tmp_path_factory.mktemp("spin")
-    (tmp / "spin.yaml").write_text(SPIN_CONFIG % "[-100, 0, 100, 800]")
+    text = SPIN_CONFIG.replace("speeds_rad_s: %s", "speeds_rad_s: %s, static_shape: true, "
+                               "correction_shapes: 2")
+    (tmp / "spin.yaml").write_text(text % "[-100, 0, 100, 800]")
     proc = _cli("run", "spin.yaml", "-o", "spin.h5", cwd=tmp)
     assert proc.returncode == 0, proc.stderr
     return tmp / "spin.h5"
@@ -249,14 +252,15 @@ def test_cli_run_writes_the_rotation_group(spin_file):
     assert load_model(spin_file).plant is not None
     np.testing.assert_allclose(model.speeds_rad_s, [-100, 0, 100, 800])
     np.testing.assert_allclose(model.axis, [0, 0, 1])
-    assert model.frequencies_hz.shape == (4, 4) and model.geometric.shape == (6, 4, 4)
-    assert model.input_names == ("pull",) and model.preload.shape == (1, 4, 4)
+    assert model.frequencies_hz.shape == (4, 4) and model.geometric.shape == (6, 7, 7)
+    assert model.n_modes == 4 and model.static_shape
+    assert model.input_names == ("pull",) and model.preload.shape == (1, 7, 7)
     np.testing.assert_allclose(model.frequencies_hz[0], model.frequencies_hz[2], rtol=1e-6)
     assert np.all(model.frequencies_hz[3] > model.frequencies_hz[1])  # stiffened
     # the stored terms rebuild the stored reduced frequencies, at any speed
     np.testing.assert_allclose(reduced_frequencies(model), model.frequencies_reduced_hz,
                                rtol=1e-12)
-    ratio = model.frequencies_reduced_hz / model.frequencies_hz
+    ratio = model.frequencies_reduced_hz[:, :4] / model.frequencies_hz
     assert np.all((ratio > 1 - 1e-8) & (ratio < 1.01))
     # a tension preload stiffens, a compression softens
     up, down = (reduced_frequencies(model, [0.0], preload=[s * 1e4])[0, 0] for s in (1, -1))

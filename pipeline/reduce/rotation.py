@@ -46,20 +46,20 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config.rotation import Rotation
-from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
 from pipeline.errors import SolverError
 from pipeline.fe.assemble import restrict
 from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
                                    geometric_stiffness, node_mass_matrix, tensor_mass,
                                    tensor_weights)
-
-__all__ = ["PrestressTerms", "prestress_terms", "RotationModel", "reduced_basis", "project",
-           "reduced_frequencies", "full_frequencies", "build_rotation", "rotation_model"]
+from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
 from pipeline.reduce.statics import static_shapes
 from pipeline.solve.eigen import solve_modes
 from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
+
+__all__ = ["PrestressTerms", "prestress_terms", "RotationModel", "reduced_basis", "project",
+           "reduced_frequencies", "full_frequencies", "build_rotation", "rotation_model"]
 
 
 @dataclass(frozen=True)
@@ -205,14 +205,16 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         terms = prestress_terms(space, material, free, K, rotation.point, F_inputs, solve,
                                 backend)
         K_G1, M_perp = terms.spin_matrices(axis)
-        extra = [terms.centrifugal_shape(axis)[:, None]] if rotation.static_shape else []
+        static = terms.centrifugal_shape(axis)[:, None] if rotation.static_shape else None
+        corrections = None
         if rotation.correction_shapes:
             n_c = min(rotation.correction_shapes, shapes.shape[1])
-            extra.append(static_shapes(K, (K_G1 - M_perp) @ shapes[:, :n_c], solve))
+            corrections = static_shapes(K, (K_G1 - M_perp) @ shapes[:, :n_c], solve)
     finally:
         if own is not None:
             own.release()
-    V = reduced_basis(shapes, M, np.hstack(extra) if extra else None)
+    with_static = reduced_basis(shapes, M, static)  # a shape the modes span is dropped
+    V = reduced_basis(with_static, M, corrections)
     n_m = shapes.shape[1]
     plain = V.shape[1] == n_m
     model = RotationModel(
@@ -223,7 +225,7 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         mass=np.eye(n_m) if plain else V.T @ (M @ V),
         geometric=project(V, terms.geometric), softening=project(V, terms.softening),
         preload=project(V, terms.preload_geometric), input_names=tuple(input_names),
-        n_modes=n_m, static_shape=rotation.static_shape)
+        n_modes=n_m, static_shape=with_static.shape[1] > n_m)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
     full = full_frequencies(K, M, K_G1, M_perp, model.speeds_rad_s, n_m, backend,
                             rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
