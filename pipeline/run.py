@@ -33,6 +33,8 @@ from pipeline.fe.strain import modal_stress_fields
 from pipeline.store.schema import (core_datasets, core_group_attrs, materials_datasets,
                                    models_tree, run_group_attrs, stress_modes_datasets)
 from pipeline.store.tree import Dataset
+from pipeline.reduce.rotation import rotation_model
+from pipeline.store.schema_rotation import rotation_tree
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +147,7 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
             # the input record is a temporary: it must not keep K alive past `del fe`
             modes = compute_modes(
                 ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
-                cfg.modes, keep=cfg.reduction is not None,
+                cfg.modes, keep=cfg.reduction is not None or cfg.rotation is not None,
                 analysis=ahead[0] if ahead else None)
     finally:
         for analysis in ahead:
@@ -166,6 +168,13 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     full = (fe.K_full, fe.M_full) if fe.K_full is not None else None
     del fe
     shapes, labels = modes.shapes_full, list(modes.labels)
+
+    if cfg.rotation is not None:
+        with _stage("rotation", times):
+            rotation_datasets, rotation_attrs = rotation_tree(rotation_model(
+                cfg, space, regions, free, K, M, modes))
+            tree.update(rotation_datasets)
+            group_attrs.update(rotation_attrs)
 
     models = None
     with _stage("reduce", times):

@@ -195,11 +195,14 @@ def test_the_doc_names_importable_readers():
 # --------------------------------------------------------------------------- a written file
 @pytest.fixture(scope="module")
 def written(tmp_path_factory) -> list[Path]:
-    """Three small runs: every model of the cantilever (plant, filtered, lumped, stress modes),
-    the connection-point, Craig-Bampton and FE-matrix groups, and the materials group."""
+    """Three small runs: every model of the cantilever (plant, filtered, lumped, stress modes,
+    rotation), the connection-point, Craig-Bampton and FE-matrix groups, and the materials
+    group."""
     tmp = tmp_path_factory.mktemp("layout")
     plant = load_config(ROOT / "configs" / "cantilever.yaml",
-                        ["mesh.size=0.025", "modes.count=4"])
+                        ["mesh.size=0.025", "modes.count=4",
+                         "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], "
+                         "speeds_rad_s: [0, 100]}"])
     conn = load_config(ROOT / "configs" / "cantilever_connection.yaml",
                        ["mesh.size=0.025", "modes.count=4", "craig_bampton.modes=4"])
     materials = load_config(ROOT / "configs" / "cantilever_materials.yaml",

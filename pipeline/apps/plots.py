@@ -17,7 +17,9 @@ Reads only the HDF5 file (verified: schema, version, checksum) and writes, into
 - with ``--animate``: ``mode_NN.gif`` (and ``.mp4`` where ffmpeg is installed), the mode
   shapes moving (:mod:`pipeline.apps.animate`);
 - where the file holds stress modes: ``static_von_mises_<input>.png``, the static von
-  Mises stress per unit input on the body (:mod:`pipeline.apps.stress_plots`).
+  Mises stress per unit input on the body (:mod:`pipeline.apps.stress_plots`);
+- where the file holds ``/rotation``: ``campbell.png``, the prestressed frequencies
+  against the spin speed with the 1x and 2x engine orders (:mod:`pipeline.apps.campbell`).
 
 Axes are labelled ``quantity [unit]`` (the package's one convention: ``f [Hz]``,
 ``x [m]``); the colour of a mode picture is |u| / max |u| (a mode shape has no absolute
@@ -41,7 +43,7 @@ from pipeline.apps.mode_drawing import (DEFORMATION_FRACTION, DPI, Surface, boun
                                         colour_bar, draw_mode, draw_mode_2d, is_slender,
                                         mode_title)
 from pipeline.apps.response_plots import plot_bode, plot_step, save_figure
-from pipeline.store.read import StoredMesh, load_model, read_stored_mesh
+from pipeline.store.read import StoredMesh, load_model, read_rotation, read_stored_mesh
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +223,11 @@ def plot_file(path: str | Path, out_dir: str | Path | None = None,
         from pipeline.apps.stress_plots import plot_static_von_mises  # needs stress modes
 
         written.extend(plot_static_von_mises(path, out_dir))
+    rotation = read_rotation(path)
+    if rotation is not None:
+        from pipeline.apps.campbell import plot_campbell
+
+        written.append(plot_campbell(rotation, out_dir / "campbell.png"))
     if animate:
         from pipeline.apps.animate import animate_mode
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.store.read import LAYOUT_ERRORS, layout_error
+from pipeline.apps.campbell import campbell_lines
+from pipeline.store.read import LAYOUT_ERRORS, layout_error, read_rotation
 from pipeline.store.summary import FileSummary, read_summary
 
 
@@ -80,6 +81,9 @@ def summarize(path) -> str:
     summary = read_summary(path)
     try:
         lines = _lines(summary, path)
+        rotation = read_rotation(path)
+        if rotation is not None:
+            lines += campbell_lines(rotation)
     except LAYOUT_ERRORS as exc:  # e.g. a non-finite inertia: the checksum holds, not our layout
         raise layout_error(path, exc) from None
     return "\n".join(lines)

@@ -21,6 +21,7 @@ from pipeline.config.numerics import check_box_thickness, check_numerics
 from pipeline.config.materials import lumped_mass_problem, parse_masses, parse_materials
 from pipeline.config.overrides import apply_overrides
 from pipeline.config.plausibility import check_geometry, check_plausibility
+from pipeline.config.rotation import parse_rotation
 from pipeline.config.supports import parse_support
 from pipeline.config.schema import (BOX_FACES, EIGEN_METHODS, UNIT_SYSTEMS, GAUGE_KINDS, GEOMETRY_KINDS,
                                     PRECISIONS, SOLVERS,
@@ -294,7 +295,7 @@ def _connections(raw: Any) -> tuple[Connection, ...]:
 
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
             "ports", "damping", "reduction", "filter", "lumped", "connections",
-            "craig_bampton", "materials", "masses")
+            "craig_bampton", "materials", "masses", "rotation")
 
 
 def _section(raw: Mapping, key: str) -> Any:
@@ -348,6 +349,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         materials=parse_materials(raw.get("materials")),
         masses=parse_masses(raw.get("masses")),
         source=source,
+        rotation=parse_rotation(raw.get("rotation")),
     )
     # a box's and a CAD file's region names are all known here (its faces, the selectors);
     # a mesh file's or a .geo script's named groups are checked where the mesh is read,
@@ -396,6 +398,16 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         raise v.fail("modes.precision", "mixed", "'auto' or 'double' with modes.method: "
                     "multigrid (mixed precision is a property of a sparse factor; the "
                     "multigrid solver has none)")
+    if cfg.rotation is not None and not cfg.supports:
+        raise v.fail("rotation", raw.get("rotation"), "a body with supports (the static "
+                    "centrifugal stress of a free body has no equilibrium to solve for)")
+    if cfg.rotation is not None and (cfg.materials or cfg.masses):
+        raise v.fail("rotation", raw.get("rotation"), "a body of one isotropic `material` "
+                    "without `materials` or `masses` (the centrifugal load and the geometric "
+                    "stiffness of several materials or added masses are not built yet)")
+    if cfg.rotation is not None and cfg.rotation.correction_shapes > cfg.modes.count:
+        raise v.fail("rotation.correction_shapes", cfg.rotation.correction_shapes,
+                    f"at most modes.count = {cfg.modes.count} (one per mode)")
     check_numerics(cfg)  # what double precision cannot carry: refused
     check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg

@@ -9,7 +9,10 @@ checked values, and everything downstream trusts them. Units are SI throughout
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Mapping, get_args
+from typing import TYPE_CHECKING, Literal, Mapping, get_args
+
+if TYPE_CHECKING:
+    from pipeline.config.rotation import Rotation
 
 from pipeline.config.materials import AddedMass, MaterialEntry
 from pipeline.config.supports import BushingSpec, SpringSpec, SupportFrame
@@ -246,3 +249,4 @@ class Config:
     materials: tuple[MaterialEntry, ...] = ()  # first match wins; the rest take ``material``
     masses: tuple[AddedMass, ...] = ()
     source: str = ""  # the file the config came from (not part of the YAML contract)
+    rotation: "Rotation | None" = None  # pipeline.config.rotation

@@ -38,8 +38,9 @@ from pipeline.store.tree import Dataset
 log = logging.getLogger(__name__)
 
 SCHEMA = "fe-reduced-body"
-SCHEMA_VERSION = 1
-KNOWN_VERSIONS = (1,)
+#: 2 added the optional ``/rotation`` group; version 1 files (without it) keep loading
+SCHEMA_VERSION = 2
+KNOWN_VERSIONS = (1, 2)
 
 
 def _write_dataset(h5, path: str, ds: Dataset) -> None:

@@ -20,7 +20,8 @@ __all__ = ["Group", "Names", "ROOT", "MESH", "BODY", "MODES", "STATESPACE",
            "CRAIG_BAMPTON", "FFRF", "FE", "MATERIALS", "GROUPS", "connection", "csr_group",
            "STATESPACE_DATASETS", "CELL_TYPES", "cells", "region",
            "connection_statespace", "LUMPED_STATESPACE", "CSR_DATASETS", "SIMULATION_CONTENT",
-           "RESULT_ROOT", "RESULT_SUMMARY", "result_run", "result_stress", "result_fit"]
+           "RESULT_ROOT", "RESULT_SUMMARY", "result_run", "result_stress", "result_fit",
+           "ROTATION"]
 
 
 class Names:
@@ -168,7 +169,7 @@ LUMPED_STATESPACE = Group(f"{LUMPED.path}/statespace", tuple("ABCD"), attrs=_SS_
 
 # --------------------------------------------------------------------------- /run
 RUN = Group("run", (), attrs=("mesh_s", "assemble_s", "modes_s", "reduce_s", "write_s",
-                              "peak_memory_mb", "solver"))
+                              "peak_memory_mb", "solver", "rotation_s"))
 
 # --------------------------------------------------------------------------- connections
 CONNECTIONS = Group("connections", ())
@@ -217,6 +218,15 @@ def csr_group(path: str) -> Group:
     return Group(path, CSR_DATASETS, attrs=("storage", "format"))
 
 
+# --------------------------------------------------------------------------- /rotation
+ROTATION = Group(
+    "rotation",
+    ("axis", "point", "speeds_rad_s", "frequencies_hz", "frequencies_reduced_hz",
+     "tensor_entries", "basis_stiffness", "basis_mass", "geometric_stiffness",
+     "spin_softening", "preload_stiffness", "input_names"),
+    attrs=("n_modes", "n_basis", "static_shape", "correction_shapes"),
+    optional=("preload_stiffness", "input_names"))
+
 # --------------------------------------------------------------------------- simulation results
 # A simulation's RESULT.h5 (docs/simulate.md, "RESULT.h5 layout"), written through the same
 # atomic, signed writer; its groups are named after the scenarios and models it ran.
@@ -259,4 +269,5 @@ MATERIALS = Group("materials", ("material_names", "stiffness", "density", "eleme
                                 "element_density"))
 
 GROUPS: tuple[Group, ...] = (MESH, BODY, MODES, STATESPACE, STRESS_MODES, STATESPACE_FILTERED,
-                             LUMPED, RUN, CONNECTIONS, CRAIG_BAMPTON, FFRF, FE, MATERIALS)
+                             LUMPED, RUN, CONNECTIONS, CRAIG_BAMPTON, FFRF, FE, MATERIALS,
+                             ROTATION)

@@ -14,6 +14,8 @@ Each reader opens the file once (verified: schema, version, checksums, through
 :func:`read_fe_model`      :class:`StoredFEModel`: the mesh, ``/fe``'s M and K and one mode
                            basis (what the Exudyn export reads)
 :func:`read_stress_modes`  :class:`StressModes`, or None for a file without them
+:func:`read_rotation`      :class:`~pipeline.reduce.spin.RotationModel` (``/rotation``), or
+                           None for a file without it
 :func:`read_csr`           a sparse matrix of ``/fe`` (from an open file)
 =========================  ===================================================================
 
@@ -38,6 +40,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from pipeline.errors import FileFormatError, PipelineError
+from pipeline.reduce.spin import RotationModel
 from pipeline.reduce.statespace import StateSpace
 from pipeline.store import h5file
 from pipeline.store import layout as L
@@ -49,7 +52,8 @@ from pipeline.store.records import (ModelFile, StoredBasis, StoredCraigBampton, 
 __all__ = ["load_model", "StoredModels", "StoredCraigBampton", "ModelFile", "read_model_file",
            "StoredMesh", "read_stored_mesh", "StoredFEModel", "StoredBasis", "read_fe_model",
            "open_verified", "read_strings", "StressModes",
-           "read_stress_modes", "read_csr", "StoredMaterials", "read_materials", "read_names", "LAYOUT_ERRORS", "layout_error"]
+           "read_stress_modes", "read_rotation", "read_csr", "StoredMaterials", "read_materials",
+           "read_names", "LAYOUT_ERRORS", "layout_error"]
 
 
 #: what h5py and numpy raise on content that does not have the documented layout
@@ -496,6 +500,34 @@ def read_stress_modes(path: str | Path) -> StressModes | None:
                                   key=sm.stress, value=stress.shape,
                                   expected="n_basis + n_correction shapes, one name each")
         return StressModes(points, stress, strain, names, units, voigt, n_b, n_c, inputs)
+
+
+# --------------------------------------------------------------------------- rotation
+def read_rotation(path: str | Path) -> RotationModel | None:
+    """The ``/rotation`` group of a result file (prestressed frequencies and the reduced
+    terms of geometric stiffening), or None for a file without it."""
+    R = L.ROTATION
+    with open_verified(path) as h5:
+        if R.path not in h5:
+            return None
+        speeds = _array(h5, R.speeds_rad_s, "f", (None,))
+        K = _array(h5, R.basis_stiffness, "f", (None, None))
+        n_b = K.shape[0]
+        names = tuple(read_strings(h5[R.input_names])) if R.input_names in h5 else ()
+        attrs = h5[R.path].attrs
+        return RotationModel(
+            axis=_array(h5, R.axis, "f", (3,)), point=_array(h5, R.point, "f", (3,)),
+            speeds_rad_s=speeds,
+            frequencies_hz=_array(h5, R.frequencies_hz, "f", (speeds.size, None)),
+            frequencies_reduced_hz=_array(h5, R.frequencies_reduced_hz, "f",
+                                          (speeds.size, n_b)),
+            stiffness=K, mass=_array(h5, R.basis_mass, "f", (n_b, n_b)),
+            geometric=_array(h5, R.geometric_stiffness, "f", (6, n_b, n_b)),
+            softening=_array(h5, R.spin_softening, "f", (6, n_b, n_b)),
+            preload=(_array(h5, R.preload_stiffness, "f", (len(names), n_b, n_b)) if names
+                     else np.zeros((0, n_b, n_b))),
+            input_names=names, n_modes=int(attrs[R.attr.n_modes]),
+            static_shape=bool(attrs[R.attr.static_shape]))
 
 
 # --------------------------------------------------------------------------- sparse matrices

@@ -1,0 +1,261 @@
+"""Rotating and preloaded bodies: prestressed modes of the full FE model and of the
+reduced one, and the terms a stepper needs to add geometric stiffening.
+
+With the matrices of :mod:`pipeline.fe.prestress` restricted to the free DOFs (n_s),
+per unit entry W_ij = omega_i omega_j of the angular-velocity tensor (i <= j, the
+six of :data:`~pipeline.fe.prestress.TENSOR_ENTRIES`):
+
+- K_G,ij: the geometric stiffness of the static stress under the centrifugal load
+  f_ij (K u_ij = f_ij), N/m per rad^2/s^2;
+- M_ij = m (x) A_ij: the spin-softening mass, kg.
+
+A spin Omega (rad/s) about the unit axis a has W = Omega^2 a a^T, so the linearised
+stiffness at speed is
+
+    K(Omega) = K + Omega^2 (K_G1 - M_perp),  K_G1 = sum a_i a_j K_G,ij,
+                                              M_perp = sum a_i a_j M_ij = m (x) (I - a a^T),
+
+and the prestressed modes solve K(Omega) phi = w^2 M phi (Coriolis coupling left out).
+The full FE sweep solves this at each speed with the pipeline's eigensolver. The
+reduced model is the Rayleigh-Ritz projection onto a basis V (n_s x n_b): the first
+``n_m`` modes of the body at rest (M-orthonormal), optionally followed by the static
+shape under the centrifugal load of the axis, u_c = K^-1 f (M-orthonormalised against
+the modes), and optionally the first-order corrections of the first modes,
+K^-1 (K_G1 - M_perp) phi_k (the shapes the modes move towards as the speed rises: the
+derivative of phi_k with Omega^2 lies in their span with the modes'). Stored terms (all
+n_b x n_b):
+
+    K_r = V^T K V  (N/m; diag(w_0^2) for the modes alone),  M_r = V^T M V (= I),
+    G_ij = V^T K_G,ij V,  S_ij = V^T M_ij V,
+    P_k = V^T K_G(sigma(F_k)) V  per unit value of input port k (N or N m),
+
+and the reduced model at any angular velocity omega and preload values lambda_k is
+
+    (K_r + sum_ij omega_i omega_j (G_ij - S_ij) + sum_k lambda_k P_k) q = w^2 M_r q.
+
+Rayleigh-Ritz gives upper bounds: the reduced w is never below the full FE's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.config.rotation import Rotation
+from pipeline.errors import SolverError
+from pipeline.fe.assemble import restrict
+from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
+                                   geometric_stiffness, node_mass_matrix, tensor_mass,
+                                   tensor_weights)
+from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
+from pipeline.reduce.statics import static_shapes
+from pipeline.solve.eigen import solve_modes
+from pipeline.solve.factorization import factorize
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PrestressTerms", "prestress_terms", "RotationModel", "reduced_basis", "project",
+           "reduced_frequencies", "full_frequencies", "build_rotation", "rotation_model"]
+
+
+@dataclass(frozen=True)
+class PrestressTerms:
+    """The prestress matrices of a supported body on its free DOFs (n_s).
+
+    centrifugal_shapes: (n_s, 6) static displacements per unit W_ij (m per rad^2/s^2).
+    geometric: six (n_s x n_s) CSR K_G,ij (N/m per rad^2/s^2).
+    softening: six (n_s x n_s) CSR M_ij (kg).
+    preload_shapes: (n_s, n_in) static displacements per unit input (m per N or N m).
+    preload_geometric: n_in (n_s x n_s) CSR K_G per unit input (N/m per N or N m).
+    """
+
+    centrifugal_shapes: np.ndarray
+    geometric: tuple[sp.csr_matrix, ...]
+    softening: tuple[sp.csr_matrix, ...]
+    preload_shapes: np.ndarray
+    preload_geometric: tuple[sp.csr_matrix, ...]
+
+    def spin_matrices(self, axis) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """(K_G1, M_perp) of a spin about the unit ``axis``: K(Omega) = K + Omega^2 (K_G1 -
+        M_perp)."""
+        weights = tensor_weights(unit(axis))
+        return _weighted(self.geometric, weights), _weighted(self.softening, weights)
+
+    def centrifugal_shape(self, axis) -> np.ndarray:
+        """(n_s,) the static displacement per unit Omega^2 of a spin about ``axis`` (m s^2)."""
+        return self.centrifugal_shapes @ tensor_weights(unit(axis))
+
+
+def _weighted(matrices, weights) -> sp.csr_matrix:
+    out = None
+    for w, A in zip(weights, matrices):
+        if w != 0.0:
+            out = w * A if out is None else out + w * A
+    return out if out is not None else sp.csr_matrix(matrices[0].shape)
+
+
+def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
+                    F_inputs: np.ndarray | None = None, solve=None,
+                    backend: str = "auto") -> PrestressTerms:
+    """The :class:`PrestressTerms` of the body of ``space`` (supported: ``free`` DOFs,
+    ``K`` (n_s x n_s) its stiffness) spinning about ``point`` (3,) m, and preloaded by
+    the input loads ``F_inputs`` (n_dofs x n_in, per unit input; None: none).
+    ``solve``: b -> K^-1 b when a factor of K is at hand."""
+    node_mass = node_mass_matrix(space, material.rho)
+    loads = centrifugal_loads(space, node_mass, point)  # (n_dofs, 6)
+    n_in = 0 if F_inputs is None else F_inputs.shape[1]
+    rhs = loads[free]
+    if n_in:
+        F = F_inputs.toarray() if sp.issparse(F_inputs) else np.asarray(F_inputs)
+        rhs = np.hstack([rhs, F[free]])
+    shapes = static_shapes(K, rhs, solve,
+                           lambda A: factorize(A, backend, positive_definite=True).solve)
+    U = np.zeros((space.n_dofs, shapes.shape[1]))
+    U[free] = shapes
+    geometric = [restrict(G, free) for G in geometric_stiffness(space, material, U)]
+    softening = tuple(restrict(tensor_mass(node_mass, entry_matrix(i, j)), free)
+                      for i, j in TENSOR_ENTRIES)
+    k = len(TENSOR_ENTRIES)
+    return PrestressTerms(shapes[:, :k], tuple(geometric[:k]), softening, shapes[:, k:],
+                          tuple(geometric[k:]))
+
+
+def reduced_basis(shapes: np.ndarray, M: sp.spmatrix, extra: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """V (n_s x n_b): the M-orthonormal ``shapes`` (n_s x n_m), then the columns of
+    ``extra`` (n_s x k) M-orthonormalised against them (twice, for round-off) and each
+    other; a column already spanned (relative M-norm below 1e-8) is dropped."""
+    if extra is None or extra.size == 0:
+        return shapes
+    V = shapes
+    for col in np.atleast_2d(extra.T):
+        x = col.copy()
+        for _ in range(2):
+            x -= V @ (V.T @ (M @ x))
+        norm = np.sqrt(x @ (M @ x))
+        if norm > 1e-8 * np.sqrt(col @ (M @ col)):
+            V = np.column_stack([V, x / norm])
+    return V
+
+
+def project(V: np.ndarray, matrices) -> np.ndarray:
+    """(k, n_b, n_b) V^T A V of each sparse A (n_s x n_s) in ``matrices``."""
+    return np.array([V.T @ (A @ V) for A in matrices]).reshape(-1, V.shape[1], V.shape[1])
+
+
+def full_frequencies(K: sp.spmatrix, M: sp.spmatrix, K_G1: sp.spmatrix, M_perp: sp.spmatrix,
+                     speeds_rad_s, count: int, backend: str = "auto",
+                     rest_hz: np.ndarray | None = None) -> np.ndarray:
+    """(n_speeds, count) Hz: the ``count`` lowest prestressed frequencies of the full FE
+    model at each speed (rad/s), each solved by shift-invert at 0 (an indefinite
+    K(Omega) raises SolverError naming the speed); ``rest_hz`` (count,): the frequencies
+    at rest when known (a speed 0 is then not solved again)."""
+    out = np.empty((len(speeds_rad_s), count))
+    spin = (K_G1 - M_perp).tocsr()
+    for n, speed in enumerate(speeds_rad_s):
+        if speed == 0 and rest_hz is not None:
+            out[n] = rest_hz
+            continue
+        Ks = (K + speed ** 2 * spin).tocsr() if speed else K
+        try:
+            modes = solve_modes(Ks, M, count, supported=True, backend=backend)
+        except SolverError:
+            raise unstable(speed, "the full FE model") from None
+        out[n] = modes.frequencies_hz
+        log.info("rotation: %g rad/s: f = %s Hz", speed,
+                 ", ".join(f"{f:.4g}" for f in modes.frequencies_hz[:4]))
+    return out
+
+
+def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.spmatrix,
+                   modes) -> RotationModel:
+    """:func:`build_rotation` for the config ``cfg`` (its ``rotation`` section, material,
+    force and moment input ports as preloads, eigensolver backend) and the modes stage's
+    :class:`~pipeline.solve.modes.Modes` (its kept factor of ``K`` is used)."""
+    from pipeline.config import Ports
+    from pipeline.fe.ports import port_matrices
+
+    inputs = tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment"))
+    F = port_matrices(space, regions, Ports(inputs=inputs)).F if inputs else None
+    return build_rotation(cfg.rotation, space, cfg.material, free, K, M, modes.shapes,
+                          modes.omega2, F, tuple(p.name for p in inputs), modes.solve,
+                          cfg.modes.solver)
+
+
+def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.spmatrix,
+                   M: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray,
+                   F_inputs=None, input_names: tuple[str, ...] = (), solve=None,
+                   backend: str = "auto") -> RotationModel:
+    """The :class:`RotationModel` of the config's ``rotation`` section for the supported
+    body (``K``, ``M`` (n_s x n_s), its modes ``shapes`` (n_s x n_m, M-orthonormal) and
+    ``omega2`` (n_m,) rad^2/s^2); ``F_inputs`` (n_dofs x n_in) the input-port loads;
+    ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed)."""
+    _check_point(rotation.point, space.node_points)
+    axis = unit(rotation.axis)
+    _check_stress(rotation, axis, space.node_points, material)
+    own = None
+    if solve is None:
+        own = factorize(K, backend, positive_definite=True)
+        solve = own.solve
+    try:
+        terms = prestress_terms(space, material, free, K, rotation.point, F_inputs, solve,
+                                backend)
+        K_G1, M_perp = terms.spin_matrices(axis)
+        static = terms.centrifugal_shape(axis)[:, None] if rotation.static_shape else None
+        corrections = None
+        if rotation.correction_shapes:
+            n_c = min(rotation.correction_shapes, shapes.shape[1])
+            corrections = static_shapes(K, (K_G1 - M_perp) @ shapes[:, :n_c], solve)
+    finally:
+        if own is not None:
+            own.release()
+    with_static = reduced_basis(shapes, M, static)  # a shape the modes span is dropped
+    V = reduced_basis(with_static, M, corrections)
+    n_m = shapes.shape[1]
+    plain = V.shape[1] == n_m
+    model = RotationModel(
+        axis=axis, point=np.asarray(rotation.point, float),
+        speeds_rad_s=np.asarray(rotation.speeds_rad_s, float),
+        frequencies_hz=np.zeros((0, n_m)), frequencies_reduced_hz=np.zeros((0, V.shape[1])),
+        stiffness=np.diag(omega2).astype(float) if plain else V.T @ (K @ V),
+        mass=np.eye(n_m) if plain else V.T @ (M @ V),
+        geometric=project(V, terms.geometric), softening=project(V, terms.softening),
+        preload=project(V, terms.preload_geometric), input_names=tuple(input_names),
+        n_modes=n_m, static_shape=with_static.shape[1] > n_m)
+    reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
+    full = full_frequencies(K, M, K_G1, M_perp, model.speeds_rad_s, n_m, backend,
+                            rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
+    return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
+
+
+def _check_point(point, node_points: np.ndarray) -> None:
+    """Log a warning when the spin axis's point lies far outside the body (more than
+    ten times its largest extent from its bounding box): it may be intended (a blade
+    on a long arm), but a point in mm in a body in m looks the same."""
+    lo, hi = node_points.min(axis=0), node_points.max(axis=0)
+    size = float(np.max(hi - lo))
+    point = np.asarray(point, dtype=float)
+    gap = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - point, point - hi))))
+    if gap > 10.0 * size:
+        log.warning("rotation.point %s lies %.3g m from the body (largest extent %.3g m): "
+                    "the centrifugal load grows with that distance; intended?",
+                    point.tolist(), gap, size)
+
+
+def _check_stress(rotation: Rotation, axis: np.ndarray, node_points: np.ndarray,
+                  material) -> None:
+    """Log a warning when the centrifugal stress at the top speed, estimated as
+    rho Omega^2 R^2 / 2 (R: the largest distance of the body from the axis, Pa), exceeds
+    1 % of E: the strain is then beyond the small strains the linear prestress assumes."""
+    r = node_points - np.asarray(rotation.point, dtype=float)
+    radius = float(np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1)))
+    top = float(np.max(np.abs(rotation.speeds_rad_s)))
+    stress = 0.5 * material.rho * top ** 2 * radius ** 2
+    if stress > 0.01 * material.E:
+        log.warning("rotation.speeds_rad_s: at %g rad/s the centrifugal stress reaches about "
+                    "%.3g Pa, %.3g times E: beyond the small strains of the linear prestress "
+                    "(its frequencies are not physical there)", top, stress, stress / material.E)
