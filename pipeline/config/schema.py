@@ -14,7 +14,7 @@ from typing import Literal, Mapping, get_args
 GeometryKind = Literal["box", "step", "geo", "mesh"]
 MeshAlgorithm = Literal["delaunay", "hxt", "frontal"]
 Component = Literal["x", "y", "z"]
-Solver = Literal["auto", "pardiso", "cholmod", "superlu", "cudss"]
+Solver = Literal["auto", "pardiso", "cholmod", "superlu", "cudss", "slepc"]
 SelectorKind = Literal["plane", "box", "sphere"]
 InputKind = Literal["force", "moment"]
 OutputKind = Literal["displacement", "rotation", "strain", "stress"]

@@ -168,7 +168,7 @@ LUMPED_STATESPACE = Group(f"{LUMPED.path}/statespace", tuple("ABCD"), attrs=_SS_
 
 # --------------------------------------------------------------------------- /run
 RUN = Group("run", (), attrs=("mesh_s", "assemble_s", "modes_s", "reduce_s", "write_s",
-                              "peak_memory_mb", "solver"))
+                              "peak_memory_mb", "solver", "ranks"))
 
 # --------------------------------------------------------------------------- connections
 CONNECTIONS = Group("connections", ())
