@@ -38,5 +38,12 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$SYSPY" -m venv --system-site-packages "$VENV"
 fi
 "$VENV/bin/python" -m pip install --quiet -e . pytest "numpy>=1.24,<2"
+# Debian's bindings live in the real-scalar PETSc and SLEPc trees (its petsc4py.pth finds
+# them only through PETSC_DIR): name them to the venv once, so that no environment
+# variable is needed at run time, on any rank
+SITE=$("$VENV/bin/python" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
+printf '%s\n%s\n' "$(find_dir /usr/lib/petscdir)/lib/python3/dist-packages" \
+  "$(find_dir /usr/lib/slepcdir)/lib/python3/dist-packages" > "$SITE/petsc-slepc-debian.pth"
+"$VENV/bin/python" -c "from petsc4py import PETSc; from slepc4py import SLEPc; from mpi4py import MPI"
 echo "PETSC_DIR=$(find_dir /usr/lib/petscdir)"
 echo "SLEPC_DIR=$(find_dir /usr/lib/slepcdir)"

@@ -8,9 +8,6 @@ block into the whole block on every rank (MPI_Allgatherv).
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 
 from pipeline.errors import SolverError
@@ -19,41 +16,18 @@ _HOW = ("run 'make mpi-env' (Debian's python3-petsc4py and python3-slepc4py with
         "in .venv-mpi) and the pipeline under mpiexec with .venv-mpi/bin/python")
 
 
-def _debian_dir(root: str) -> str | None:
-    """The newest real-scalar PETSc or SLEPc tree Debian installs under ``root``."""
-    found = sorted(Path(root).glob("*/*-real"))
-    return str(found[-1]) if found else None
-
-
 def petsc():
-    """(PETSc, SLEPc): the initialised petsc4py and slepc4py modules.
-
-    Debian's bindings find their shared libraries through PETSC_DIR and SLEPC_DIR; when
-    those are unset, the real-scalar trees under /usr/lib/petscdir and /usr/lib/slepcdir
-    are looked up for this import only (the environment is put back as found)."""
-    saved = {k: os.environ.get(k) for k in ("PETSC_DIR", "SLEPC_DIR")}
+    """(PETSc, SLEPc): the initialised petsc4py and slepc4py modules, or a one-line
+    :class:`~pipeline.errors.SolverError` saying how to get them (missing, or built
+    for another numpy than this interpreter's: Debian's bindings need numpy 1.x)."""
     try:
-        for key, root in (("PETSC_DIR", "/usr/lib/petscdir"), ("SLEPC_DIR", "/usr/lib/slepcdir")):
-            if not os.environ.get(key) and (found := _debian_dir(root)):
-                os.environ[key] = found
-        import sys
-
-        for key in ("PETSC_DIR", "SLEPC_DIR"):  # Debian's .pth files read these at start-up
-            site = Path(os.environ.get(key, "/nonexistent")) / "lib/python3/dist-packages"
-            if site.is_dir() and str(site) not in sys.path:
-                sys.path.append(str(site))
         from petsc4py import PETSc
         from slepc4py import SLEPc
-    except ImportError as exc:
-        raise SolverError(f"modes.solver: slepc needs petsc4py, slepc4py and MPI ({exc}); "
+    except (ImportError, ValueError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SolverError(f"modes.solver: slepc needs petsc4py, slepc4py and MPI ({reason}); "
                           f"{_HOW}", key="modes.solver", value="slepc",
                           expected="petsc4py and slepc4py importable") from None
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
     return PETSc, SLEPc
 
 
