@@ -45,6 +45,8 @@ api: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)
+	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py; \
+	else echo "distributed section skipped: make mpi-env"; fi
 
 # The distributed path (docs/distributed.md): PETSc, SLEPc and OpenMPI from Debian's
 # packages under the system Python, in its own venv (tools/mpi_env.sh says why)

@@ -3,9 +3,12 @@
 Factor path (``modes.method: factor`` or ``auto``): Krylov-Schur on the shift-and-invert
 operator (K - sigma M)^-1 M with sigma = 0 (a supported body), the solves by MUMPS'
 distributed Cholesky factor of K (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
-Factor-free path (``modes.method: multigrid``): LOBPCG preconditioned by PETSc's
+Factor-free path (``modes.method: multigrid``): the same Krylov-Schur iteration with
+inexact shift-invert, each solve with K by conjugate gradients preconditioned by PETSc's
 algebraic multigrid (GAMG) with the six rigid-body modes as its near-null space
-(``MatNullSpace`` from the point coordinates): no factor is ever made.
+(``MatNullSpace`` from the point coordinates), to 1e-12 relative: no factor is ever
+made. (SLEPc's LOBPCG with the GAMG preconditioner broke down on the cantilever: LAPACK's
+sygvd failed on the projected problem.)
 
 Either way the eigenvectors come back M-normalised, each rank holding its rows; the
 caller gathers them and makes the final Rayleigh-Ritz step exact on the replicated
@@ -25,12 +28,24 @@ from pipeline.errors import SolverError
 
 log = logging.getLogger(__name__)
 
+#: relative residual of each inner CG solve on the factor-free path
+SOLVE_RTOL = 1e-12
+
+
+def _max():
+    from mpi4py import MPI
+
+    return MPI.MAX
+
 
 def petsc_matrix(PETSc, local, n: int):
     """An MPIAIJ (n, n) matrix from this rank's CSR rows (local: (n_loc, n), global
     column numbers), marked symmetric."""
     n_loc = local.shape[0]
-    A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)),
+    # block size 3 (a point's three DOFs) where every rank holds whole points: GAMG then
+    # aggregates points, not scalar DOFs, and takes the rigid-body near-null space
+    whole = int(PETSc.COMM_WORLD.tompi4py().allreduce(n_loc % 3, op=_max())) == 0
+    A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3 if whole else None,
                               csr=(local.indptr, local.indices, local.data),
                               comm=PETSc.COMM_WORLD)
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
@@ -60,21 +75,22 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
     st = eps.getST()
     ksp = st.getKSP()
     pc = ksp.getPC()
+    eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+    eps.setTarget(0.0)
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+    st.setType(SLEPc.ST.Type.SINVERT)
+    st.setShift(0.0)
     if method == "multigrid":
-        eps.setType(SLEPc.EPS.Type.LOBPCG)
-        eps.setWhichEigenpairs(SLEPc.EPS.Which.SMALLEST_REAL)
-        st.setType(SLEPc.ST.Type.PRECOND)
-        ksp.setType(PETSc.KSP.Type.PREONLY)
+        # K x = b by conjugate gradients on GAMG, to well below the eigen tolerance (the
+        # Krylov-Schur recurrence assumes exact solves: 1e-12 relative keeps the modes'
+        # residuals at 1e-10)
+        ksp.setType(PETSc.KSP.Type.CG)
+        ksp.setTolerances(rtol=SOLVE_RTOL, atol=0.0, max_it=10000)
         pc.setType(PETSc.PC.Type.GAMG)
         if near_null is not None:
             K.setNearNullSpace(near_null)
-        solver = "lobpcg-gamg"
+        solver = "krylovschur-cg-gamg"
     else:
-        eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
-        eps.setTarget(0.0)
-        eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
-        st.setType(SLEPc.ST.Type.SINVERT)
-        st.setShift(0.0)
         ksp.setType(PETSc.KSP.Type.PREONLY)
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
@@ -102,4 +118,6 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
              "converged": int(nconv)}
     log.info("SLEPc %s: %d modes converged in %d iterations", solver, nconv,
              stats["iterations"])
-    return values, rows, {**stats, "eps": eps, "ksp": ksp if method != "multigrid" else None}
+    if method == "multigrid":
+        stats["inner_iterations"] = int(ksp.getIterationNumber())
+    return values, rows, {**stats, "eps": eps, "ksp": ksp}

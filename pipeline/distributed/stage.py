@@ -145,14 +145,9 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     omega2 = np.maximum(omega2, 0.0)
     comm = world()
     stats.update(ranks=comm.size, tolerance=tolerance)
-    if ksp is not None:
-        factor: Any = KspSolve(ksp, K, keep=[eps, Kp, Mp])
-    else:
-        factor = None
-        for obj in (eps, Kp, Mp):
-            obj.destroy()
-        if near_null is not None:
-            near_null.destroy()
+    # the spectral transformation's solver (shift 0: its operator is K) solves the
+    # static correction's K x = F; freed with the kept factor
+    factor: Any = KspSolve(ksp, K, keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
     modes = Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
                   residuals=residuals, n_rigid=0, backend=BACKEND, shift=0.0,
                   seconds=time.perf_counter() - t0, stats=stats, factorization=factor)
