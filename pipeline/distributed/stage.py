@@ -87,6 +87,37 @@ def abort_on_failure():
         raise
 
 
+def check_rank_memory(space, cfg: Config, comm) -> int:
+    """Refuse, on every rank and before the assembly, a run whose ranks on one node would
+    need more than the node has (ResourceError, one line). Per rank: the serial model of
+    :mod:`pipeline._util.resources` for the whole problem (factor method), its K, M and
+    factor share divided by the rank count, plus what every rank holds (baseline, mesh,
+    the gathered mode shapes: three (n_dofs, n_modes) arrays). Returns the bytes per rank."""
+    from mpi4py import MPI
+
+    from pipeline._util import resources as res
+    from pipeline.errors import ResourceError
+
+    n_nodes, n_el, count = space.n_nodes, space.body.n_tetrahedra, cfg.modes.count
+    mesh = res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el
+    whole = res.estimate_memory_bytes(n_nodes, n_el, space.order, count, "factor",
+                                      solver="pardiso")
+    replicated = res.BASELINE_BYTES + mesh + 3 * 8.0 * space.n_dofs * count
+    per_rank = int(replicated + (whole - res.BASELINE_BYTES - mesh) / comm.size)
+    node_ranks = comm.Split_type(MPI.COMM_TYPE_SHARED).size
+    need = comm.allreduce(per_rank * node_ranks, op=MPI.MAX)
+    have = comm.allreduce(res.available_memory_bytes(), op=MPI.MIN)
+    log.info("memory estimate %.2f GB per rank, %d ranks on this node, %.2f GB available",
+             per_rank / 1e9, node_ranks, have / 1e9)
+    if need > res.HEADROOM * have:
+        raise ResourceError(
+            f"mesh with {space.n_dofs} DOFs on {comm.size} ranks needs about "
+            f"{per_rank / 1e9:.1f} GB per rank, {need / 1e9:.1f} GB for the {node_ranks} "
+            f"ranks of one node, but only {have / 1e9:.1f} GB is available; expected more "
+            "nodes (fewer ranks per node) or a larger mesh.size")
+    return per_rank
+
+
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     """Mesh (every rank, the same mesh), regions, supports, this rank's rows of K and M
     (PETSc's slab partition), the body's mass properties (summed over the ranks)."""
@@ -99,6 +130,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         regions = resolve_regions(space, cfg.regions)
         log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", body.n_tetrahedra,
                  space.cell_type, space.n_nodes, space.n_dofs, comm.size)
+    check_rank_memory(space, cfg, comm)
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
