@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 
-.PHONY: modes test test-all test-reliability bench batch env clean api
+.PHONY: modes test test-all test-reliability bench batch env clean api mpi-env mpi-modes mpi-test
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,33 @@ api: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)
+	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py; \
+	else echo "distributed section skipped: make mpi-env"; fi
+
+# The distributed path (docs/distributed.md): PETSc, SLEPc and OpenMPI from Debian's
+# packages under the system Python, in its own venv (tools/mpi_env.sh says why)
+MPI_VENV  ?= .venv-mpi
+MPI_PY    := $(MPI_VENV)/bin/python
+MPI_STAMP := $(MPI_VENV)/.installed
+MPI_RANKS ?= 2
+MPIEXEC   ?= mpiexec
+# root may start MPI ranks only when it says so (containers, CI)
+MPI_ROOT  := $(if $(filter 0,$(shell id -u)),--allow-run-as-root,)
+MPI_RUN   = OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 PYTHONPATH=$(CURDIR) \
+            $(MPIEXEC) $(MPI_ROOT) --oversubscribe -n $(MPI_RANKS) -x PYTHONPATH
+
+$(MPI_STAMP): pyproject.toml tools/mpi_env.sh
+	sh tools/mpi_env.sh $(MPI_VENV)
+	touch $(MPI_STAMP)
+
+mpi-env: $(MPI_STAMP)
+
+mpi-modes: $(MPI_STAMP)
+	mkdir -p outputs
+	$(MPI_RUN) $(MPI_PY) -m pipeline run $(CONFIG) --set modes.solver=slepc -o outputs/$(basename $(notdir $(CONFIG)))-mpi.h5
+
+mpi-test: $(MPI_STAMP)
+	$(MPI_PY) -m pytest -q -m mpi tests/test_mpi.py
 
 clean:
 	rm -rf outputs/*.h5 meshes/*.msh .pytest_cache

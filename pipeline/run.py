@@ -124,7 +124,18 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     ``update(n)`` callable (the CLI passes tqdm bars).
     """
     progress = progress or _no_progress
+    if cfg.modes.solver == "slepc":  # MPI ranks: pipeline.distributed
+        from pipeline.distributed.stage import abort_on_failure
+
+        with abort_on_failure():
+            return _run(cfg, output, mesh_dir, progress)
     resolve_backend(cfg.modes.solver)  # a solver that is not installed: one line, before meshing
+    return _run(cfg, output, mesh_dir, progress)
+
+
+def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
+         progress: ProgressFactory) -> RunResult:
+    distributed = _distributed_stages(cfg)
     times: dict[str, float] = {}
     output = Path(output)
     tree: dict[str, Dataset] = {}
@@ -139,16 +150,22 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
             ahead.append(PatternAnalysis(indptr, indices))
 
     try:
-        fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
-                            on_stiffness_pattern=analyse_ahead)
+        if distributed is not None:
+            fe = distributed.build_fe_model(cfg, mesh_dir, lambda name: _stage(name, times))
+        else:
+            fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
+                                on_stiffness_pattern=analyse_ahead)
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress
             # the input record is a temporary: it must not keep K alive past `del fe`
-            modes = compute_modes(
-                ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
-                cfg.modes, keep=cfg.reduction is not None or cfg.rotation is not None,
-                analysis=ahead[0] if ahead else None)
+            if distributed is not None:
+                modes = distributed.compute_modes(fe, cfg)
+            else:
+                modes = compute_modes(
+                    ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
+                    cfg.modes, keep=cfg.reduction is not None or cfg.rotation is not None,
+                    analysis=ahead[0] if ahead else None)
     finally:
         for analysis in ahead:
             analysis.release()  # nothing to free when the factorisation took it
@@ -204,9 +221,14 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
         space, cfg.mesh.order, free.size, "" if mesh_path is None else str(mesh_path),
         mesh_sha256, modes, min(modes.stats["history"]) if multigrid else None))
     with _stage("write", times):
-        group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend))
-        write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
-                                               ROOT.config_yaml: config_to_yaml(cfg)})
+        group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend,
+                                           ranks=None if distributed is None
+                                           else distributed.rank_and_size()[1]))
+        if distributed is None or distributed.rank_and_size()[0] == 0:  # rank 0 writes
+            write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
+                                                   ROOT.config_yaml: config_to_yaml(cfg)})
+        if distributed is not None:
+            distributed.world().Barrier()  # the file exists when any rank returns
     extras: dict[str, Any] = {"summary": support_lines} if support_lines else {}
     if models is not None:
         extras["summary"] = support_lines + list(models.summary)
@@ -215,6 +237,16 @@ def run_pipeline(cfg: Config, output: str | Path, mesh_dir: str | Path | None = 
     return RunResult(cfg, output, space.n_dofs, int(free.size), body.n_tetrahedra,
                      modes.frequencies_hz, labels, props.mass, times, peak_memory_mb(),
                      modes.backend, extras, modes.n_rigid)
+
+
+def _distributed_stages(cfg: Config):
+    """The stage module of the MPI path (``modes.solver: slepc``), or None."""
+    if cfg.modes.solver != "slepc":
+        return None
+    from pipeline.distributed import stage
+
+    stage.check_supported(cfg)
+    return stage
 
 
 def _stress_modes_tree(cfg: Config, space, free, models) -> dict[str, Dataset]:

@@ -106,7 +106,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = getattr(args, "resolved_config", None) or resolve_config(args.config, args.set or [])
     output = Path(args.output) if args.output else default_output(cfg)
     result = run_pipeline(cfg, output, mesh_dir=args.mesh_dir, progress=tqdm_progress)
-    print("\n".join(run_summary(result, verbose=args.verbose > 0)))
+    if _mpi_rank() == 0:  # under mpiexec rank 0 speaks for all (they hold the same result)
+        print("\n".join(run_summary(result, verbose=args.verbose > 0)))
+    return 0
+
+
+def _mpi_rank() -> int:
+    """This process's MPI rank as the launcher (OpenMPI, MPICH/Hydra, Slurm) tells it,
+    without importing MPI; 0 outside mpiexec."""
+    import os
+
+    for key in ("OMPI_COMM_WORLD_RANK", "PMI_RANK", "PMIX_RANK"):
+        if os.environ.get(key, "").isdigit():
+            return int(os.environ[key])
     return 0
 
 

@@ -20,7 +20,7 @@ from pipeline.config.supports import BushingSpec, SpringSpec, SupportFrame
 GeometryKind = Literal["box", "step", "geo", "mesh"]
 MeshAlgorithm = Literal["delaunay", "hxt", "frontal"]
 Component = Literal["x", "y", "z"]
-Solver = Literal["auto", "pardiso", "cholmod", "superlu", "cudss"]
+Solver = Literal["auto", "pardiso", "cholmod", "superlu", "cudss", "slepc"]
 SelectorKind = Literal["plane", "box", "sphere"]
 InputKind = Literal["force", "moment"]
 OutputKind = Literal["displacement", "rotation", "strain", "stress"]

@@ -198,7 +198,10 @@ def scaled_inf_norm(A: sp.spmatrix, w: np.ndarray | None = None,
     Row chunks of A's own arrays, one CSR product with |A_ij| each: no abs copy of A
     (``abs(A)`` copies its values and indices, 1 GB for K of 1M DOFs, written fresh every
     call; two sparse-times-sparse products with diag(w) were slower still and held three
-    copies of K's values)."""
+    copies of K's values). A matrix that knows its own norm (one whose rows live on
+    several processes, :mod:`pipeline.distributed`) is asked for it."""
+    if hasattr(A, "scaled_inf_norm"):
+        return float(A.scaled_inf_norm(w))
     A = A if is_csr(A) else sp.csr_matrix(A)
     n = A.shape[0]
     best = 0.0

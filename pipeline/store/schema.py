@@ -162,12 +162,15 @@ def core_group_attrs(space, element_order: int, n_free_dofs: int, mesh_source: s
                         a.n_dofs: space.n_dofs, a.n_free_dofs: int(n_free_dofs)}}
 
 
-def run_group_attrs(times: Mapping[str, float], peak_memory_mb: float, solver: str
-                    ) -> dict[str, dict[str, Any]]:
-    """Attributes of ``/run``: seconds per stage (``<stage>_s``), peak memory, solver."""
+def run_group_attrs(times: Mapping[str, float], peak_memory_mb: float, solver: str,
+                    ranks: int | None = None) -> dict[str, dict[str, Any]]:
+    """Attributes of ``/run``: seconds per stage (``<stage>_s``), peak memory, solver;
+    ``ranks``: the number of MPI ranks of a distributed run (written only then)."""
     attrs: dict[str, Any] = {f"{k}_s": v for k, v in times.items()}
     attrs[RUN.attr.peak_memory_mb] = peak_memory_mb
     attrs[RUN.attr.solver] = solver
+    if ranks is not None:
+        attrs[RUN.attr.ranks] = int(ranks)
     return {RUN.path: attrs}
 
 

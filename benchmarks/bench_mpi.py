@@ -1,0 +1,156 @@
+"""Benchmark of the distributed path (``modes.solver: slepc``): wall time and peak memory
+per rank on 1 and 2 MPI ranks, and the per-rank memory model extrapolated to a large body.
+
+``make bench`` runs it when the MPI environment exists (``make mpi-env``); by hand:
+``.venv-mpi/bin/python benchmarks/bench_mpi.py [--size 0.005] [--ranks 1,2]``.
+
+Each case is ``mpiexec -n P python benchmarks/bench_mpi.py --worker``: the pipeline on
+``configs/cantilever.yaml`` (``modes.count`` 10, the shipped config's), then every rank
+reports its peak resident memory (ru_maxrss) and the memory it had after importing the
+stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
+
+The memory model per rank, fitted to the cases at one size N0 (free DOFs):
+
+    m(P, N) = c + r N / N0 + d (N / N0)^(4/3) / P
+
+c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space,
+regions, the gathered mode shapes and stress modes: linear in N); d: what is divided among
+the ranks (the rows of K and M, linear in N, and MUMPS' factor, which for a 3D mesh in
+nested-dissection order grows as N^(4/3), the exponent used for all of d: an upper
+bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "configs" / "cantilever.yaml"
+NODE_GB = 24.0
+NODE_USABLE = 0.8  # of a node's memory for the ranks (the OS, MPI buffers)
+TARGET_DOFS = 10e6
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def worker(size: float, output: str, method: str) -> None:
+    """One MPI case: every rank runs the pipeline; rank 0 prints a JSON line."""
+    from pipeline.distributed.mpi import world
+    from pipeline.api import run_config
+
+    comm = world()
+    base = _peak_mb()
+    t0 = time.perf_counter()
+    result = run_config(CONFIG, output=output,
+                        overrides=[f"mesh.size={size}", "modes.solver=slepc",
+                                   f"modes.method={method}"])
+    wall = time.perf_counter() - t0
+    peaks = comm.gather(_peak_mb(), root=0)
+    bases = comm.gather(base, root=0)
+    if comm.rank == 0:
+        print("BENCH " + json.dumps({
+            "ranks": comm.size, "n_free": result.n_free, "wall_s": wall,
+            "times": result.times, "peak_mb": peaks, "import_mb": bases,
+            "f1_hz": float(result.frequencies_hz[0])}), flush=True)
+
+
+def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
+    mpiexec = shutil.which("mpiexec")
+    root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    with tempfile.TemporaryDirectory() as tmp:
+        argv = [mpiexec, *root, "--oversubscribe", "-n", str(ranks), "-x", "PYTHONPATH",
+                sys.executable, str(Path(__file__).resolve()), "--worker", "--size", str(size),
+                "--method", method, "--output", str(Path(tmp) / "bench.h5")]
+        proc = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True,
+                              timeout=timeout)
+    for line in proc.stdout.splitlines():
+        if line.startswith("BENCH "):
+            return json.loads(line[6:])
+    raise RuntimeError(f"{ranks} ranks failed (exit {proc.returncode}): "
+                       f"{proc.stderr.strip().splitlines()[-1:]}")
+
+
+def memory_model(rows: list[dict]) -> dict:
+    """c, r, d (MB) of the module's model from the 1- and 2-rank cases."""
+    one = next(r for r in rows if r["ranks"] == 1)
+    two = next(r for r in rows if r["ranks"] == 2)
+    c = max(one["import_mb"])
+    m1, m2 = max(one["peak_mb"]), max(two["peak_mb"])
+    d = max(2.0 * (m1 - m2), 0.0)
+    return {"c": c, "r": max(m1 - c - d, 0.0), "d": d, "n0": one["n_free"]}
+
+
+def extrapolate(model: dict, n: float) -> list[str]:
+    """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed."""
+    s = n / model["n0"]
+    fixed = model["c"] + model["r"] * s
+    shared = model["d"] * s ** (4.0 / 3.0)
+    usable = NODE_GB * 1024 * NODE_USABLE
+    lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
+             f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
+             f"+ {shared / 1024:.0f} GB / P divided among P ranks"]
+    for ranks_per_node in (1, 2, 4, 8):
+        if ranks_per_node * fixed >= usable:
+            lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
+                         "part alone does not fit")
+            continue
+        nodes = 1
+        while ranks_per_node * (fixed + shared / (nodes * ranks_per_node)) > usable:
+            nodes += 1
+        lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: {nodes} nodes "
+                     f"({nodes * ranks_per_node} ranks, "
+                     f"{fixed / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB per rank)")
+    return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=float, default=0.005, help="mesh.size, m (0.005: 100k DOFs)")
+    ap.add_argument("--ranks", default="1,2")
+    ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
+    ap.add_argument("--timeout", type=float, default=1800.0)
+    ap.add_argument("--json", default=None, help="also write the rows to this file")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--output", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        worker(args.size, args.output, args.method)
+        return 0
+    if shutil.which("mpiexec") is None:
+        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
+        return 1
+    rows = [run_case(int(p), args.size, args.method, args.timeout)
+            for p in args.ranks.split(",")]
+    print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
+    print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
+          f"{'peak MB per rank':>20}")
+    for r in rows:
+        peaks = "/".join(f"{p:.0f}" for p in r["peak_mb"])
+        print(f"{r['ranks']:>5} {r['n_free']:>10} {r['times'].get('assemble', 0):>10.1f} "
+              f"{r['times'].get('modes', 0):>8.1f} {r['wall_s']:>8.1f} {peaks:>20}")
+    if {1, 2} <= {r["ranks"] for r in rows}:
+        model = memory_model(rows)
+        print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
+              f"d = {model['d']:.0f} MB (divided) at {model['n0']} free DOFs")
+        for line in extrapolate(model, TARGET_DOFS):
+            print(line)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

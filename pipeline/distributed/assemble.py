@@ -1,0 +1,126 @@
+"""A rank's rows of K and M, assembled from the elements that touch its nodes.
+
+Rank r owns the PETSc rows ``lo:hi`` of :class:`~pipeline.distributed.partition.RowPartition`.
+It computes the element matrices (the serial assembly's kernels,
+:mod:`pipeline.fe.kernels`: K_e[(a, i), (b, j)] = R[a nb + b, :] @ F_e[:, 3 i + j], M_e =
+rho |det J| M_ref[a, b] delta_ij) of every element with a node among its rows, keeps the
+entries whose row it owns and whose column is free, and sums them into a local CSR block
+(hi - lo, n_free) with PETSc's global column numbers. The elements of the slab's
+boundary layer are computed by both neighbours, which is all the communication the
+assembly needs; no rank holds another's rows.
+
+The body's node-level mass N (for the mass properties) is split by elements instead:
+rank r sums the elements ``e_starts[r]:e_starts[r + 1]``, so sum_r N_r = N exactly once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.config import Material
+from pipeline.distributed.partition import RowPartition
+from pipeline.fe.kernels import element_factors, inverse_jacobians, lame_parameters, reference_data
+from pipeline.fe.space import FESpace
+
+
+@dataclass(frozen=True)
+class LocalRows:
+    """K, M: (hi - lo, n_free) CSR rows of this rank (N/m, kg), PETSc's column numbers
+    (int32 indices); lo, hi: the rows; n_elements: elements computed here."""
+
+    K: sp.csr_matrix
+    M: sp.csr_matrix
+    lo: int
+    hi: int
+    n_elements: int
+
+
+def petsc_numbering(n_dofs: int, free: np.ndarray, part: RowPartition) -> np.ndarray:
+    """(n_dofs,) PETSc row of every DOF, -1 for a fixed one."""
+    rows = np.full(n_dofs, -1, dtype=np.int64)
+    inverse = np.empty(part.order.size, dtype=np.int64)
+    inverse[part.order] = np.arange(part.order.size)
+    rows[np.asarray(free)] = inverse
+    return rows
+
+
+class _Sum:
+    """Running sum of CSR blocks, merged pairwise (binary counter): O(nnz log n_blocks)."""
+
+    def __init__(self) -> None:
+        self.stack: list[tuple[int, sp.csr_matrix]] = []
+
+    def add(self, A: sp.csr_matrix) -> None:
+        level = 0
+        while self.stack and self.stack[-1][0] == level:
+            A = self.stack.pop()[1] + A
+            level += 1
+        self.stack.append((level, A))
+
+    def total(self, shape) -> sp.csr_matrix:
+        out = sp.csr_matrix(shape)
+        for _, A in self.stack:
+            out = out + A
+        out.sum_duplicates()
+        out.sort_indices()
+        return out
+
+
+def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPartition,
+               rank: int, chunk_size: int = 512) -> LocalRows:
+    """Rank ``rank``'s rows of K (N/m) and M (kg) on the free DOFs (see the module)."""
+    lo, hi = part.rows(rank)
+    n_free = int(part.order.size)
+    petsc_row = petsc_numbering(space.n_dofs, free, part)
+    owned = np.zeros(space.n_nodes, dtype=bool)
+    owned[np.asarray(free)[part.owned_free(rank)] // 3] = True
+    en = space.element_nodes
+    elements = np.flatnonzero(owned[en].any(axis=1))
+    lam, mu = lame_parameters(material)
+    R, mass_ref = reference_data(space.order)
+    nb = en.shape[1]
+    comp = np.arange(3)
+    k_sum, m_sum = _Sum(), _Sum()
+    shape = (hi - lo, n_free)
+    for start in range(0, elements.size, chunk_size):
+        chunk = elements[start:start + chunk_size]
+        F, vol = element_factors(space, lam, mu, chunk)
+        block = np.matmul(R, F).reshape(-1, nb, nb, 3, 3)  # [e, a, b, i, j]
+        del F
+        dof = 3 * en[chunk][:, :, None] + comp  # (m, nb, 3): DOF of (node a, component i)
+        rows = petsc_row[dof]
+        rows_k = np.broadcast_to(rows[:, :, None, :, None], block.shape)
+        cols_k = np.broadcast_to(rows[:, None, :, None, :], block.shape)
+        keep = (rows_k >= lo) & (rows_k < hi) & (cols_k >= 0)
+        k_sum.add(sp.csr_matrix((block[keep], (rows_k[keep] - lo, cols_k[keep])), shape=shape))
+        del block, rows_k, cols_k, keep
+        mvals = material.rho * vol[:, None, None, None] * mass_ref[None, :, :, None]
+        mvals = np.broadcast_to(mvals, (chunk.size, nb, nb, 3))
+        rows_m = np.broadcast_to(rows[:, :, None, :], mvals.shape)
+        cols_m = np.broadcast_to(rows[:, None, :, :], mvals.shape)
+        keep = (rows_m >= lo) & (rows_m < hi) & (cols_m >= 0)
+        m_sum.add(sp.csr_matrix((mvals[keep], (rows_m[keep] - lo, cols_m[keep])), shape=shape))
+    K, M = k_sum.total(shape), m_sum.total(shape)
+    for A in (K, M):
+        A.indices = A.indices.astype(np.int32, copy=False)
+        A.indptr = A.indptr.astype(np.int32, copy=False)
+    return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
+
+
+def local_node_mass(space: FESpace, rho: float, rank: int, size: int) -> sp.csr_matrix:
+    """(n_nodes, n_nodes) node-level mass (kg) of this rank's share of the elements; the
+    sum over the ranks is the body's N (M = N (x) I_3)."""
+    n_t = space.element_nodes.shape[0]
+    chunk = np.arange((n_t * rank) // size, (n_t * (rank + 1)) // size)
+    _, mass_ref = reference_data(space.order)
+    _, vol = inverse_jacobians(space, chunk)
+    en = space.element_nodes[chunk]
+    nb = en.shape[1]
+    vals = rho * vol[:, None, None] * mass_ref[None]
+    rows = np.broadcast_to(en[:, :, None], (chunk.size, nb, nb))
+    cols = np.broadcast_to(en[:, None, :], (chunk.size, nb, nb))
+    return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())),
+                         shape=(space.n_nodes, space.n_nodes))

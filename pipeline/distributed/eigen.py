@@ -1,0 +1,123 @@
+"""The lowest modes of K phi = omega^2 M phi with SLEPc on distributed K and M.
+
+Factor path (``modes.method: factor`` or ``auto``): Krylov-Schur on the shift-and-invert
+operator (K - sigma M)^-1 M with sigma = 0 (a supported body), the solves by MUMPS'
+distributed Cholesky factor of K (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
+Factor-free path (``modes.method: multigrid``): the same Krylov-Schur iteration with
+inexact shift-invert, each solve with K by conjugate gradients preconditioned by PETSc's
+algebraic multigrid (GAMG) with the six rigid-body modes as its near-null space
+(``MatNullSpace`` from the point coordinates), to 1e-12 relative: no factor is ever
+made. (SLEPc's LOBPCG with the GAMG preconditioner broke down on the cantilever: LAPACK's
+sygvd failed on the projected problem.)
+
+Either way the eigenvectors come back M-normalised, each rank holding its rows; the
+caller gathers them and makes the final Rayleigh-Ritz step exact on the replicated
+block (:func:`pipeline.solve.eigen` does the same for the serial path), so the two
+paths share the sign convention and the residual measure. PETSc's options database
+(``-eps_*``, ``-st_*``, ``-mat_mumps_*`` on the command line or in PETSC_OPTIONS)
+overrides the choices made here.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from pipeline.errors import SolverError
+
+log = logging.getLogger(__name__)
+
+#: relative residual of each inner CG solve on the factor-free path
+SOLVE_RTOL = 1e-12
+
+
+def _max():
+    from mpi4py import MPI
+
+    return MPI.MAX
+
+
+def petsc_matrix(PETSc, local, n: int):
+    """An MPIAIJ (n, n) matrix from this rank's CSR rows (local: (n_loc, n), global
+    column numbers), marked symmetric."""
+    n_loc = local.shape[0]
+    # block size 3 (a point's three DOFs) where every rank holds whole points: GAMG then
+    # aggregates points, not scalar DOFs, and takes the rigid-body near-null space
+    whole = int(PETSc.COMM_WORLD.tompi4py().allreduce(n_loc % 3, op=_max())) == 0
+    A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3 if whole else None,
+                              csr=(local.indptr, local.indices, local.data),
+                              comm=PETSc.COMM_WORLD)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    A.assemble()
+    return A
+
+
+def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
+    """PETSc's rigid-body near-null space of A from the (n_loc/3, 3) coordinates of this
+    rank's rows (whole points: every point's three DOFs on one rank)."""
+    coords = A.createVecLeft()
+    coords.setBlockSize(3)
+    coords.getArray()[:] = points_local.reshape(-1)
+    return PETSc.NullSpace().createRigidBody(coords)
+
+
+def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
+                near_null=None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
+    (n_loc, count), stats) of the PETSc pair (K, M). ``method``: ``factor`` or
+    ``multigrid`` (see the module); ``near_null``: PETSc NullSpace for GAMG."""
+    eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
+    eps.setOperators(K, M)
+    eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
+    eps.setDimensions(nev=count)
+    eps.setTolerances(tol=tolerance, max_it=10000)
+    st = eps.getST()
+    ksp = st.getKSP()
+    pc = ksp.getPC()
+    eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
+    eps.setTarget(0.0)
+    eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
+    st.setType(SLEPc.ST.Type.SINVERT)
+    st.setShift(0.0)
+    if method == "multigrid":
+        # K x = b by conjugate gradients on GAMG, to well below the eigen tolerance (the
+        # Krylov-Schur recurrence assumes exact solves: 1e-12 relative keeps the modes'
+        # residuals at 1e-10)
+        ksp.setType(PETSc.KSP.Type.CG)
+        ksp.setTolerances(rtol=SOLVE_RTOL, atol=0.0, max_it=10000)
+        pc.setType(PETSc.PC.Type.GAMG)
+        if near_null is not None:
+            K.setNearNullSpace(near_null)
+        solver = "krylovschur-cg-gamg"
+    else:
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
+        solver = "krylovschur-mumps"
+    eps.setFromOptions()
+    try:
+        eps.solve()
+    except PETSc.Error as exc:
+        raise SolverError(f"modes.solver: slepc: SLEPc failed ({exc}); expected a solvable "
+                          "eigenproblem", key="modes.solver", value="slepc",
+                          expected="a solvable eigenproblem") from None
+    nconv = eps.getConverged()
+    if nconv < count:
+        raise SolverError(f"modes.count: SLEPc ({solver}) converged {nconv} of {count} modes "
+                          f"in {eps.getIterationNumber()} iterations; expected all",
+                          key="modes.count", value=count, expected=f"{count} converged modes")
+    vr = K.createVecRight()
+    values = np.empty(count)
+    rows = np.empty((vr.getLocalSize(), count))
+    for i in range(count):
+        values[i] = eps.getEigenpair(i, vr).real
+        rows[:, i] = vr.getArray()
+    vr.destroy()
+    stats = {"method": f"slepc-{solver}", "iterations": int(eps.getIterationNumber()),
+             "converged": int(nconv)}
+    log.info("SLEPc %s: %d modes converged in %d iterations", solver, nconv,
+             stats["iterations"])
+    if method == "multigrid":
+        stats["inner_iterations"] = int(ksp.getIterationNumber())
+    return values, rows, {**stats, "eps": eps, "ksp": ksp}

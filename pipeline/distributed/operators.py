@@ -1,0 +1,122 @@
+"""Stand-ins for K, M and K^-1 whose rows live on different ranks.
+
+The reduce stage runs on every rank with the same replicated small blocks (mode shapes,
+port loads F, output rows T); it touches K and M only through products with such
+blocks, their diagonals and solves with K. :class:`RowMatrix` computes its own rows of
+A X and gathers the rest (MPI_Allgatherv): every rank gets the same (n_free, k) result.
+:class:`SummedMatrix` is a matrix split into a sum over ranks (the node-level mass for
+the body's mass properties). :class:`KspSolve` solves K X = B with the distributed
+factor that SLEPc's spectral transformation made (shift 0: the operator is K itself).
+Every call is collective: all ranks make it, in the same order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.distributed.mpi import allgather_rows, allreduce_sum
+from pipeline.distributed.partition import RowPartition
+
+
+class RowMatrix:
+    """A symmetric (n_free, n_free) matrix, rows ``lo:hi`` (PETSc order) on this rank.
+
+    local: (hi - lo, n_free) CSR rows with PETSc's column numbers. Blocks going in and
+    out are in the free-DOF order of the serial path."""
+
+    ndim = 2
+    dtype = np.dtype(np.float64)
+    format = "distributed"
+
+    def __init__(self, comm, local: sp.csr_matrix, part: RowPartition):
+        self.comm, self.local, self.part = comm, local, part
+        n = int(part.order.size)
+        self.shape = (n, n)
+        self.lo, self.hi = part.rows(comm.rank)
+
+    @property
+    def nnz(self) -> int:
+        """Stored entries over all ranks."""
+        return int(self.comm.allreduce(int(self.local.nnz)))
+
+    def to_petsc_order(self, X: np.ndarray) -> np.ndarray:
+        return np.asarray(X, dtype=np.float64)[self.part.order]
+
+    def from_petsc_order(self, Y: np.ndarray) -> np.ndarray:
+        out = np.empty_like(Y)
+        out[self.part.order] = Y
+        return out
+
+    def gather(self, local_rows: np.ndarray) -> np.ndarray:
+        """Every rank's (n_i, ...) rows (PETSc order) -> the whole block in free order."""
+        return self.from_petsc_order(allgather_rows(self.comm, local_rows))
+
+    def __matmul__(self, X):
+        X = np.asarray(X, dtype=np.float64)
+        if X.shape[0] != self.shape[1]:
+            raise ValueError(f"matmul: X has {X.shape[0]} rows, expected {self.shape[1]}")
+        return self.gather(self.local @ self.to_petsc_order(X))
+
+    dot = __matmul__
+
+    def scaled_inf_norm(self, w: np.ndarray | None = None) -> float:
+        """max_i w_i sum_j |A_ij| w_j over every rank's rows (w: (n_free,) free order;
+        None: ones), see :func:`pipeline.solve.blas.scaled_inf_norm`."""
+        from mpi4py import MPI
+
+        absA = abs(self.local)
+        if w is None:
+            sums = np.asarray(absA.sum(axis=1)).ravel()
+        else:
+            wp = self.to_petsc_order(w)
+            sums = wp[self.lo:self.hi] * (absA @ wp)
+        return float(self.comm.allreduce(float(sums.max(initial=0.0)), op=MPI.MAX))
+
+    def diagonal(self) -> np.ndarray:
+        """(n_free,) the diagonal, free order."""
+        return self.gather(self.local.diagonal(k=self.lo))
+
+
+class SummedMatrix:
+    """A matrix held as a sum of one term per rank: A X = sum_r A_r X (MPI_Allreduce)."""
+
+    ndim = 2
+    dtype = np.dtype(np.float64)
+
+    def __init__(self, comm, local: sp.spmatrix):
+        self.comm, self.local, self.shape = comm, local, local.shape
+
+    def __matmul__(self, X):
+        return allreduce_sum(self.comm, self.local @ np.asarray(X, dtype=np.float64))
+
+
+class KspSolve:
+    """X = K^-1 B for replicated (n_free,) or (n_free, k) B with a PETSc KSP whose
+    operator is K (rows distributed as ``matrix``); ``release`` frees the solver (and
+    the objects handed in ``keep``)."""
+
+    def __init__(self, ksp, matrix: RowMatrix, keep=()):
+        self.ksp, self.matrix, self.keep = ksp, matrix, list(keep)
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        if self.ksp is None:
+            raise RuntimeError("the distributed factorisation was released")
+        B = np.asarray(B, dtype=np.float64)
+        cols = B.reshape(B.shape[0], -1)
+        Bp = self.matrix.to_petsc_order(cols)[self.matrix.lo:self.matrix.hi]
+        A, _ = self.ksp.getOperators()
+        x, b = A.createVecs()
+        X = np.empty_like(Bp)
+        for c in range(cols.shape[1]):
+            b.getArray()[:] = Bp[:, c]
+            self.ksp.solve(b, x)
+            X[:, c] = x.getArray()
+        x.destroy()
+        b.destroy()
+        return self.matrix.gather(X).reshape(B.shape)
+
+    def release(self) -> None:
+        for obj in self.keep:
+            obj.destroy()
+        self.keep, self.ksp = [], None

@@ -1,0 +1,192 @@
+"""The FE and modes stages on MPI ranks (``modes.solver: slepc``): the same records as
+the serial stages (:class:`~pipeline.fe.model.FEModel`, :class:`~pipeline.solve.modes.Modes`)
+with K and M as :class:`~pipeline.distributed.operators.RowMatrix` stand-ins, so that
+:func:`pipeline.run.run_pipeline` runs the reduce stage unchanged on every rank.
+
+Per rank, memory: the mesh and FE space (every rank meshes the same body: O(n_points),
+replicated), its rows of K and M (1/size of them, plus one element layer), its part of
+MUMPS' factor, and the replicated (n_free, n_modes) mode shapes the reduce stage and the
+writer use (8 n_free n_modes bytes: 160 MB for 1M free DOFs and 20 modes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.errors import ConfigError
+from pipeline.distributed.assemble import local_node_mass, local_rows
+from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
+from pipeline.distributed.mpi import petsc, world
+from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
+from pipeline.distributed.partition import slab_partition
+from pipeline.fe.body import body_properties, node_volume_weights
+from pipeline.fe.mesh import mesh_body
+from pipeline.fe.model import FEModel
+from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.space import build_space
+from pipeline.solve.eigen import _rayleigh_ritz
+from pipeline.solve.labels import label_modes
+from pipeline.solve.modes import Modes
+from pipeline.solve.stage import full_shapes
+
+log = logging.getLogger(__name__)
+
+#: the backend name the result file records (``/run`` solver, ``/modes`` backend)
+BACKEND = "slepc"
+
+
+def check_supported(cfg: Config) -> None:
+    """One line for what the distributed path does not do yet (before any work)."""
+    if not cfg.supports:
+        raise ConfigError("supports: [] with modes.solver: slepc: a free body (rigid-body "
+                          "modes) is not distributed yet; expected supports, or another "
+                          "modes.solver", key="supports", value=[],
+                          expected="at least one support with modes.solver: slepc")
+    if cfg.connections:
+        raise ConfigError("connections with modes.solver: slepc: connection models need the "
+                          "unsupported K on one process; expected no connections, or another "
+                          "modes.solver", key="connections", value=len(cfg.connections),
+                          expected="no connections with modes.solver: slepc")
+    if cfg.modes.precision == "mixed":
+        raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
+                          "double", key="modes.precision", value="mixed",
+                          expected="auto or double")
+
+
+def rank_and_size() -> tuple[int, int]:
+    """(this rank, number of ranks) of COMM_WORLD."""
+    comm = world()
+    return comm.rank, comm.size
+
+
+@contextlib.contextmanager
+def abort_on_failure():
+    """On more than one rank, an exception on any rank stops every rank (MPI_Abort with
+    the exception's exit code) instead of leaving the others waiting in a collective;
+    the file is written atomically by rank 0, so nothing partial remains."""
+    try:
+        yield
+    except BaseException as exc:
+        try:
+            comm = world()
+        except Exception:  # no MPI: nothing to stop but this process
+            raise exc from None
+        if comm.size > 1:
+            import sys
+
+            code = getattr(exc, "exit_code", 1)
+            print(f"error on rank {comm.rank} of {comm.size}: {exc}", file=sys.stderr, flush=True)
+            comm.Abort(code)
+        raise
+
+
+def check_rank_memory(space, cfg: Config, comm) -> int:
+    """Refuse, on every rank and before the assembly, a run whose ranks on one node would
+    need more than the node has (ResourceError, one line). Per rank: the serial model of
+    :mod:`pipeline._util.resources` for the whole problem (factor method), its K, M and
+    factor share divided by the rank count, plus what every rank holds (baseline, mesh,
+    the gathered mode shapes: three (n_dofs, n_modes) arrays). Returns the bytes per rank."""
+    from mpi4py import MPI
+
+    from pipeline._util import resources as res
+    from pipeline.errors import ResourceError
+
+    n_nodes, n_el, count = space.n_nodes, space.body.n_tetrahedra, cfg.modes.count
+    mesh = res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el
+    whole = res.estimate_memory_bytes(n_nodes, n_el, space.order, count, "factor",
+                                      solver="pardiso")
+    replicated = res.BASELINE_BYTES + mesh + 3 * 8.0 * space.n_dofs * count
+    per_rank = int(replicated + (whole - res.BASELINE_BYTES - mesh) / comm.size)
+    node_ranks = comm.Split_type(MPI.COMM_TYPE_SHARED).size
+    need = comm.allreduce(per_rank * node_ranks, op=MPI.MAX)
+    have = comm.allreduce(res.available_memory_bytes(), op=MPI.MIN)
+    log.info("memory estimate %.2f GB per rank, %d ranks on this node, %.2f GB available",
+             per_rank / 1e9, node_ranks, have / 1e9)
+    if need > res.HEADROOM * have:
+        raise ResourceError(
+            f"mesh with {space.n_dofs} DOFs on {comm.size} ranks needs about "
+            f"{per_rank / 1e9:.1f} GB per rank, {need / 1e9:.1f} GB for the {node_ranks} "
+            f"ranks of one node, but only {have / 1e9:.1f} GB is available; expected more "
+            "nodes (fewer ranks per node) or a larger mesh.size")
+    return per_rank
+
+
+def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
+    """Mesh (every rank, the same mesh), regions, supports, this rank's rows of K and M
+    (PETSc's slab partition), the body's mass properties (summed over the ranks)."""
+    check_supported(cfg)
+    comm = world()
+    with stage("mesh"):
+        body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh,
+                                                 mesh_dir if comm.rank == 0 else None, cfg.name)
+        space = build_space(body, cfg.mesh.order)
+        regions = resolve_regions(space, cfg.regions)
+        log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", body.n_tetrahedra,
+                 space.cell_type, space.n_nodes, space.n_dofs, comm.size)
+    check_rank_memory(space, cfg, comm)
+    with stage("assemble"):
+        fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
+        free = free_dofs(space.n_dofs, fixed)
+        part = slab_partition(space.node_points, free, comm.size)
+        rows = local_rows(space, cfg.material, free, part, comm.rank)
+        log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries", comm.rank, rows.lo,
+                 rows.hi, free.size, rows.n_elements, rows.K.nnz)
+        props = body_properties(
+            SummedMatrix(comm, local_node_mass(space, cfg.material.rho, comm.rank, comm.size)),
+            space.node_points)
+        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+    return FEModel(space=space, regions=regions, fixed=fixed, free=free,
+                   K=RowMatrix(comm, rows.K, part), M=RowMatrix(comm, rows.M, part),
+                   props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
+                   n_elements=body.n_tetrahedra)
+
+
+def compute_modes(fe: FEModel, cfg: Config) -> Modes:
+    """The ``cfg.modes.count`` lowest modes of the distributed (K, M) with SLEPc (module
+    :mod:`pipeline.distributed.eigen`), gathered, Rayleigh-Ritz-exact, labelled; the
+    factor of K kept for the static correction (factor path)."""
+    PETSc, SLEPc = petsc()
+    t0 = time.perf_counter()
+    K, M = fe.K, fe.M
+    n = K.shape[0]
+    count = cfg.modes.count
+    if count >= n:
+        raise ConfigError(f"modes.count: {count} modes of a body with {n} free DOFs; expected "
+                          f"fewer than {n}", key="modes.count", value=count,
+                          expected=f"< {n}")
+    Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
+    method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
+    near_null = None
+    if method == "multigrid":
+        rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
+        near_null = rigid_near_null_space(PETSc, Kp, fe.space.node_points[rows[::3] // 3])
+    tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
+    omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
+                                       near_null)
+    eps, ksp = stats.pop("eps"), stats.pop("ksp")
+    shapes = K.gather(local)
+    del local
+    omega2, shapes, residuals = _rayleigh_ritz(K, M, shapes, 0.0)
+    omega2 = np.maximum(omega2, 0.0)
+    comm = world()
+    stats.update(ranks=comm.size, tolerance=tolerance)
+    # the spectral transformation's solver (shift 0: its operator is K) solves the
+    # static correction's K x = F; freed with the kept factor
+    factor: Any = KspSolve(ksp, K, keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
+    modes = Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
+                  residuals=residuals, n_rigid=0, backend=BACKEND, shift=0.0,
+                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor)
+    shapes_full = full_shapes(shapes, fe.free, fe.space.n_nodes)
+    labels = label_modes(fe.space.node_points, shapes_full, 0, node_volume_weights(fe.space))
+    for f, lab in zip(modes.frequencies_hz, labels):
+        log.info("mode %-14s %12.4f Hz", lab, f)
+    import dataclasses
+
+    return dataclasses.replace(modes, shapes_full=shapes_full, labels=tuple(labels))
