@@ -140,11 +140,12 @@ def frame_axes(space: FESpace, triangles: np.ndarray, nodes: np.ndarray, frame,
     area = 0.5 * np.linalg.norm(n2, axis=1)
     outer = 0.25 * n2[:, :, None] * n2[:, None, :] / np.maximum(area, 1e-300)[:, None, None]
     tri_nodes = triangle_nodes(space, triangles)
-    pos = {int(n): i for i, n in enumerate(nodes)}
+    order = np.argsort(nodes)
     acc = np.zeros((nodes.size, 3, 3))
     for j in range(tri_nodes.shape[1]):
-        idx = np.array([pos.get(int(n), -1) for n in tri_nodes[:, j]])
-        ok = idx >= 0
+        at = np.searchsorted(nodes, tri_nodes[:, j], sorter=order).clip(max=nodes.size - 1)
+        idx = order[at]
+        ok = nodes[idx] == tri_nodes[:, j]
         np.add.at(acc, idx[ok], outer[ok])
     _, vec = np.linalg.eigh(acc)  # ascending: the normal is the last eigenvector
     return np.stack([vec[:, :, 2], vec[:, :, 1], vec[:, :, 0]], axis=1)
