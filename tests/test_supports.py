@@ -491,3 +491,14 @@ def test_weak_axial_spring_beside_radial_bearings_holds_the_axial_motion(tmp_pat
     # the body slides on the spring: f = sqrt(k / m) / (2 pi)
     f = np.sqrt(1e3 / fe.props.mass) / (2 * np.pi)
     assert abs(modes.frequencies_hz[1] / f - 1) < 1e-3
+
+
+def test_modes_count_must_exceed_the_rigid_modes(tmp_path):
+    """Asking no more modes than the supports leave rigid ones is refused before the
+    solve, naming modes.count."""
+    from pipeline.errors import ConfigError
+
+    cfg = config([{"region": "bottom", "fix": ["y"]}], size=0.02, count=3)
+    with pytest.raises(ConfigError) as info:
+        solve(cfg, tmp_path)
+    assert info.value.key == "modes.count" and "translation_x" in str(info.value)
