@@ -344,8 +344,7 @@ def penalty_bound(K: sp.spmatrix, M: sp.spmatrix, penalty: sp.spmatrix,
     C = C[keep]
     CCt = (C @ C.T).tocsc()
     V = shapes - C.T @ splu(CCt).solve(np.asarray(C @ shapes))
-    Kc = K - penalty
-    Kr, Mr = V.T @ (Kc @ V), V.T @ (M @ V)
+    Kr, Mr = V.T @ (K @ V - penalty @ V), V.T @ (M @ V)  # K less the penalty, no copy
     theta = eigh(0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T), eigvals_only=True)
     w = np.asarray(omega2, dtype=float)
     return np.where(w > 0, (theta - w) / np.where(w > 0, w, 1.0), 0.0).clip(min=0.0)
