@@ -387,7 +387,7 @@ def test_springs_too_soft_to_hold_leave_a_free_body(tmp_path):
     proc, out = run_cli(tmp_path, [{"region": "bottom",
                                     "spring": {"per_area": [1e-300, 1e-300, 1e-300]}}])
     assert proc.returncode == 0, proc.stderr
-    assert "softer than" in proc.stderr and "6 rigid-body mode(s)" in proc.stdout
+    assert "too soft to hold" in proc.stderr and "6 rigid-body mode(s)" in proc.stdout
     assert out.exists()
     # the Exudyn export's matrices (unsupported body, fixed DOFs removed) cannot carry
     # springs: refused in one line, nothing written
@@ -477,3 +477,28 @@ def test_springs_against_calculix_grounded_springs(tmp_path):
     rows = [line.split() for line in table if line.split()[:1] and line.split()[0].isdigit()]
     ccx = np.array([float(r[3]) for r in rows[:6]])
     assert np.abs(modes.frequencies_hz / ccx - 1).max() < 5e-6
+
+
+def test_weak_axial_spring_beside_radial_bearings_holds_the_axial_motion(tmp_path):
+    """Radial holds (a penalty ~1e16 N/m per node) and a weak axial spring (1e3 N/m in
+    all) are judged each on its own scale: the spring holds the axial translation, only
+    the spin is left."""
+    cfg = shaft([{"region": "band_a", "fix": ["radial"], "frame": AXIS},
+                 {"region": "band_b", "fix": ["radial"], "frame": AXIS},
+                 {"region": "band_a", "spring": {"total": [0, 0, 1e3]}, "frame": AXIS}])
+    fe, modes = solve(cfg, tmp_path)
+    assert fe.n_rigid == 1 and modes.labels[0] == "rigid_rotation_x"
+    # the body slides on the spring: f = sqrt(k / m) / (2 pi)
+    f = np.sqrt(1e3 / fe.props.mass) / (2 * np.pi)
+    assert abs(modes.frequencies_hz[1] / f - 1) < 1e-3
+
+
+def test_modes_count_must_exceed_the_rigid_modes(tmp_path):
+    """Asking no more modes than the supports leave rigid ones is refused before the
+    solve, naming modes.count."""
+    from pipeline.errors import ConfigError
+
+    cfg = config([{"region": "bottom", "fix": ["y"]}], size=0.02, count=3)
+    with pytest.raises(ConfigError) as info:
+        solve(cfg, tmp_path)
+    assert info.value.key == "modes.count" and "translation_x" in str(info.value)

@@ -32,8 +32,8 @@ from pipeline.fe.body import (BodyProperties, body_properties, properties_from_r
 from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
-from pipeline.fe.supports import (RigidFreedoms, SupportStiffness, rigid_freedoms,
-                                  support_stiffness, with_penalty)
+from pipeline.fe.supports import (SOFT_SUPPORT, RigidFreedoms, SupportStiffness,
+                                  rigid_freedoms, support_stiffness, with_penalty)
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -130,8 +130,12 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         # and restricted to a copy; else straight onto the free DOFs when the supports
         # clamp whole nodes (the full K is never built), or restricted in place
         nodes = None if cfg.connections else whole_nodes(free, space.n_nodes)
-        # springs and penalties change K after its assembly: no pattern analysis ahead
+        # springs and penalties change K after its assembly, and a body its supports
+        # leave free to move is solved with a shift: no pattern analysis of K ahead
         grounded = any(s.spring or s.bushing or s.local_fix for s in cfg.supports)
+        if not grounded and cfg.supports and rigid_freedoms(
+                space.node_points, space.node_points.mean(axis=0), fixed).count:
+            on_stiffness_pattern = None
         pattern = block_pattern(space)
         with progress("assemble", body.n_tetrahedra, "elem") as update:
             assembled = assemble_on_nodes(
@@ -159,8 +163,10 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         if grounded:
             extra = with_penalty(extra, diagonal)
             K = (K + restrict(extra.total, free)).tocsr()
-        rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.total,
-                               reference=float(np.median(diagonal[free])) if free.size else 1.0)
+        ratio = diagonal[free] / np.maximum(M.diagonal(), np.finfo(float).tiny)
+        rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.springs,
+                               extra.constraint, props.rigid_mass,
+                               SOFT_SUPPORT * float(np.median(ratio)) if free.size else 0.0)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free; %d rigid-body mode(s) left "
                  "free%s", props.mass, fixed.size, free.size, rigid.count,
                  f" ({', '.join(rigid.names)})" if 0 < rigid.count < 6 else "")

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 
 from pipeline.config import Support
@@ -66,9 +67,10 @@ MAX_BUSHING_NODES = 3000
 #: a twist is free when the conditions hold to this relative accuracy (round-off of
 #: exact zeros is ~1e-16; the weakest real constraint is far above)
 RIGID_TOL = 1e-9
-#: springs that resist a rigid motion with less than this fraction of a node's
-#: stiffness (per node moved) leave K singular to working precision: the motion is free
-SOFT_SUPPORT = 1e-10
+#: springs that hold a rigid motion at omega^2 below this fraction of the stiffness
+#: scale (median K_ii / M_ii) hold it no better than the eigensolver's rigid-mode test
+#: (1e-6 of its free-body shift, itself 1e-7 of that scale): the motion counts as free
+SOFT_SUPPORT = 1e-13
 #: names of the six unit twists, in the column order of the rigid-body modes
 TWIST_NAMES = ("translation_x", "translation_y", "translation_z",
                "rotation_x", "rotation_y", "rotation_z")
@@ -139,11 +141,12 @@ def frame_axes(space: FESpace, triangles: np.ndarray, nodes: np.ndarray, frame,
     area = 0.5 * np.linalg.norm(n2, axis=1)
     outer = 0.25 * n2[:, :, None] * n2[:, None, :] / np.maximum(area, 1e-300)[:, None, None]
     tri_nodes = triangle_nodes(space, triangles)
-    pos = {int(n): i for i, n in enumerate(nodes)}
+    order = np.argsort(nodes)
     acc = np.zeros((nodes.size, 3, 3))
     for j in range(tri_nodes.shape[1]):
-        idx = np.array([pos.get(int(n), -1) for n in tri_nodes[:, j]])
-        ok = idx >= 0
+        at = np.searchsorted(nodes, tri_nodes[:, j], sorter=order).clip(max=nodes.size - 1)
+        idx = order[at]
+        ok = nodes[idx] == tri_nodes[:, j]
         np.add.at(acc, idx[ok], outer[ok])
     _, vec = np.linalg.eigh(acc)  # ascending: the normal is the last eigenvector
     return np.stack([vec[:, :, 2], vec[:, :, 1], vec[:, :, 0]], axis=1)
@@ -260,27 +263,29 @@ def with_penalty(extra: SupportStiffness, k_diagonal: np.ndarray) -> SupportStif
     return dataclasses.replace(extra, penalty=(C.T @ sp.diags(d) @ C).tocsr())
 
 
-def _null_space(G: np.ndarray, basis: np.ndarray, floor: float = 0.0) -> np.ndarray:
+def _null_space(G: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """Orthonormal columns spanning {basis y : y^T basis^T G basis y ~ 0} (G symmetric
-    positive semi-definite; ~0: below :data:`RIGID_TOL` of its largest eigenvalue, or
-    below ``floor``)."""
+    positive semi-definite; ~0: below :data:`RIGID_TOL` of its largest eigenvalue)."""
     if basis.shape[1] == 0:
         return basis
     Gb = basis.T @ G @ basis
     lam, vec = np.linalg.eigh(0.5 * (Gb + Gb.T))
     scale = max(float(np.abs(np.linalg.eigvalsh(0.5 * (G + G.T))).max()), 1e-300)
-    return basis @ vec[:, lam <= max(RIGID_TOL * scale, floor)]
+    return basis @ vec[:, lam <= RIGID_TOL * scale]
 
 
 def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarray,
-                   stiffness: sp.spmatrix | None = None, reference: float = 0.0
-                   ) -> RigidFreedoms:
-    """The rigid-body motions that move no DOF of ``fixed`` and strain no spring of
-    ``stiffness`` ((n_dofs, n_dofs) N/m, or None), named (module docstring).
+                   springs: sp.spmatrix | None = None,
+                   constraint: sp.spmatrix | None = None, rigid_mass: np.ndarray | None = None,
+                   omega2_floor: float = 0.0) -> RigidFreedoms:
+    """The rigid-body motions that move no DOF of ``fixed``, no held local direction (the
+    rows of ``constraint``, (n_c, n_dofs)) and strain no spring of ``springs`` ((n_dofs,
+    n_dofs) N/m), named (module docstring). Each kind is judged on its own scale.
 
-    ``reference``: a node's stiffness (N/m, e.g. the median diagonal of K): springs
-    whose stiffness against a rigid motion is below :data:`SOFT_SUPPORT` of it per node
-    do not hold that motion to working precision; it counts as free (with a warning)."""
+    ``rigid_mass`` ((6, 6) R_O^T M R_O at the origin, :class:`BodyProperties`) and
+    ``omega2_floor`` (rad^2/s^2): a rigid motion that the springs hold at omega^2 below
+    the floor counts as free, with a warning (the eigensolver could not tell it from
+    0 Hz: :data:`SOFT_SUPPORT`)."""
     x = np.asarray(node_points, dtype=float)
     L = float(np.sqrt(((x - center) ** 2).sum(axis=1).mean())) or 1.0
     R = rigid_body_modes(x, center)
@@ -289,14 +294,28 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
     if fixed.size:
         A = R[fixed]
         N = _null_space(A.T @ A, N)
-    if stiffness is not None and N.shape[1]:
-        held = N.shape[1]
-        N = _null_space(R.T @ (stiffness @ R), N, SOFT_SUPPORT * reference * x.shape[0])
-        soft = N.shape[1] - _null_space(R.T @ (stiffness @ R), N).shape[1]
-        if soft:
-            log.warning("%d rigid-body motion(s) of %d left by the held components meet "
-                        "springs softer than %.0e of the body's own stiffness: treated as "
-                        "free (0 Hz)", soft, held, SOFT_SUPPORT)
+    if constraint is not None and constraint.shape[0] and N.shape[1]:
+        A = constraint @ R
+        N = _null_space(A.T @ A, N)
+    if springs is not None and N.shape[1]:
+        G = N.T @ (R.T @ (springs @ R)) @ N
+        # twist metric: the rigid mass at the centre, rotations scaled as in R
+        shift = np.eye(6)
+        shift[0:3, 3:6] = skew(np.asarray(center, dtype=float))
+        scale = np.diag([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
+        Mt = (np.eye(6) if rigid_mass is None
+              else scale @ shift.T @ np.asarray(rigid_mass) @ shift @ scale)
+        Mt = N.T @ Mt @ N
+        lam, vec = sla.eigh(0.5 * (G + G.T), 0.5 * (Mt + Mt.T))
+        # round-off of an exact zero: ~1e-16 of the stiffest spring's omega^2
+        zero = lam <= 1e-14 * max(float(np.abs(lam).max()), 1e-300)
+        free = lam <= max(omega2_floor, 0.0) if rigid_mass is not None else zero
+        if (free & ~zero).any():
+            log.warning("%d rigid-body motion(s) left by the held components meet springs "
+                        "too soft to hold them (omega^2 below %.1e rad^2/s^2, where the "
+                        "eigensolver sees 0 Hz): treated as free", int((free & ~zero).sum()),
+                        omega2_floor)
+        N, _ = np.linalg.qr(N @ vec[:, free | zero]) if (free | zero).any() else (N[:, :0], None)
     names, twists = [], []
     for _ in range(N.shape[1]):
         # the unit twist closest to the span (ties to round-off: the first in TWIST_NAMES)
@@ -336,8 +355,7 @@ def penalty_bound(K: sp.spmatrix, M: sp.spmatrix, penalty: sp.spmatrix,
     C = C[keep]
     CCt = (C @ C.T).tocsc()
     V = shapes - C.T @ splu(CCt).solve(np.asarray(C @ shapes))
-    Kc = K - penalty
-    Kr, Mr = V.T @ (Kc @ V), V.T @ (M @ V)
+    Kr, Mr = V.T @ (K @ V - penalty @ V), V.T @ (M @ V)  # K less the penalty, no copy
     theta = eigh(0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T), eigvals_only=True)
     w = np.asarray(omega2, dtype=float)
     return np.where(w > 0, (theta - w) / np.where(w > 0, w, 1.0), 0.0).clip(min=0.0)

@@ -134,8 +134,8 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     pattern started during the assembly; the factor path at shift 0 takes it; the caller
     releases what is left (its ``with`` block). ``progress``, if given, is called with
     the number of right-hand sides of every solve. ``expected_rigid``: the rigid-body
-    modes the supports leave (:func:`pipeline.fe.supports.rigid_freedoms`): the first
-    that many count as rigid when they are far below the next one.
+    modes the supports leave (:func:`pipeline.fe.supports.rigid_freedoms`, exact null
+    vectors of K): the first that many count as rigid.
 
     ``options``: the fields of :class:`pipeline.solve.plan.EigenProblem`: ``method``
     (auto, lanczos, arpack, dense, factor, multigrid), ``precision`` (double, mixed,
@@ -180,11 +180,10 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         rigid = np.zeros(w.size, dtype=bool)
         if not supported:
             rigid = np.abs(w) < 1e-6 * abs(plan.shift)
-        r = int(expected_rigid)
-        if 0 < r < w.size:
-            # the rigid modes the supports leave: zero to the round-off of a penalised K
-            # (PENALTY x its diagonal), far below the first elastic eigenvalue
-            rigid[:r] |= np.abs(w[:r]) < 1e-6 * abs(w[r])
+        # the rigid modes the supports leave are exact null vectors, so the lowest r
+        # below a negative shift; their Ritz values are zero only to the round-off of K
+        # (of a penalised K: ~eps x the penalty, far above the free body's threshold)
+        rigid[:min(int(expected_rigid), w.size)] = True
         w = np.where(rigid, 0.0, w)
         if (w < 0).any():
             raise SolverError(f"negative eigenvalue {w.min():.3e} rad^2/s^2: the stiffness "

@@ -35,7 +35,7 @@ from pipeline.config.schema import ModesConfig
 from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import FEModel
-from pipeline.errors import SolverError
+from pipeline.errors import ConfigError, SolverError
 from pipeline.solve.eigen import factor_expected, solve_modes
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
@@ -122,6 +122,10 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
     ``analysis``: a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's
     pattern started during the assembly, or None.
     """
+    if body.rigid is not None and config.count <= body.rigid.shape[1]:
+        raise ConfigError.field("modes.count", config.count,
+                                f"more than the {body.rigid.shape[1]} rigid-body mode(s) the "
+                                f"supports leave ({', '.join(body.rigid_names)})")
     modes = solve_modes(body.K, body.M, config.count, supported=body.supported,
                         backend=config.solver, tolerance=config.tolerance,
                         progress=progress, keep=keep, precision=config.precision,
