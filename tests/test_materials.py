@@ -478,13 +478,13 @@ def test_tip_mass_against_calculix(mesh_dir, tmp_path):
     printed digits (measured 1e-7)."""
     import ccx_deck
 
-    from pipeline.fe.space import surface_region
+    from pipeline.fe.space import weighted_region
 
     fe = build_fe_model(_tip_mass_config(0.5, 0.0), mesh_dir)
     space = fe.space
     L, H, Dp = TIP_BEAM["length"], TIP_BEAM["height"], TIP_BEAM["depth"]
     mass = 0.5 * ALU["rho"] * L * H * Dp
-    sr = surface_region(space, "tip", fe.regions["tip"])
+    sr = weighted_region(space, "tip", fe.regions["tip"])
     ref, n_e = space.n_nodes + 1, space.body.n_tetrahedra
     lines = [f"*NODE\n{ref}, {L!r}, {H / 2!r}, {Dp / 2!r}",
              f"*ELEMENT, TYPE=DCOUP3D, ELSET=DC\n{n_e + 1}, {ref}",

@@ -445,7 +445,7 @@ def test_springs_against_calculix_grounded_springs(tmp_path):
     frequencies within 5e-6 (CalculiX's 7 printed digits and its eigensolver)."""
     import shutil
 
-    from pipeline.fe.space import surface_region
+    from pipeline.fe.space import weighted_region
 
     if shutil.which("ccx") is None:
         pytest.skip("CalculiX (ccx) is not installed")
@@ -453,7 +453,7 @@ def test_springs_against_calculix_grounded_springs(tmp_path):
     cfg = config([{"region": "bottom", "spring": {"per_area": [k, k, k]}}], geometry=BLOCK,
                  size=0.02, order=2, count=6)
     fe, modes = solve(cfg, tmp_path)
-    region = surface_region(fe.space, "bottom", fe.regions["bottom"])
+    region = weighted_region(fe.space, "bottom", fe.regions["bottom"])
     x, elements = fe.space.node_points, fe.space.element_nodes
     lines = ["*NODE"] + [f"{i + 1}, {a:.17g}, {b:.17g}, {c:.17g}" for i, (a, b, c)
                          in enumerate(x)]

@@ -30,7 +30,7 @@ from pipeline.config.materials import AddedMass
 from pipeline.errors import RegionError
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
-from pipeline.fe.space import FESpace, surface_region
+from pipeline.fe.space import FESpace, weighted_region
 
 
 def point_rigid_mass(mass: float, inertia: Sequence[float]) -> np.ndarray:
@@ -44,7 +44,7 @@ def point_rigid_mass(mass: float, inertia: Sequence[float]) -> np.ndarray:
 
 def _distributing_map(space: FESpace, name: str, tris: np.ndarray, point, key: str):
     """(nodes (n_r,), G (6, 3 n_r)): the RBE3 fit of the region at ``point``."""
-    sr = surface_region(space, name, tris)
+    sr = weighted_region(space, name, tris)
     x = space.node_points[sr.nodes]
     c = sr.weights @ x / sr.weights.sum()
     # the fit at the weights' centroid c (its conditioning does not depend on how far the
@@ -71,7 +71,7 @@ def _area_mass(space: FESpace, tris: np.ndarray, density: float):
         cols = np.tile(tris, (1, 3)).ravel()
         vals = (density * areas[:, None] * local.ravel()[None, :]).ravel()
         return rows, cols, vals
-    sr = surface_region(space, "area", tris)  # P2: area/3 per edge midpoint, 0 per corner
+    sr = weighted_region(space, "area", tris)  # P2: area/3 per edge midpoint, 0 per corner
     return sr.nodes, sr.nodes, density * sr.weights
 
 
