@@ -509,15 +509,25 @@ def test_stress_gauges_use_the_law_of_their_elements(bimaterial):
 
     fe = bimaterial
     d = (1.0, 0.0, 0.0)
+    top = float(fe.space.node_points[:, 1].max())
     for point, law in (((0.02, 0.01, 0.01), STEEL), ((0.08, 0.01, 0.01), ALU)):
-        for radius in (0.0, 0.008):
-            got = gauge_row(fe.space, fe.materials, "stress", d, point=point, radius=radius)
-            want = gauge_row(fe.space, Material(**law), "stress", d, point=point, radius=radius)
+        for radius in (0.0, 0.008):  # at the point; the volume mean around it
+            got = gauge_row(fe.space, fe.materials, "stress", d, point=point, radius=radius,
+                            average="volume")
+            want = gauge_row(fe.space, Material(**law), "stress", d, point=point,
+                             radius=radius, average="volume")
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * abs(want).max())
+        # a foil grid on the top surface, inside one material
+        surface = (point[0], top, point[2])
+        got = gauge_row(fe.space, fe.materials, "stress", d, point=surface, length=0.006,
+                        width=0.003)
+        want = gauge_row(fe.space, Material(**law), "stress", d, point=surface,
+                         length=0.006, width=0.003)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * abs(want).max())
     both = gauge_row(fe.space, fe.materials, "stress", d, point=(0.05, 0.01, 0.01),
-                     radius=0.02)
+                     radius=0.02, average="volume")
     only_steel = gauge_row(fe.space, Material(**STEEL), "stress", d, point=(0.05, 0.01, 0.01),
-                           radius=0.02)
+                           radius=0.02, average="volume")
     assert not np.allclose(both, only_steel)
 
 

@@ -146,29 +146,48 @@ def element_sizes(cfg: Config) -> tuple[float, float]:
     return max(0.5 * cfg.mesh.size, MIN_ELEMENT_M), MAX_EXTENT_M
 
 
+def _laws(cfg: Config):
+    """(key, smallest modulus, largest modulus, rho, nu or None) of every material law of
+    the config: the default ``material`` and each ``materials`` entry (orthotropic: its
+    Young's and shear moduli; anisotropic: the diagonal of its stiffness)."""
+    if cfg.material is not None:
+        m = cfg.material
+        yield "material", m.E, m.E, m.rho, m.nu
+    for i, entry in enumerate(cfg.materials):
+        key = f"materials[{i}]"
+        if entry.kind == "isotropic":
+            yield key, entry.E, entry.E, entry.rho, entry.nu
+        elif entry.kind == "anisotropic":
+            diagonal = [abs(entry.stiffness[k][k]) for k in range(6)]
+            yield key, min(diagonal), max(diagonal), entry.rho, None
+        else:
+            moduli = tuple(entry.moduli or ()) + tuple(entry.shear or ())
+            yield key, min(moduli), max(moduli), entry.rho, None
+
+
 def _check_material(cfg: Config) -> None:
-    mat = cfg.material
     h_min, h_max = element_sizes(cfg)
     lo, hi = FLOAT_FLOOR, FLOAT_CEILING
     why = (f"so that stiffness (E h), mass (rho h^3) and omega^2 = E / (rho h^2) stay within "
            f"[{lo:g}, {hi:g}] for element sizes h of {h_min:g} to {h_max:g} m (their squares "
            "must be normal doubles)")
-    if mat.E * h_min < lo:
-        _refuse("material.E", mat.E, f"at least {lo / h_min:.3g} Pa", why)
-    if mat.rho * h_min ** 3 < lo:
-        _refuse("material.rho", mat.rho, f"at least {lo / h_min ** 3:.3g} kg/m^3", why)
-    ratio = mat.E / mat.rho
-    if ratio / h_min ** 2 > hi:
-        _refuse("material.E", mat.E, f"E / rho at most {hi * h_min ** 2:.3g} m^2/s^2 (here "
-                f"rho = {mat.rho:g} kg/m^3: E at most {hi * h_min ** 2 * mat.rho:.3g} Pa)", why)
-    if ratio / h_max ** 2 < lo:
-        _refuse("material.E", mat.E, f"E / rho at least {lo * h_max ** 2:.3g} m^2/s^2 (here "
-                f"rho = {mat.rho:g} kg/m^3: E at least {lo * h_max ** 2 * mat.rho:.3g} Pa)", why)
-    if mat.nu > MAX_NU:
-        _refuse("material.nu", mat.nu, f"at most {MAX_NU:.9f}", "(lambda / mu = "
-                f"{2 * mat.nu / (1 - 2 * mat.nu):.3g} above {MAX_LAMBDA_OVER_MU:g}: the shear "
-                "stiffness is lost in the roundoff of the volumetric stiffness; a truly "
-                "incompressible solid needs a mixed formulation this pipeline does not have)")
+    for key, E_low, E_high, rho, nu in _laws(cfg):
+        if E_low * h_min < lo:
+            _refuse(f"{key}.E", E_low, f"at least {lo / h_min:.3g} Pa", why)
+        if rho * h_min ** 3 < lo:
+            _refuse(f"{key}.rho", rho, f"at least {lo / h_min ** 3:.3g} kg/m^3", why)
+        if E_high / rho / h_min ** 2 > hi:
+            _refuse(f"{key}.E", E_high, f"E / rho at most {hi * h_min ** 2:.3g} m^2/s^2 (here "
+                    f"rho = {rho:g} kg/m^3: E at most {hi * h_min ** 2 * rho:.3g} Pa)", why)
+        if E_low / rho / h_max ** 2 < lo:
+            _refuse(f"{key}.E", E_low, f"E / rho at least {lo * h_max ** 2:.3g} m^2/s^2 (here "
+                    f"rho = {rho:g} kg/m^3: E at least {lo * h_max ** 2 * rho:.3g} Pa)", why)
+        if nu is not None and nu > MAX_NU:
+            _refuse(f"{key}.nu", nu, f"at most {MAX_NU:.9f}", "(lambda / mu = "
+                    f"{2 * nu / (1 - 2 * nu):.3g} above {MAX_LAMBDA_OVER_MU:g}: the shear "
+                    "stiffness is lost in the roundoff of the volumetric stiffness; a truly "
+                    "incompressible solid needs a mixed formulation this pipeline does not "
+                    "have)")
 
 
 def _check_filter(cfg: Config) -> None:
