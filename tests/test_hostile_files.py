@@ -80,6 +80,17 @@ def test_scenario_and_batch_files_through_a_pipe(tmp_path):
     assert "batch 'piped'" in proc.stdout and "1 valid cases" in proc.stdout, proc.stdout
 
 
+def test_dev_and_proc_paths_count_as_streams(tmp_path):
+    """``run /dev/stdin < cfg.yaml`` gives a regular file under /dev: still no folder of
+    its own for relative paths; a config file in a folder keeps its folder."""
+    from pipeline._util.yamlio import is_stream
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("name: x\n")
+    assert is_stream("/dev/stdin") and is_stream("/proc/self/fd/0")
+    assert not is_stream(cfg) and not is_stream(tmp_path / "missing.yaml")
+
+
 def test_a_piped_config_is_bounded_like_a_file(tmp_path):
     """An endless writer is refused at the size limit of files (4 MiB), in one line."""
     proc = _sh(f"yes '# padding' | {PY} -m pipeline run /dev/stdin -o x.h5", tmp_path)
