@@ -80,6 +80,17 @@ def test_scenario_and_batch_files_through_a_pipe(tmp_path):
     assert "batch 'piped'" in proc.stdout and "1 valid cases" in proc.stdout, proc.stdout
 
 
+def test_dev_and_proc_paths_count_as_streams(tmp_path):
+    """``run /dev/stdin < cfg.yaml`` gives a regular file under /dev: still no folder of
+    its own for relative paths; a config file in a folder keeps its folder."""
+    from pipeline._util.yamlio import is_stream
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("name: x\n")
+    assert is_stream("/dev/stdin") and is_stream("/proc/self/fd/0")
+    assert not is_stream(cfg) and not is_stream(tmp_path / "missing.yaml")
+
+
 def test_a_piped_config_is_bounded_like_a_file(tmp_path):
     """An endless writer is refused at the size limit of files (4 MiB), in one line."""
     proc = _sh(f"yes '# padding' | {PY} -m pipeline run /dev/stdin -o x.h5", tmp_path)
@@ -284,3 +295,36 @@ def test_resigned_fe_and_craig_bampton_matrices_are_checked(with_fe, tmp_path, e
         with pytest.raises(FileFormatError) as info:
             reader(bad)
         assert re.search(pattern, str(info.value)), str(info.value)
+
+
+# --------------------------------------------------------------------------- user mesh files
+@pytest.mark.parametrize("damage", ["index_past_nodes", "nan_coordinate"])
+def test_damaged_user_mesh_file_is_refused_in_one_line(good, tmp_path, damage):
+    """A mesh file whose cells index past its node table, or whose used node has a NaN
+    coordinate (on main: an IndexError traceback): exit code 3, one line naming the file,
+    nothing written."""
+    import meshio
+
+    from pipeline.errors import MeshError
+    from pipeline.store.read import read_stored_mesh
+
+    stored = read_stored_mesh(good)
+    points, tets = stored.points.copy(), stored.cells[:, :4].copy()
+    if damage == "index_past_nodes":
+        tets[0, 0] = points.shape[0] + 3
+    else:
+        points[tets[0, 0]] = [np.nan, 0.0, 0.0]
+    mesh = tmp_path / "body.vtu"
+    meshio.write(mesh, meshio.Mesh(points, [("tetra", tets)]))
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "-q", "run", str(ROOT / "configs/cantilever.yaml"),
+         "--set", f"geometry={{kind: mesh, path: {mesh}}}", "--set", "lumped=null",
+         "--set", "supports=[]", "--set", "ports={}", "--set", "reduction=null",
+         "--set", "mesh.size=0.02", "-o", str(out / "x.h5"), "--mesh-dir", str(out / "m")],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == MeshError.exit_code, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"mesh file '{mesh}'" in lines[0], proc.stderr[-2000:]
+    assert [p for p in out.rglob("*") if not p.is_dir()] == []

@@ -66,11 +66,14 @@ def _readable_kind(mode: int) -> bool:
 
 
 def is_stream(path: str | Path) -> bool:
-    """Whether ``path`` is a pipe or device rather than a file in a folder (a config read
-    from ``<(...)`` or ``/dev/stdin``: its relative paths resolve against the current
-    directory, as the folder it names, /dev/fd, holds no input files)."""
+    """Whether ``path`` is a pipe or device rather than a file in a folder: not a regular
+    file, or named under /dev or /proc (``<(...)`` is /dev/fd/63; ``/dev/stdin`` is a
+    regular file when the shell redirects one into it). A config read so resolves its
+    relative paths against the current directory: the folder it names holds no inputs."""
     import stat
 
+    if str(path).startswith(("/dev/", "/proc/")):
+        return True
     try:
         return not stat.S_ISREG(Path(path).stat().st_mode)
     except (OSError, ValueError):

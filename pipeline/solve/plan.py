@@ -56,6 +56,8 @@ DENSE_FRACTION = 0.1
 def dense_wanted(n: int, count: int) -> bool:
     """Whether ``auto`` solves ``count`` modes of ``n`` free DOFs with a dense eigh."""
     return n <= DENSE_MAX or (n <= DENSE_WIDE_MAX and count > DENSE_FRACTION * n)
+
+
 # under method auto: the two-grid trial is given up for the factor path as soon as it
 # projects more sweeps than this (5 times the cantilever's 8). At 1M DOFs the two paths
 # break even near 22 sweeps; 40 lets a body that converges steadily but slowly

@@ -248,19 +248,25 @@ def exact_reference(mf: ModelFile, sc: Scenario, inp: str, port: str, mass: floa
 
 
 def check_against_model(mf: ModelFile, sc: Scenario) -> None:
-    """Ports, directions, filtered model and mount geometry of ``sc`` against the file
-    (the same checks the run makes, done up front)."""
+    """Ports, directions, filtered model, mount geometry and the integrator's step budget
+    of every FE run of ``sc`` against the file (the same checks the run makes, done up
+    front, so that nothing runs when one would be refused)."""
     inp, port = scenario_ports(mf, sc)
     if sc.kind == "step_load":  # the plant is the stepped system: its budget, up front
         check_step_budget(mf.plant.A, sc.duration, sc.integrator.method, sc.name,
                           rtol=sc.integrator.rtol)
         return
-    _, d_out, _ = directions(mf, sc, inp, port)
-    if sc.loop == "filtered":
-        filtered_for(mf, sc, [])
+    _, d_out, s_io = directions(mf, sc, inp, port)
+    em = filtered_for(mf, sc, []) if sc.loop == "filtered" else mf.plant
+    mount = None
     if sc.kind == "spring_mount":
         g = np.zeros(3) if sc.gravity is None else np.asarray(sc.gravity, float)
-        mount_for(mf, sc, "fe", port, d_out, g)
+        mount, _ = mount_for(mf, sc, "fe", port, d_out, g)
+    # every coupled FE system's step budget (at the full duration), before any run
+    for mass in sc.masses if sc.kind == "mass_sweep" else (sc.mass,):
+        sys, _ = coupled_system(em, inp, port, mass, s_io, sc.loop != "filtered", mount)
+        check_step_budget(sys.A, sc.duration, sc.integrator.method, sc.name,
+                          rtol=sc.integrator.rtol)
 
 
 def run_scenario(mf: ModelFile, sc: Scenario) -> ScenarioResult:

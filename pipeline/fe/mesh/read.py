@@ -22,6 +22,7 @@ import numpy as np
 from pipeline._util.paths import check_name
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError
+from pipeline.fe.mesh.integrity import check_nodes
 from pipeline.fe.mesh.common import (TET_TYPES, VOLUME_TYPES, BodyMesh, check_dimensions,
                                      z_order)
 from pipeline.fe.mesh.registry import SOURCES
@@ -92,6 +93,7 @@ def read_mesh(path: str | Path) -> BodyMesh:
                         "expected tetra or tetra10 volume cells")
     tets = np.concatenate([b.data[:, :4] for _, b in tet_blocks]).astype(np.int64)
     used = np.unique(tets)
+    check_nodes(used, mesh.points, path)  # indices inside the node table, finite points
     used = used[z_order(mesh.points[used, :3])]  # locality: see the docstring
     renumber = np.full(mesh.points.shape[0], -1, dtype=np.int64)
     renumber[used] = np.arange(used.size)
