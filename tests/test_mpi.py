@@ -97,17 +97,38 @@ def _run(argv, tmp_path, **kw):
     return proc
 
 
-@pytest.mark.mpi
-def test_two_ranks_give_the_single_process_file(tmp_path):
+def _mpiexec() -> list[str]:
     mpiexec = shutil.which("mpiexec")
     if mpiexec is None or not MPI_PYTHON.exists() or not _has_petsc(MPI_PYTHON):
         pytest.skip("no MPI environment (make mpi-env)")
+    root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
+    return [mpiexec, *root, "--oversubscribe", "-n", "2", "-x", "PYTHONPATH"]
+
+
+@pytest.mark.mpi
+def test_a_failing_rank_stops_all_in_one_line_and_writes_nothing(tmp_path):
+    out = tmp_path / "x.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1",
+           "PETSC_OPTIONS": "-st_pc_factor_mat_solver_type nosuchsolver"}
+    proc = subprocess.run([*_mpiexec(), "-x", "PETSC_OPTIONS", str(MPI_PYTHON), "-m",
+                           "pipeline", "run", "configs/cantilever.yaml", "--set",
+                           "modes.solver=slepc", "--set", "mesh.size=0.03", "-o", str(out)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 5, proc.stderr[-2000:]
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("error on rank")]
+    assert lines and all("nosuchsolver" in line and len(line) < 600 for line in lines), lines
+    assert not out.exists()
+
+
+@pytest.mark.mpi
+def test_two_ranks_give_the_single_process_file(tmp_path):
+    mpiexec = _mpiexec()
     args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", "mesh.size=0.01"]
     serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
     _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
-    _run([mpiexec, *root, "--oversubscribe", "-n", "2", "-x", "PYTHONPATH", str(MPI_PYTHON),
-          *args, "--set", "modes.solver=slepc", "-o", str(dist)], tmp_path, timeout=600)
+    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o", str(dist)],
+         tmp_path, timeout=600)
     with h5py.File(serial) as a, h5py.File(dist) as b:
         assert b["run"].attrs["solver"] == "slepc" and b["run"].attrs["ranks"] == 2
         fa, fb = a["modes/frequencies_hz"][()], b["modes/frequencies_hz"][()]

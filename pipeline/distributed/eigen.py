@@ -21,6 +21,8 @@ overrides the choices made here.
 from __future__ import annotations
 
 import logging
+import os
+import re
 
 import numpy as np
 
@@ -95,13 +97,17 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
         solver = "krylovschur-mumps"
-    eps.setFromOptions()
     try:
+        eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
     except PETSc.Error as exc:
-        raise SolverError(f"modes.solver: slepc: SLEPc failed ({exc}); expected a solvable "
-                          "eigenproblem", key="modes.solver", value="slepc",
-                          expected="a solvable eigenproblem") from None
+        # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
+        # the last frame says what went wrong
+        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+        raise SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
+                          "solvable eigenproblem and options PETSc has (PETSC_OPTIONS: "
+                          f"{os.environ.get('PETSC_OPTIONS', '')!r})", key="modes.solver",
+                          value="slepc", expected="a solvable eigenproblem") from None
     nconv = eps.getConverged()
     if nconv < count:
         raise SolverError(f"modes.count: SLEPc ({solver}) converged {nconv} of {count} modes "
