@@ -153,3 +153,26 @@ def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
                 np.nanmax(np.abs(x)) if x.size else 0.0)
             np.testing.assert_allclose(y, x, rtol=0, atol=DATASET_TOL * scale,
                                        equal_nan=True, err_msg=name)
+
+
+@pytest.mark.mpi
+def test_free_body_on_two_ranks(tmp_path):
+    """A free body: SLEPc at the serial path's negative shift finds the six rigid-body
+    modes (frequency 0, labelled rigid) and the same elastic modes. The rigid shapes span
+    the same subspace but are any basis of it (either path), so only the elastic shapes
+    are compared."""
+    mpiexec = _mpiexec()
+    args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", "mesh.size=0.03",
+            "--set", "supports=[]", "--set", "reduction.static_correction=none",
+            "--set", "lumped=null"]
+    serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
+    _run([sys.executable, *args, "-o", str(serial)], tmp_path)
+    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o", str(dist)],
+         tmp_path, timeout=600)
+    with h5py.File(serial) as a, h5py.File(dist) as b:
+        assert a["modes"].attrs["n_rigid"] == b["modes"].attrs["n_rigid"] == 6
+        np.testing.assert_allclose(b["modes/frequencies_hz"][()], a["modes/frequencies_hz"][()],
+                                   rtol=FREQUENCY_TOL, atol=0)
+        x, y = a["modes/shapes"][()][..., 6:], b["modes/shapes"][()][..., 6:]
+        np.testing.assert_allclose(y, x, rtol=0, atol=DATASET_TOL * np.abs(x).max())
+        assert list(a["modes/labels"][()]) == list(b["modes/labels"][()])
