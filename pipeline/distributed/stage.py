@@ -12,6 +12,7 @@ writer use (8 n_free n_modes bytes: 160 MB for 1M free DOFs and 20 modes).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -26,6 +27,7 @@ from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solv
 from pipeline.distributed.mpi import petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
 from pipeline.distributed.partition import slab_partition
+from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.body import body_properties, node_volume_weights
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
@@ -159,7 +161,9 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
     method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
     near_null = None
-    if method == "multigrid":
+    if method == "multigrid" and whole_nodes(fe.free, fe.space.n_nodes) is not None:
+        # whole points on every rank (the partition keeps them): their coordinates give
+        # GAMG the rigid-body modes; otherwise GAMG runs without (slower, still right)
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
         near_null = rigid_near_null_space(PETSc, Kp, fe.space.node_points[rows[::3] // 3])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
@@ -194,6 +198,4 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
                          node_volume_weights(fe.space))
     for f, lab in zip(modes.frequencies_hz, labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
-    import dataclasses
-
     return dataclasses.replace(modes, shapes_full=shapes_full, labels=tuple(labels))
