@@ -1,8 +1,9 @@
 """The lowest modes of K phi = omega^2 M phi with SLEPc on distributed K and M.
 
 Factor path (``modes.method: factor`` or ``auto``): Krylov-Schur on the shift-and-invert
-operator (K - sigma M)^-1 M with sigma = 0 (a supported body), the solves by MUMPS'
-distributed Cholesky factor of K (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
+operator (K - sigma M)^-1 M with sigma = 0 (a supported body; a free body's sigma is
+below zero, :func:`pipeline.solve.eigen.default_shift`), the solves by MUMPS'
+distributed Cholesky factor of K - sigma M (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
 Factor-free path (``modes.method: multigrid``): the same Krylov-Schur iteration with
 inexact shift-invert, each solve with K by conjugate gradients preconditioned by PETSc's
 algebraic multigrid (GAMG) with the six rigid-body modes as its near-null space
@@ -21,6 +22,8 @@ overrides the choices made here.
 from __future__ import annotations
 
 import logging
+import os
+import re
 
 import numpy as np
 
@@ -63,9 +66,10 @@ def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
-                near_null=None) -> tuple[np.ndarray, np.ndarray, dict]:
+                near_null=None, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
-    (n_loc, count), stats) of the PETSc pair (K, M). ``method``: ``factor`` or
+    (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
+    below zero for a free body, whose K is singular). ``method``: ``factor`` or
     ``multigrid`` (see the module); ``near_null``: PETSc NullSpace for GAMG."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
     eps.setOperators(K, M)
@@ -76,10 +80,10 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
     ksp = st.getKSP()
     pc = ksp.getPC()
     eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
-    eps.setTarget(0.0)
+    eps.setTarget(shift)
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     st.setType(SLEPc.ST.Type.SINVERT)
-    st.setShift(0.0)
+    st.setShift(shift)
     if method == "multigrid":
         # K x = b by conjugate gradients on GAMG, to well below the eigen tolerance (the
         # Krylov-Schur recurrence assumes exact solves: 1e-12 relative keeps the modes'
@@ -95,13 +99,17 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
         solver = "krylovschur-mumps"
-    eps.setFromOptions()
     try:
+        eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
     except PETSc.Error as exc:
-        raise SolverError(f"modes.solver: slepc: SLEPc failed ({exc}); expected a solvable "
-                          "eigenproblem", key="modes.solver", value="slepc",
-                          expected="a solvable eigenproblem") from None
+        # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
+        # the last frame says what went wrong
+        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+        raise SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
+                          "solvable eigenproblem and options PETSc has (PETSC_OPTIONS: "
+                          f"{os.environ.get('PETSC_OPTIONS', '')!r})", key="modes.solver",
+                          value="slepc", expected="a solvable eigenproblem") from None
     nconv = eps.getConverged()
     if nconv < count:
         raise SolverError(f"modes.count: SLEPc ({solver}) converged {nconv} of {count} modes "

@@ -12,6 +12,7 @@ writer use (8 n_free n_modes bytes: 160 MB for 1M free DOFs and 20 modes).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -26,12 +27,13 @@ from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solv
 from pipeline.distributed.mpi import petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
 from pipeline.distributed.partition import slab_partition
+from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.body import body_properties, node_volume_weights
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
-from pipeline.solve.eigen import _rayleigh_ritz
+from pipeline.solve.eigen import _rayleigh_ritz, default_shift
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
 from pipeline.solve.stage import full_shapes
@@ -44,11 +46,6 @@ BACKEND = "slepc"
 
 def check_supported(cfg: Config) -> None:
     """One line for what the distributed path does not do yet (before any work)."""
-    if not cfg.supports:
-        raise ConfigError("supports: [] with modes.solver: slepc: a free body (rigid-body "
-                          "modes) is not distributed yet; expected supports, or another "
-                          "modes.solver", key="supports", value=[],
-                          expected="at least one support with modes.solver: slepc")
     if cfg.connections:
         raise ConfigError("connections with modes.solver: slepc: connection models need the "
                           "unsupported K on one process; expected no connections, or another "
@@ -164,29 +161,41 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
     method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
     near_null = None
-    if method == "multigrid":
+    if method == "multigrid" and whole_nodes(fe.free, fe.space.n_nodes) is not None:
+        # whole points on every rank (the partition keeps them): their coordinates give
+        # GAMG the rigid-body modes; otherwise GAMG runs without (slower, still right)
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
         near_null = rigid_near_null_space(PETSc, Kp, fe.space.node_points[rows[::3] // 3])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
+    supported = bool(cfg.supports)
+    shift = default_shift(K, M, supported)
     omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
-                                       near_null)
+                                       near_null, shift)
     eps, ksp = stats.pop("eps"), stats.pop("ksp")
     shapes = K.gather(local)
     del local
-    omega2, shapes, residuals = _rayleigh_ritz(K, M, shapes, 0.0)
-    omega2 = np.maximum(omega2, 0.0)
+    omega2, shapes, residuals = _rayleigh_ritz(K, M, shapes, shift)
+    # a free body's rigid-body modes: zero to round-off of the shift (as the serial path)
+    rigid = np.zeros(omega2.size, dtype=bool) if supported else \
+        np.abs(omega2) < 1e-6 * abs(shift)
+    omega2 = np.maximum(np.where(rigid, 0.0, omega2), 0.0)
     comm = world()
     stats.update(ranks=comm.size, tolerance=tolerance)
-    # the spectral transformation's solver (shift 0: its operator is K) solves the
-    # static correction's K x = F; freed with the kept factor
-    factor: Any = KspSolve(ksp, K, keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
+    owned = [eps, Kp, Mp] + ([near_null] if near_null else [])
+    if supported:
+        # the spectral transformation's solver (shift 0: its operator is K) solves the
+        # static correction's K x = F; freed with the kept factor
+        factor: Any = KspSolve(ksp, K, keep=owned)
+    else:  # its operator is K - sigma M, not K
+        factor = None
+        for obj in owned:
+            obj.destroy()
     modes = Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
-                  residuals=residuals, n_rigid=0, backend=BACKEND, shift=0.0,
+                  residuals=residuals, n_rigid=int(rigid.sum()), backend=BACKEND, shift=shift,
                   seconds=time.perf_counter() - t0, stats=stats, factorization=factor)
     shapes_full = full_shapes(shapes, fe.free, fe.space.n_nodes)
-    labels = label_modes(fe.space.node_points, shapes_full, 0, node_volume_weights(fe.space))
+    labels = label_modes(fe.space.node_points, shapes_full, modes.n_rigid,
+                         node_volume_weights(fe.space))
     for f, lab in zip(modes.frequencies_hz, labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
-    import dataclasses
-
     return dataclasses.replace(modes, shapes_full=shapes_full, labels=tuple(labels))
