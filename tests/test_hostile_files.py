@@ -322,7 +322,7 @@ def test_damaged_user_mesh_file_is_refused_in_one_line(good, tmp_path, damage):
         [sys.executable, "-m", "pipeline", "-q", "run", str(ROOT / "configs/cantilever.yaml"),
          "--set", f"geometry={{kind: mesh, path: {mesh}}}", "--set", "lumped=null",
          "--set", "supports=[]", "--set", "ports={}", "--set", "reduction=null",
-         "--set", "mesh.size=0.02", "-o", str(out / "x.h5"), "--mesh-dir", str(out / "m")],
+         "--set", "mesh={order: 2}", "-o", str(out / "x.h5"), "--mesh-dir", str(out / "m")],
         cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == MeshError.exit_code, proc.stderr[-2000:]
     lines = proc.stderr.strip().splitlines()
