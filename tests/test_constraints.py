@@ -60,25 +60,31 @@ def test_static_solve_through_T_against_an_independent_null_space(tmp_path):
     assert np.abs(C @ X).max() <= 1e-12 * np.abs(X).max()
 
 
+def run_reduced_cli(raw: dict, tmp_path) -> str:
+    """``raw`` with a y force and displacement port on the tip face and a residual static
+    correction, run by `python -m pipeline run`: asserts exit 0, returns the log."""
+    import yaml
+
+    raw = dict(raw, reduction={"modes": 4, "static_correction": "residual"},
+               ports={"inputs": [{"name": "F", "kind": "force", "region": "tip",
+                                  "direction": [0, 1, 0]}],
+                      "outputs": [{"name": "u", "kind": "displacement", "region": "tip",
+                                   "direction": [0, 1, 0]}]})
+    path = tmp_path / "reduced.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o",
+                           str(tmp_path / "reduced.h5")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout + proc.stderr
+
+
 def test_cli_reduced_model_with_a_radial_hold(tmp_path):
     """`python -m pipeline run`: a force port at the free end of the shaft, static
     correction on: exit 0, and the summary states the exact hold."""
-    import yaml
-
     raw = {"name": "held", "geometry": {"kind": "box", "length": SHAFT[0],
                                         "height": SHAFT[1], "depth": SHAFT[2]},
            "mesh": {"order": 1, "size": 0.01}, "material": STEEL, "modes": {"count": 6},
            "supports": [{"region": "band_a", "fix": "all"},
                         {"region": "band_b", "fix": ["radial"], "frame": AXIS}],
            "regions": BANDS}
-    raw["ports"] = {"inputs": [{"name": "F", "kind": "force", "region": "tip",
-                                "direction": [0, 1, 0]}],
-                    "outputs": [{"name": "u", "kind": "displacement", "region": "tip",
-                                 "direction": [0, 1, 0]}]}
-    raw["reduction"] = {"modes": 4, "static_correction": "residual"}
-    path = tmp_path / "held.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o",
-                           str(tmp_path / "held.h5")], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "held exactly" in proc.stdout + proc.stderr
+    assert "held exactly" in run_reduced_cli(raw, tmp_path)

@@ -26,7 +26,7 @@ from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
 from pipeline.fe.ports import check_gauges
-from pipeline.fe.added_mass import added_mass_matrix
+from pipeline.fe.added_mass import added_mass_matrix, rigid_couplings
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
                               rigid_body_modes)
 from pipeline.fe.materials import ElementMaterials, config_materials
@@ -34,7 +34,7 @@ from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (SOFT_SUPPORT, RigidFreedoms, SupportStiffness,
                                   rigid_freedoms, support_stiffness)
-from pipeline.fe.constraints import Constraint, local_frame_constraint
+from pipeline.fe.constraints import Constraint, build_constraint
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -131,6 +131,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
+        constraint = _constraint(space, regions, cfg, free, extra)  # refusals: before K
         # connection-point models need the unsupported body: then K is assembled whole
         # and restricted to a copy; else straight onto the free DOFs when the supports
         # clamp whole nodes (the full K is never built), or restricted in place
@@ -138,6 +139,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         # springs and held local directions change K after its assembly, and a body its supports
         # leave free to move is solved with a shift: no pattern analysis of K ahead
         grounded = any(s.spring or s.bushing or s.local_fix for s in cfg.supports)
+        # a constraint u = T q: the factorised matrix is T^T K T, not K's pattern
+        grounded = grounded or any(m.kind == "point" and m.coupling == "rigid"
+                                   for m in cfg.masses)
         if not grounded and cfg.supports and rigid_freedoms(
                 space.node_points, space.node_points.mean(axis=0), fixed).count:
             on_stiffness_pattern = None
@@ -167,8 +171,6 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         diagonal[free] = K.diagonal()
         if extra.springs is not None:
             K = (K + restrict(extra.springs, free)).tocsr()
-        constraint = None if extra.constraint is None else local_frame_constraint(
-            extra.constraint, free, "local-frame supports")
         ratio = diagonal[free] / np.maximum(M.diagonal(), np.finfo(float).tiny)
         rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.springs,
                                extra.constraint, props.rigid_mass,
@@ -180,6 +182,20 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
                    K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra,
                    materials=materials, constraint=constraint)
+
+
+def _constraint(space: FESpace, regions, cfg: Config, free: np.ndarray,
+                extra: SupportStiffness) -> Constraint | None:
+    """u = T q of the components held in a local frame and the rigid couplings of added
+    masses (:mod:`pipeline.fe.constraints`), or None when there are none."""
+    held = None if extra.constraint is None else \
+        (3 * (extra.constraint.indices // 3)[:, None] + np.arange(3)).ravel()
+    rigid = rigid_couplings(space, regions, cfg.masses, free, held)
+    if extra.constraint is None and not rigid:
+        return None
+    what = " and ".join(w for w, on in (("local-frame supports", extra.constraint is not None),
+                                         (f"{len(rigid)} rigid mass coupling(s)", rigid)) if on)
+    return build_constraint(free, space.n_dofs, extra.constraint, rigid, what)
 
 
 def nodes_dofs(nodes: np.ndarray) -> np.ndarray:

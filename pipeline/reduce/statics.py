@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.blas import scaled_inf_norm
+from pipeline.solve.blas import constraint_coordinates, scaled_inf_norm
 from pipeline.solve.factorization import factorize as factorize_matrix
 from pipeline.solve.refine import BACKWARD_ERROR_TOL, refined_solve
 from pipeline.solve.thresholds import SINGULAR_COND_EPS
@@ -155,7 +155,7 @@ def relief_shapes(K, M, F, rigid: np.ndarray, shift: float, factorize=None,
     if constraint is not None:
         T = constraint
         Xq = relief_shapes((T.T @ (K @ T)).tocsr(), (T.T @ (M @ T)).tocsr(), T.T @ Fd,
-                           np.asarray(T.T @ R), shift, factorize)
+                           constraint_coordinates(T, R), shift, factorize)
         return np.asarray(T @ Xq, dtype=float)
     Fe = Fd - M @ (R @ (R.T @ Fd))
     solve = _solver(sp.csr_matrix(K - shift * M), None, factorize)

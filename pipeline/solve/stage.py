@@ -36,6 +36,7 @@ from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import FEModel
 from pipeline.errors import ConfigError, SolverError
+from pipeline.solve.blas import constraint_coordinates
 from pipeline.solve.eigen import factor_expected, solve_modes
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
@@ -61,7 +62,7 @@ class ModesInput:
     or None: they replace the eigensolver's zero-frequency modes, M-orthonormalised, and
     name them.
     constraint: (n_free, n_q) T of an exact constraint u = T q
-    (:mod:`pipeline.fe.constraints`, orthonormal columns), or None: the eigensolver then
+    (:mod:`pipeline.fe.constraints`), or None: the eigensolver then
     runs on T^T K T, T^T M T and the shapes are mapped back, phi = T psi.
     """
 
@@ -134,7 +135,7 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
     K, M, rigid, coarse, T = body.K, body.M, body.rigid, body.coarse, body.constraint
     if T is not None:  # u = T q: an ordinary SPD pencil on q (pipeline.fe.constraints)
         K, M = (T.T @ (K @ T)).tocsr(), (T.T @ (M @ T)).tocsr()
-        rigid = None if rigid is None else np.asarray(T.T @ rigid)
+        rigid = None if rigid is None else constraint_coordinates(T, rigid)
         coarse = None if coarse is None else (T.T @ coarse).tocsr()
     modes = solve_modes(K, M, config.count, supported=body.supported,
                         backend=config.solver, tolerance=config.tolerance,
