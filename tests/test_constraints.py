@@ -8,7 +8,10 @@ Checks and their tolerances:
   direct solves of one SPD system, equal to the round-off of cond(K_q) eps (~1e-10 on this
   P1 shaft), bounded by 1e-8; the held components of X are zero to round-off;
 - the command line end to end with a reduced model and a residual static correction
-  (which runs the static solve through T): exit 0, the summary states the exact hold.
+  (which runs the static solve through T): exit 0, the summary states the exact hold;
+- a spinning shaft under the radial hold: the reduced prestressed frequencies against the
+  full FE sweep on T^T K T (1e-3, the issue's 1 % requirement; measured 1.3e-4);
+- the distributed path refuses what it does not build (one line, the key).
 """
 
 from __future__ import annotations
@@ -88,3 +91,47 @@ def test_cli_reduced_model_with_a_radial_hold(tmp_path):
                         {"region": "band_b", "fix": ["radial"], "frame": AXIS}],
            "regions": BANDS}
     assert "held exactly" in run_reduced_cli(raw, tmp_path)
+
+
+def test_spinning_shaft_with_a_radial_hold(tmp_path):
+    """The shaft clamped on one band, held radially on the other, spinning about its own
+    axis: the prestress static solve and the full FE sweep run on T^T K T; the reduced
+    model (6 modes) follows the full prestressed frequencies within 1e-3 (the issue's 1 %
+    requirement; measured 1.3e-4 at 6000 rad/s) and the speed moves them."""
+    from pipeline.config import config_from_dict
+    from pipeline.run import run_pipeline
+    from pipeline.store.read import read_rotation
+
+    raw = {"name": "spin", "geometry": {"kind": "box", "length": SHAFT[0],
+                                        "height": SHAFT[1], "depth": SHAFT[2]},
+           "mesh": {"order": 1, "size": 0.01}, "material": STEEL, "modes": {"count": 6},
+           "supports": [{"region": "band_a", "fix": "all"},
+                        {"region": "band_b", "fix": ["radial"], "frame": AXIS}],
+           "regions": BANDS, "rotation": {"axis": [1, 0, 0], "point": AXIS["point"],
+                                          "speeds_rad_s": [0, 3000, 6000]}}
+    run_pipeline(config_from_dict(raw), tmp_path / "spin.h5", tmp_path)
+    rot = read_rotation(tmp_path / "spin.h5")
+    full, reduced = rot.frequencies_hz, rot.frequencies_reduced_hz[:, :6]
+    assert np.abs(reduced / full - 1).max() < 1e-3
+    assert np.abs(full[2] / full[0] - 1).max() > 1e-3
+
+
+def test_the_distributed_path_refuses_exact_constraints():
+    """`modes.solver: slepc` does not build u = T q: a local-frame support and a rigid
+    mass coupling are refused in one line naming the key, before any work."""
+    import pytest
+
+    from pipeline.config import config_from_dict
+    from pipeline.distributed.stage import check_supported
+    from pipeline.errors import ConfigError
+    from test_rigid_mass import config as rigid_mass_config
+
+    held = {"name": "x", "geometry": {"kind": "box", "length": SHAFT[0], "height": SHAFT[1],
+                                      "depth": SHAFT[2]},
+            "mesh": {"order": 1, "size": 0.01}, "material": STEEL, "regions": BANDS,
+            "supports": [{"region": "band_a", "fix": ["radial"], "frame": AXIS}]}
+    for raw, key in ((held, "supports[0].fix"), (rigid_mass_config(), "masses[0].coupling")):
+        raw = dict(raw, modes={"count": 4, "solver": "slepc"})
+        with pytest.raises(ConfigError) as info:
+            check_supported(config_from_dict(raw))
+        assert info.value.key == key and "\n" not in str(info.value)
