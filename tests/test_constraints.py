@@ -65,7 +65,8 @@ def test_static_solve_through_T_against_an_independent_null_space(tmp_path):
 
 def run_reduced_cli(raw: dict, tmp_path) -> str:
     """``raw`` with a y force and displacement port on the tip face and a residual static
-    correction, run by `python -m pipeline run`: asserts exit 0, returns the log."""
+    correction, run by `python -m pipeline run` into tmp_path / reduced.h5: asserts exit 0,
+    returns the log."""
     import yaml
 
     raw = dict(raw, reduction={"modes": 4, "static_correction": "residual"},

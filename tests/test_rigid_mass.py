@@ -19,7 +19,8 @@ Checks and their tolerances:
 - mass properties exact: the body's mass and rigid mass matrix gain exactly the point's
   own (1e-12 relative, round-off); and the modes are M-orthonormal on the free DOFs;
 - a region held by the supports: refused in one line naming the key, RegionError's exit
-  code, nothing written.
+  code, nothing written; the end-to-end run with a reduced model, whose Exudyn export
+  (the unconstrained body's matrices) is refused in one line.
 """
 
 from __future__ import annotations
@@ -176,6 +177,15 @@ def test_cli_runs_a_rigid_tip_mass_end_to_end(tmp_path):
     from test_constraints import run_reduced_cli
 
     assert "rigid mass coupling" in run_reduced_cli(config(count=6), tmp_path)
+    # the Exudyn export's matrices (the unconstrained body's) cannot carry the rigid
+    # region: refused in one line, nothing written
+    target = tmp_path / "rb_exudyn.npz"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "export",
+                           str(tmp_path / "reduced.h5"), "--to", "exudyn", "-o", str(target)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    err = [line for line in proc.stderr.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "masses[0].coupling" in err[0] and not target.exists()
 
 
 def test_free_body_with_a_rigid_mass_keeps_six_rigid_modes(tmp_path):

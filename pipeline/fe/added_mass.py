@@ -143,3 +143,18 @@ def added_mass_matrix(space: FESpace, regions: Mapping[str, np.ndarray],
     for p in parts[1:]:
         total = total + p
     return total.tocsr()
+
+
+def refuse_rigid_couplings(raw_masses, path) -> None:
+    """Refuse (ConfigError, one line) an Exudyn export of the file ``path`` whose stored
+    config (``raw_masses``: its ``masses`` list as read) has a point mass with a rigid
+    coupling: the export's matrices are the unconstrained body's, which cannot carry the
+    constraint u = T q that makes the region rigid."""
+    from pipeline._util import validate
+
+    for i, item in enumerate(raw_masses or []):
+        if isinstance(item, dict) and item.get("coupling") == "rigid":
+            raise validate.fail(
+                f"masses[{i}].coupling", "rigid",
+                "distributing couplings only, for an Exudyn export (its matrices are the "
+                f"unconstrained body's; the config stored in {path} has a rigid coupling)")
