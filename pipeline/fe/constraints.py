@@ -135,9 +135,8 @@ def _local_frame_triplets(rows: sp.csr_matrix, free: np.ndarray, position: np.nd
     node_of_row = rows.indices[rows.indptr[:-1]] // 3
     nodes, inverse = np.unique(node_of_row, return_inverse=True)
     dense = np.zeros((rows.shape[0], 3))
-    for k in range(rows.shape[0]):  # each row lies on one node's three DOFs
-        lo, hi = rows.indptr[k], rows.indptr[k + 1]
-        dense[k, rows.indices[lo:hi] % 3] = rows.data[lo:hi]
+    # each row lies on one node's three DOFs
+    dense[np.repeat(np.arange(rows.shape[0]), np.diff(rows.indptr)), rows.indices % 3] = rows.data
     A = np.zeros((nodes.size, 3, 3))
     np.add.at(A, inverse, dense[:, :, None] * dense[:, None, :])
     is_free = np.zeros(n_dofs, dtype=bool)
