@@ -61,8 +61,9 @@ class FEModel:
     rigid: the rigid-body motions the supports leave free; support_stiffness: the
     springs, bushings and held local directions on all DOFs (:mod:`pipeline.fe.supports`).
     constraint: u = T q on the free DOFs (:mod:`pipeline.fe.constraints`: components held
-    in a local frame), or None (u = q); K and M are the unconstrained ones, and the
-    modes stage solves T^T K T, T^T M T.
+    in a local frame, rigid couplings of added masses), or None (u = q); K and M are the
+    unconstrained ones (M with the added masses), and the modes stage solves T^T K T,
+    T^T M T.
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
     materials: the material of every element (``material`` and ``materials``).
