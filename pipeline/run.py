@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.config import Config, config_to_yaml
 from pipeline._util import resources
+from pipeline.fe.added_mass import refuse_rigid_couplings
 from pipeline.fe.model import build_fe_model
 from pipeline.fe.supports import refuse_grounded_supports, support_summary
 from pipeline.reduce.build import build_connection_models, build_models
@@ -281,6 +282,7 @@ def stored_fe_data(path: str | Path, assemble: bool | None = None):
     if not isinstance(raw, dict):
         raw = {}
     refuse_grounded_supports(raw.get("supports"), path)
+    refuse_rigid_couplings(raw.get("masses"), path)
     # only the material and the ports matter here: the stored mesh replaces the geometry (a
     # CAD file need not be here any more; a box of the mesh's extent keeps the size checks
     # meaningful) and holds the regions the selectors made (named here by plain selectors)

@@ -99,7 +99,7 @@ def test_config_round_trip_and_forms():
      "does not apply"),
     ([{"name": "a", **ALU, "elements": {"kind": "box", "lower": [1, 0, 0], "upper": [0, 1, 1]}}],
      None, "materials[0].elements.upper", ">= lower"),
-    (None, [{"name": "m", "mass": 1.0, "point": [0, 0, 0], "region": "tip", "coupling": "rigid"}],
+    (None, [{"name": "m", "mass": 1.0, "point": [0, 0, 0], "region": "tip", "coupling": "glued"}],
      "masses[0].coupling", "distributing"),
     (None, [{"name": "m", "mass": 1.0, "point": [0, 0, 0], "region": "nowhere"}],
      "masses[0].region", "a region"),

@@ -25,7 +25,8 @@ element centroids.
 - ``kind: point`` (default): a rigid ``mass`` (kg) with ``inertia`` [Ixx, Iyy, Izz, Ixy,
   Ixz, Iyz] (kg m^2, about ``point``, products of inertia as tensor entries I_xy =
   -int x y dm) at ``point``, tied to the boundary ``region`` by a ``distributing`` coupling
-  (RBE3: mass, no stiffness) -- a ``rigid`` coupling is refused (not built);
+  (RBE3: mass, no stiffness) or a ``rigid`` one (RBE2: the region's nodes follow the
+  point's six motions exactly, :mod:`pipeline.fe.constraints`);
 - ``kind: area``: ``density`` kg/m^2 spread over the boundary ``region``;
 - ``kind: volume``: ``density`` kg/m^3 added to rho of the ``elements`` selected.
 """
@@ -290,9 +291,6 @@ def parse_masses(raw: Any) -> tuple[AddedMass, ...]:
                             "positive semi-definite (Ixx, Iyy, Izz >= 0 satisfying the "
                             "triangle inequalities)")
             coupling = v.choice(item, "coupling", path, ("distributing", "rigid"), "distributing")
-            if coupling == "rigid":
-                raise v.fail(f"{path}.coupling", coupling, "distributing (a rigid coupling of "
-                            "an added mass is not built: it would stiffen the region)")
             point = v.vector(item, "point", path)
             if max(abs(c) for c in point) > 1e6:  # its rigid fit would overflow
                 raise v.fail(f"{path}.point", list(point), "a point within 1e6 m of the origin")

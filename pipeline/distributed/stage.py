@@ -51,6 +51,20 @@ def check_supported(cfg: Config) -> None:
                           "unsupported K on one process; expected no connections, or another "
                           "modes.solver", key="connections", value=len(cfg.connections),
                           expected="no connections with modes.solver: slepc")
+    for i, s in enumerate(cfg.supports):
+        if s.local_fix:
+            raise ConfigError(f"supports[{i}].fix: components in a local frame with "
+                              "modes.solver: slepc: the exact constraint u = T q is not "
+                              "distributed yet; expected global x, y, z components, or "
+                              "another modes.solver", key=f"supports[{i}].fix",
+                              value=list(s.local_fix), expected="global components")
+    for i, m in enumerate(cfg.masses):
+        if m.kind == "point" and m.coupling == "rigid":
+            raise ConfigError(f"masses[{i}].coupling: rigid with modes.solver: slepc: the "
+                              "exact constraint u = T q is not distributed yet; expected "
+                              "distributing, or another modes.solver",
+                              key=f"masses[{i}].coupling", value="rigid",
+                              expected="distributing")
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",

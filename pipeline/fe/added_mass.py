@@ -10,6 +10,10 @@ of the rigid-body properties.
   kinetic energy 1/2 q'^T M6 q' gives M_add = G^T M6 G, M6 = diag(m I_3, J): mass, no
   stiffness. G R = I_6, so in a rigid motion of the body the point moves rigidly with it
   and the body's rigid mass matrix gains exactly the point's own.
+- point mass, rigid coupling (RBE2, ``coupling: rigid``): the same M_add (the region
+  moves rigidly, u_r = R q, so G u_r = q and M_add acts as M6 on the point's motions),
+  and the region's nodes follow the point exactly: the constraint u = T q of
+  :func:`rigid_couplings` and :mod:`pipeline.fe.constraints`.
 - mass per area (``kind: area``): density mu (kg/m^2) on the boundary region's
   triangles, as the consistent surface mass int mu N_a N_b dA for linear elements
   (mu A/12 (1 + delta_ab) per triangle) and, for quadratic elements, mu A/3 at each edge
@@ -30,7 +34,7 @@ from pipeline.config.materials import AddedMass
 from pipeline.errors import RegionError
 from pipeline.fe.body import rigid_body_modes, skew
 from pipeline.fe.regions import get_region
-from pipeline.fe.space import FESpace, weighted_region
+from pipeline.fe.space import FESpace, region_nodes, weighted_region
 
 
 def point_rigid_mass(mass: float, inertia: Sequence[float]) -> np.ndarray:
@@ -58,6 +62,39 @@ def _distributing_map(space: FESpace, name: str, tris: np.ndarray, point, key: s
     T = np.eye(6)
     T[:3, 3:] = -skew(np.asarray(point, dtype=float) - c)  # theta x d = -d x theta
     return sr.nodes, T @ np.linalg.solve(A, R.T * w)
+
+
+def rigid_couplings(space: FESpace, regions: Mapping[str, np.ndarray],
+                    masses: Sequence[AddedMass], free: np.ndarray, held: np.ndarray | None
+                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(slave nodes (n_s,), their points (n_s, 3) m, the mass's point (3,) m) of every
+    point mass with ``coupling: rigid``, for :func:`pipeline.fe.constraints.build_constraint`.
+
+    Refuses (RegionError, one line naming the config key) a region with a DOF that is not
+    in ``free`` (held by the supports), with a node in ``held`` (DOFs of components held
+    in a local frame, or None) or shared with another rigid coupling."""
+    out = []
+    taken = np.zeros(space.n_dofs, dtype=bool)
+    if held is not None:
+        taken[held] = True
+    is_free = np.zeros(space.n_dofs, dtype=bool)
+    is_free[free] = True
+    for i, m in enumerate(masses):
+        if m.kind != "point" or m.coupling != "rigid":
+            continue
+        key = f"masses[{i}].region"
+        nodes = region_nodes(space, get_region(regions, m.region, key))
+        dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        why = ("is held by the supports" if not is_free[dofs].all() else
+               "shares nodes with a local-frame support or another rigid coupling"
+               if taken[dofs].any() else None)
+        if why:
+            raise RegionError(f"config key '{key}': region '{m.region}' {why}; expected a "
+                              "region whose nodes are free for a rigid coupling (or "
+                              "coupling: distributing)")
+        taken[dofs] = True
+        out.append((nodes, space.node_points[nodes], np.asarray(m.point, dtype=float)))
+    return out
 
 
 def _area_mass(space: FESpace, tris: np.ndarray, density: float):
@@ -106,3 +143,18 @@ def added_mass_matrix(space: FESpace, regions: Mapping[str, np.ndarray],
     for p in parts[1:]:
         total = total + p
     return total.tocsr()
+
+
+def refuse_rigid_couplings(raw_masses, path) -> None:
+    """Refuse (ConfigError, one line) an Exudyn export of the file ``path`` whose stored
+    config (``raw_masses``: its ``masses`` list as read) has a point mass with a rigid
+    coupling: the export's matrices are the unconstrained body's, which cannot carry the
+    constraint u = T q that makes the region rigid."""
+    from pipeline._util import validate
+
+    for i, item in enumerate(raw_masses or []):
+        if isinstance(item, dict) and item.get("coupling") == "rigid":
+            raise validate.fail(
+                f"masses[{i}].coupling", "rigid",
+                "distributing couplings only, for an Exudyn export (its matrices are the "
+                f"unconstrained body's; the config stored in {path} has a rigid coupling)")

@@ -26,14 +26,15 @@ from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import block_pattern
 from pipeline.fe.ports import check_gauges
-from pipeline.fe.added_mass import added_mass_matrix
+from pipeline.fe.added_mass import added_mass_matrix, rigid_couplings
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
                               rigid_body_modes)
 from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (SOFT_SUPPORT, RigidFreedoms, SupportStiffness,
-                                  rigid_freedoms, support_stiffness, with_penalty)
+                                  rigid_freedoms, support_stiffness)
+from pipeline.fe.constraints import Constraint, build_constraint
 from pipeline._util.resources import check_memory
 from pipeline.fe.space import FESpace, build_space
 
@@ -53,12 +54,16 @@ class FEModel:
     regions: region name -> vertex cells (n, 3 | 2 | 1): a face, line or point region.
     fixed, free: sorted DOF indices (int64), fixed + free = all 3 * n_points DOFs.
     K, M: (n_free, n_free) CSR stiffness (N/m) and mass (kg) on the free DOFs; K holds
-    the elastic supports and the local-frame penalties (``support_stiffness``).
+    the elastic supports (``support_stiffness``).
     K_full, M_full: (n_dofs, n_dofs) unsupported matrices, or None (kept only when
     connection points need them).
     props: mass, centre of mass, inertia and rigid mass matrix from M.
     rigid: the rigid-body motions the supports leave free; support_stiffness: the
-    springs, bushings and local-frame penalties on all DOFs (:mod:`pipeline.fe.supports`).
+    springs, bushings and held local directions on all DOFs (:mod:`pipeline.fe.supports`).
+    constraint: u = T q on the free DOFs (:mod:`pipeline.fe.constraints`: components held
+    in a local frame, rigid couplings of added masses), or None (u = q); K and M are the
+    unconstrained ones (M with the added masses), and the modes stage solves T^T K T,
+    T^T M T.
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
     materials: the material of every element (``material`` and ``materials``).
@@ -85,6 +90,7 @@ class FEModel:
         eigen solve (:func:`pipeline.fe.supports.rigid_freedoms`)."""
         return 6 if self.rigid is None else self.rigid.count
     materials: ElementMaterials | None = None
+    constraint: Constraint | None = None
 
 
 @contextlib.contextmanager
@@ -126,13 +132,17 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
+        constraint = _constraint(space, regions, cfg, free, extra)  # refusals: before K
         # connection-point models need the unsupported body: then K is assembled whole
         # and restricted to a copy; else straight onto the free DOFs when the supports
         # clamp whole nodes (the full K is never built), or restricted in place
         nodes = None if cfg.connections else whole_nodes(free, space.n_nodes)
-        # springs and penalties change K after its assembly, and a body its supports
+        # springs and held local directions change K after its assembly, and a body its supports
         # leave free to move is solved with a shift: no pattern analysis of K ahead
         grounded = any(s.spring or s.bushing or s.local_fix for s in cfg.supports)
+        # a constraint u = T q: the factorised matrix is T^T K T, not K's pattern
+        grounded = grounded or any(m.kind == "point" and m.coupling == "rigid"
+                                   for m in cfg.masses)
         if not grounded and cfg.supports and rigid_freedoms(
                 space.node_points, space.node_points.mean(axis=0), fixed).count:
             on_stiffness_pattern = None
@@ -160,9 +170,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                 K, M = restrict(K, free, overwrite=True), restrict(M, free, overwrite=True)
         diagonal = np.zeros(space.n_dofs)
         diagonal[free] = K.diagonal()
-        if grounded:
-            extra = with_penalty(extra, diagonal)
-            K = (K + restrict(extra.total, free)).tocsr()
+        if extra.springs is not None:
+            K = (K + restrict(extra.springs, free)).tocsr()
         ratio = diagonal[free] / np.maximum(M.diagonal(), np.finfo(float).tiny)
         rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.springs,
                                extra.constraint, props.rigid_mass,
@@ -173,7 +182,21 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
                    K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra,
-                   materials=materials)
+                   materials=materials, constraint=constraint)
+
+
+def _constraint(space: FESpace, regions, cfg: Config, free: np.ndarray,
+                extra: SupportStiffness) -> Constraint | None:
+    """u = T q of the components held in a local frame and the rigid couplings of added
+    masses (:mod:`pipeline.fe.constraints`), or None when there are none."""
+    held = None if extra.constraint is None else \
+        (3 * (extra.constraint.indices // 3)[:, None] + np.arange(3)).ravel()
+    rigid = rigid_couplings(space, regions, cfg.masses, free, held)
+    if extra.constraint is None and not rigid:
+        return None
+    what = " and ".join(w for w, on in (("local-frame supports", extra.constraint is not None),
+                                         (f"{len(rigid)} rigid mass coupling(s)", rigid)) if on)
+    return build_constraint(free, space.n_dofs, extra.constraint, rigid, what)
 
 
 def nodes_dofs(nodes: np.ndarray) -> np.ndarray:

@@ -15,14 +15,11 @@ them (a rotation about an axis off the centre of mass, v . omega = 0, by its axi
 their displacement fields R t are exact null vectors of the supported K.
 
 **Components held in a local frame** (cylindrical: radial, tangential, axial about a
-line; face: normal and tangential from the region's triangles) are held by a penalty:
-a held unit direction e at node i adds k_i e e^T to that node's 3x3 block of K, with
-k_i = :data:`PENALTY` times the mean diagonal of K at node i. The penalised eigenvalues
-lie below the exactly constrained ones, lambda_p,k <= lambda_c,k (a penalty is a
-constraint relaxed), and the Rayleigh-Ritz values of the penalised modes projected onto
-the constraint, theta_k, lie above them (min-max on a constrained subspace), so
-:func:`penalty_bound` brackets every constrained eigenvalue:
-lambda_p,k <= lambda_c,k <= theta_k, a computed error bound, not an estimate.
+line; face: normal and tangential from the region's triangles) are held exactly: every
+held unit direction e at node i is a row of C (C u = 0), and
+:func:`pipeline.fe.constraints.local_frame_constraint` turns C into the coordinates
+u = T q that satisfy it (node i's DOFs replaced by its kept unit directions); the
+eigensolver and the static solves run on T^T K T, T^T M T.
 
 **Springs to ground** on a region: per unit area, k (N/m^3) per frame component c with
 unit vector e_c at node i, node i gets w_i sum_c k_c e_c e_c^T with w_i the integral of
@@ -39,7 +36,6 @@ q = W u, and the bushing adds W^T K_b W (a dense block on the region's DOFs).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -57,10 +53,6 @@ from pipeline.fe.space import (REGION_KINDS, FESpace, region_nodes, triangle_nod
 
 log = logging.getLogger(__name__)
 
-#: penalty stiffness of a held local component, relative to the node's diagonal of K;
-#: the eigenvalue error it leaves is bounded by :func:`penalty_bound` (1.6e-8
-#: relative on the test shaft)
-PENALTY = 1e6
 #: the most nodes a bushing's region may have: it couples all of their DOFs, a dense
 #: (3 n)^2 block of K (3000 nodes: 81M entries, 1.3 GB with the CSR indices)
 MAX_BUSHING_NODES = 3000
@@ -97,19 +89,12 @@ class SupportStiffness:
     """The supports that add stiffness instead of removing DOFs, on all n_dofs DOFs.
 
     springs: (n_dofs, n_dofs) CSR N/m of the springs and bushings, or None.
-    penalty: (n_dofs, n_dofs) CSR N/m of the components held in a local frame, or None.
     constraint: (n_c, n_dofs) CSR, one unit direction per held local component (the rows
-    C of C u = 0 that the penalty enforces), or None.
+    C of C u = 0, held exactly by :mod:`pipeline.fe.constraints`), or None.
     """
 
     springs: sp.csr_matrix | None = None
-    penalty: sp.csr_matrix | None = None
     constraint: sp.csr_matrix | None = None
-
-    @property
-    def total(self) -> sp.csr_matrix | None:
-        parts = [m for m in (self.springs, self.penalty) if m is not None]
-        return None if not parts else sum(parts[1:], parts[0]).tocsr()
 
 
 def frame_axes(space: FESpace, triangles: np.ndarray, nodes: np.ndarray, frame,
@@ -194,8 +179,8 @@ def _bushing_matrix(space: FESpace, region, support: Support, key: str) -> sp.cs
 def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
                       supports: Sequence[Support]) -> SupportStiffness:
     """Springs and bushings of ``supports``, and the directions C of the components held
-    in a local frame (module docstring); the penalty follows from K's diagonal
-    (:func:`with_penalty`). Needs no K: every error is found before the assembly."""
+    in a local frame (module docstring). Needs no K: every error is found before the
+    assembly."""
     springs, rows = [], []
     n_dofs = space.n_dofs
     for i, s in enumerate(supports):
@@ -248,19 +233,7 @@ def support_stiffness(space: FESpace, regions: Mapping[str, np.ndarray],
         constraint = sp.csr_matrix((values.ravel(), dofs.ravel(), 3 * np.arange(dofs.shape[0] + 1)),
                                    shape=(dofs.shape[0], n_dofs))
     return SupportStiffness(sum(springs[1:], springs[0]).tocsr() if springs else None,
-                            None, constraint)
-
-
-def with_penalty(extra: SupportStiffness, k_diagonal: np.ndarray) -> SupportStiffness:
-    """``extra`` with its penalty C^T D C: row j of C (a held unit direction at node i)
-    weighted by :data:`PENALTY` times the mean of ``k_diagonal`` ((n_dofs,) N/m, K's
-    diagonal) over node i's three DOFs."""
-    if extra.constraint is None:
-        return extra
-    C = extra.constraint
-    node = C.indices[C.indptr[:-1]] // 3
-    d = PENALTY * k_diagonal.reshape(-1, 3)[node].mean(axis=1)
-    return dataclasses.replace(extra, penalty=(C.T @ sp.diags(d) @ C).tocsr())
+                            constraint)
 
 
 def _null_space(G: np.ndarray, basis: np.ndarray) -> np.ndarray:
@@ -337,56 +310,17 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
     return RigidFreedoms(tuple(names), fields)
 
 
-def penalty_bound(K: sp.spmatrix, M: sp.spmatrix, penalty: sp.spmatrix,
-                  constraint: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray
-                  ) -> np.ndarray:
-    """(n_m,) relative upper bound of (lambda_c - lambda_p) / lambda_p for every mode of
-    the penalised pencil (K, M) (module docstring), 0 for the rigid ones.
-
-    K: (n, n) the penalised stiffness; penalty: its penalty part; constraint: (n_c, n)
-    the held directions; shapes: (n, n_m) M-orthonormal penalised modes; omega2: (n_m,)
-    their eigenvalues (rad^2/s^2). All on the same n DOFs.
-    """
-    from scipy.linalg import eigh
-    from scipy.sparse.linalg import splu
-
-    C = sp.csr_matrix(constraint)
-    keep = np.flatnonzero(np.abs(C).sum(axis=1).A1 > 0)
-    C = C[keep]
-    CCt = (C @ C.T).tocsc()
-    V = shapes - C.T @ splu(CCt).solve(np.asarray(C @ shapes))
-    Kr, Mr = V.T @ (K @ V - penalty @ V), V.T @ (M @ V)  # K less the penalty, no copy
-    theta = eigh(0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T), eigvals_only=True)
-    w = np.asarray(omega2, dtype=float)
-    return np.where(w > 0, (theta - w) / np.where(w > 0, w, 1.0), 0.0).clip(min=0.0)
-
-
-def model_penalty_bound(fe, modes) -> np.ndarray | None:
-    """(n_m,) :func:`penalty_bound` of every mode of ``modes`` on the FE model ``fe``
-    (:class:`pipeline.fe.model.FEModel`), or None without local-frame supports."""
-    extra = fe.support_stiffness
-    if extra is None or extra.penalty is None:
-        return None
-    from pipeline.fe.assemble import restrict
-
-    return penalty_bound(fe.K, fe.M, restrict(extra.penalty, fe.free),
-                         extra.constraint[:, fe.free], modes.shapes, modes.omega2)
-
-
 def support_summary(fe, modes) -> list[str]:
-    """Summary lines of the supports: the rigid-body modes they leave and, for
-    components held in a local frame, the computed bound of the penalty's eigenvalue
-    error (:func:`penalty_bound`); logged as well."""
+    """Summary lines of the supports: the rigid-body modes they leave and the
+    components held exactly in a local frame (:mod:`pipeline.fe.constraints`); logged as
+    well."""
     lines = []
     if fe.n_rigid:
         lines.append(f"supports leave {fe.n_rigid} rigid-body mode(s) at 0 Hz: "
                      + ", ".join(fe.rigid.names))
-    bound = model_penalty_bound(fe, modes)
-    if bound is not None:
-        worst = float(bound.max(initial=0.0))
-        lines.append(f"local-frame supports held by a penalty ({PENALTY:g} x diag K): "
-                     f"eigenvalue error <= {worst:.1e} relative (frequency <= "
-                     f"{0.5 * worst:.1e}), computed bound")
+    if fe.constraint is not None:
+        lines.append(f"{fe.constraint.what}: {fe.constraint.held} free DOF(s) held exactly "
+                     f"(u = T q, {fe.constraint.n_q} coordinates)")
     for line in lines:
         log.info("%s", line)
     return lines

@@ -104,7 +104,8 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
                                                 solve if solve is not None
                                                 else getattr(modes, "solve", None)),
                            n_rigid=getattr(modes, "n_rigid", None),
-                           inertia_relief=bool(cfg.supports))
+                           inertia_relief=bool(cfg.supports),
+                           constraint=getattr(modes, "constraint", None))
     filtered = None
     if cfg.filter.kind != "none":
         filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)

@@ -470,7 +470,8 @@ def cluster_start(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) 
 def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: str,
                  input_names: Sequence[str], output_names: Sequence[str],
                  solve: Solve | None = None, factorize=None, basis_tol: float = 1e-6,
-                 n_rigid: int | None = None, inertia_relief: bool = False) -> ReducedModel:
+                 n_rigid: int | None = None, inertia_relief: bool = False,
+                 constraint=None) -> ReducedModel:
     """Build the reduced state-space model from the FE matrices and modes.
 
     Parameters
@@ -486,6 +487,9 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         Omega2^-1 Sigma) or ``"augment"`` (Ritz basis of [Phi, K^-1 F]).
     input_names, output_names : n_u input and n_y output port names.
     solve / factorize : K^-1 solver, see :func:`static_shapes`.
+    constraint : (n_s x n_q) T of an exact constraint u = T q
+        (:mod:`pipeline.fe.constraints`), or None: the static solves then run on
+        T^T K T (``solve`` is its solver) and Phi satisfies it.
     n_rigid : rigid-body modes among the first (the modes stage's count); default: the
         modes below :func:`pipeline.solve.thresholds.rigid_omega2_threshold`.
     inertia_relief : a partly held body (its supports leave the rigid modes): the static
@@ -534,7 +538,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
     G_relief = None  # a partly held body's inertia-relief compliance (no DC gain: floating)
     if n_rigid and inertia_relief and static_correction != "none":
         X = relief_shapes(K, M, Fd, Phi_r[:, :n_rigid], -1e-3 * float(omega2[n_rigid]),
-                          factorize)
+                          factorize, constraint=constraint)
         G_relief = np.asarray(T @ X, dtype=float)
     elif n_rigid:
         if static_correction != "none":
@@ -544,7 +548,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
         log.warning("floating body (%d rigid-body modes): no static compliance computed", n_rigid)
     else:
         X = static_shapes(K, Fd, solve, factorize, lowest_omega2=float(omega2[0]),
-                          stiffness_scale=scale)
+                          stiffness_scale=scale, constraint=constraint)
         G = np.asarray(T @ X, dtype=float)
 
     residual = None

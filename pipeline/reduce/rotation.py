@@ -100,11 +100,12 @@ def _weighted(matrices, weights) -> sp.csr_matrix:
 
 def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
                     F_inputs: np.ndarray | None = None, solve=None,
-                    backend: str = "auto") -> PrestressTerms:
+                    backend: str = "auto", constraint=None) -> PrestressTerms:
     """The :class:`PrestressTerms` of the body of ``space`` (supported: ``free`` DOFs,
     ``K`` (n_s x n_s) its stiffness) spinning about ``point`` (3,) m, and preloaded by
     the input loads ``F_inputs`` (n_dofs x n_in, per unit input; None: none).
-    ``solve``: b -> K^-1 b when a factor of K is at hand."""
+    ``solve``: b -> K^-1 b when a factor of K is at hand; ``constraint``: T of an exact
+    constraint u = T q (n_s x n_q, ``solve`` then that of T^T K T), or None."""
     node_mass = node_mass_matrix(space, material.rho)
     loads = centrifugal_loads(space, node_mass, point)  # (n_dofs, 6)
     n_in = 0 if F_inputs is None else F_inputs.shape[1]
@@ -113,7 +114,8 @@ def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
         F = F_inputs.toarray() if sp.issparse(F_inputs) else np.asarray(F_inputs)
         rhs = np.hstack([rhs, F[free]])
     shapes = static_shapes(K, rhs, solve,
-                           lambda A: factorize(A, backend, positive_definite=True).solve)
+                           lambda A: factorize(A, backend, positive_definite=True).solve,
+                           constraint=constraint)
     U = np.zeros((space.n_dofs, shapes.shape[1]))
     U[free] = shapes
     geometric = [restrict(G, free) for G in geometric_stiffness(space, material, U)]
@@ -183,33 +185,37 @@ def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.
     F = port_matrices(space, regions, Ports(inputs=inputs)).F if inputs else None
     return build_rotation(cfg.rotation, space, cfg.material, free, K, M, modes.shapes,
                           modes.omega2, F, tuple(p.name for p in inputs), modes.solve,
-                          cfg.modes.solver)
+                          cfg.modes.solver, getattr(modes, "constraint", None))
 
 
 def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.spmatrix,
                    M: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray,
                    F_inputs=None, input_names: tuple[str, ...] = (), solve=None,
-                   backend: str = "auto") -> RotationModel:
+                   backend: str = "auto", constraint=None) -> RotationModel:
     """The :class:`RotationModel` of the config's ``rotation`` section for the supported
     body (``K``, ``M`` (n_s x n_s), its modes ``shapes`` (n_s x n_m, M-orthonormal) and
     ``omega2`` (n_m,) rad^2/s^2); ``F_inputs`` (n_dofs x n_in) the input-port loads;
-    ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed)."""
+    ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed);
+    ``constraint``: T of an exact constraint u = T q (n_s x n_q; ``solve`` is then that
+    of T^T K T and the full sweep runs on the coordinates q), or None."""
     _check_point(rotation.point, space.node_points)
     axis = unit(rotation.axis)
     _check_stress(rotation, axis, space.node_points, material)
     own = None
     if solve is None:
-        own = factorize(K, backend, positive_definite=True)
+        own = factorize(K if constraint is None else (constraint.T @ (K @ constraint)).tocsr(),
+                        backend, positive_definite=True)
         solve = own.solve
     try:
         terms = prestress_terms(space, material, free, K, rotation.point, F_inputs, solve,
-                                backend)
+                                backend, constraint)
         K_G1, M_perp = terms.spin_matrices(axis)
         static = terms.centrifugal_shape(axis)[:, None] if rotation.static_shape else None
         corrections = None
         if rotation.correction_shapes:
             n_c = min(rotation.correction_shapes, shapes.shape[1])
-            corrections = static_shapes(K, (K_G1 - M_perp) @ shapes[:, :n_c], solve)
+            corrections = static_shapes(K, (K_G1 - M_perp) @ shapes[:, :n_c], solve,
+                                        constraint=constraint)
     finally:
         if own is not None:
             own.release()
@@ -227,7 +233,10 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         preload=project(V, terms.preload_geometric), input_names=tuple(input_names),
         n_modes=n_m, static_shape=with_static.shape[1] > n_m)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
-    full = full_frequencies(K, M, K_G1, M_perp, model.speeds_rad_s, n_m, backend,
+    on_q = (lambda A: A) if constraint is None else \
+        (lambda A: (constraint.T @ (A @ constraint)).tocsr())
+    full = full_frequencies(on_q(K), on_q(M), on_q(K_G1), on_q(M_perp), model.speeds_rad_s,
+                            n_m, backend,
                             rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 

@@ -5,6 +5,10 @@ Solves are refined iteratively and judged by their normwise backward error
 supports leave free to move) is refused with a message naming the cause. Shapes: ``K``
 (n_s x n_s, N/m) on the free DOFs, ``F`` (n_s x n_u, N per unit input), ``T``
 (n_y x n_s).
+
+Under an exact constraint u = T q (``constraint``: T, n_s x n_q,
+:mod:`pipeline.fe.constraints`) every solve runs on the coordinates q:
+X = T (T^T K T)^-1 T^T F, and a kept ``solve`` is then that of T^T K T.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.blas import scaled_inf_norm
+from pipeline.solve.blas import constraint_coordinates, scaled_inf_norm
 from pipeline.solve.factorization import factorize as factorize_matrix
 from pipeline.solve.refine import BACKWARD_ERROR_TOL, refined_solve
 from pipeline.solve.thresholds import SINGULAR_COND_EPS
@@ -43,8 +47,8 @@ def dense_array(X) -> np.ndarray:
 
 
 def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
-                  lowest_omega2: float | None = None, stiffness_scale: float | None = None
-                  ) -> np.ndarray:
+                  lowest_omega2: float | None = None, stiffness_scale: float | None = None,
+                  constraint: sp.spmatrix | None = None) -> np.ndarray:
     """Static deflection shapes X = K^-1 F (n_s x n_u), in m per unit input.
 
     ``solve``: a ready solver b -> K^-1 b; else ``factorize(K)`` gives one (default:
@@ -61,10 +65,17 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
     :data:`~pipeline.solve.thresholds.SINGULAR_COND_EPS` means K is singular to working
     precision (a rigid-body motion or mechanism the supports leave free), refused as
     such. Raises :class:`SolverError` naming the cause.
+
+    ``constraint``: T of u = T q, or None (module docstring).
     """
     Fd = dense_array(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
+    if constraint is not None:
+        T = constraint
+        Xq = static_shapes((T.T @ (K @ T)).tocsr(), T.T @ Fd, solve, factorize,
+                           lowest_omega2=lowest_omega2, stiffness_scale=stiffness_scale)
+        return np.asarray(T @ Xq, dtype=float)
     X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
     X = np.asarray(X, dtype=float).reshape(Fd.shape)
     eta = float(report.backward_error.max(initial=0.0))
@@ -123,7 +134,8 @@ RELIEF_TOL = 1e-13
 RELIEF_MAX_STEPS = 60
 
 
-def relief_shapes(K, M, F, rigid: np.ndarray, shift: float, factorize=None) -> np.ndarray:
+def relief_shapes(K, M, F, rigid: np.ndarray, shift: float, factorize=None,
+                  constraint: sp.spmatrix | None = None) -> np.ndarray:
     """Inertia-relief static shapes X (n_s x n_u) of a body that keeps the rigid-body
     modes ``rigid`` (n_s x r, M-orthonormal, K rigid = 0): the load less what accelerates
     the body as a rigid one (d'Alembert), P^T F = F - M R R^T F, deflects it by
@@ -134,11 +146,17 @@ def relief_shapes(K, M, F, rigid: np.ndarray, shift: float, factorize=None) -> n
     factorised once (``factorize(A)`` -> b -> A^-1 b; default SuperLU). The fixed point
     X <- A^-1 (P^T F - shift M X) (A X = K X - shift M X), projected onto R^T M X = 0 after every step, shrinks
     the error of every elastic component by |shift| / (omega^2 - shift) per step (1e-3
-    with shift = -1e-3 omega_1^2); stops at :data:`RELIEF_TOL`."""
+    with shift = -1e-3 omega_1^2); stops at :data:`RELIEF_TOL`. ``constraint``: T of
+    u = T q, or None (module docstring; ``rigid`` satisfies it)."""
     R = np.asarray(rigid, dtype=float)
     Fd = dense_array(F)
     if Fd.ndim == 1:
         Fd = Fd[:, None]
+    if constraint is not None:
+        T = constraint
+        Xq = relief_shapes((T.T @ (K @ T)).tocsr(), (T.T @ (M @ T)).tocsr(), T.T @ Fd,
+                           constraint_coordinates(T, R), shift, factorize)
+        return np.asarray(T @ Xq, dtype=float)
     Fe = Fd - M @ (R @ (R.T @ Fd))
     solve = _solver(sp.csr_matrix(K - shift * M), None, factorize)
     X = np.zeros_like(Fe)

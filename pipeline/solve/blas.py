@@ -216,3 +216,13 @@ def scaled_inf_norm(A: sp.spmatrix, w: np.ndarray | None = None,
             sums = w[r0:r1] * (part @ w)
         best = max(best, float(sums.max(initial=0.0)))
     return best
+
+
+def constraint_coordinates(T: sp.spmatrix, U: np.ndarray) -> np.ndarray:
+    """(n_q, k) coordinates q of the (n_free, k) fields ``U`` that satisfy an exact
+    constraint u = T q (T: (n_free, n_q), :mod:`pipeline.fe.constraints`): the least
+    squares q = (T^T T)^-1 T^T U, exact for such fields."""
+    from scipy.sparse.linalg import splu
+
+    rhs = np.asarray(T.T @ U, dtype=float)
+    return np.asarray(splu(sp.csc_matrix(T.T @ T)).solve(rhs)).reshape(rhs.shape)

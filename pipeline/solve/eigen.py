@@ -182,7 +182,8 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
             rigid = np.abs(w) < 1e-6 * abs(plan.shift)
         # the rigid modes the supports leave are exact null vectors, so the lowest r
         # below a negative shift; their Ritz values are zero only to the round-off of K
-        # (of a penalised K: ~eps x the penalty, far above the free body's threshold)
+        # (of K with stiff springs: ~eps x their stiffness, far above the free body's
+        # threshold)
         rigid[:min(int(expected_rigid), w.size)] = True
         w = np.where(rigid, 0.0, w)
         if (w < 0).any():

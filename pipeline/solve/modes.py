@@ -38,7 +38,10 @@ class Modes:
     labels: dominant motion of every mode (empty until labelled).
     shapes_full: (n_points, 3, n_m) the shapes on every mesh point (zero on the fixed
     DOFs), or None.
-    factorization: the kept factorisation of K (shift 0 only), or None.
+    factorization: the kept factorisation of K (shift 0 only), or None; of T^T K T when
+    ``constraint`` is set.
+    constraint: (n_free, n_q) T of the exact constraint u = T q the modes were solved
+    under (:mod:`pipeline.fe.constraints`; ``shapes`` are T psi already), or None.
     """
 
     omega2: np.ndarray
@@ -53,10 +56,12 @@ class Modes:
     labels: tuple[str, ...] = ()
     shapes_full: np.ndarray | None = None
     factorization: Factorization | None = None
+    constraint: object | None = None
 
     @property
     def solve(self):
-        """b -> K^-1 b with the kept factorisation of K, or None when none is kept."""
+        """b -> K^-1 b with the kept factorisation of K (of T^T K T under a
+        ``constraint``: b and the result are then (n_q,)), or None when none is kept."""
         return None if self.factorization is None else self.factorization.solve
 
     def release_factorization(self) -> None:

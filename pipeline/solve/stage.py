@@ -36,6 +36,7 @@ from pipeline.fe.body import node_volume_weights
 from pipeline.fe.coarse import p1_prolongation
 from pipeline.fe.model import FEModel
 from pipeline.errors import ConfigError, SolverError
+from pipeline.solve.blas import constraint_coordinates
 from pipeline.solve.eigen import factor_expected, solve_modes
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
@@ -60,6 +61,9 @@ class ModesInput:
     vectors of K, :func:`pipeline.fe.supports.rigid_freedoms`) and ``rigid_names`` theirs,
     or None: they replace the eigensolver's zero-frequency modes, M-orthonormalised, and
     name them.
+    constraint: (n_free, n_q) T of an exact constraint u = T q
+    (:mod:`pipeline.fe.constraints`), or None: the eigensolver then
+    runs on T^T K T, T^T M T and the shapes are mapped back, phi = T psi.
     """
 
     K: sp.spmatrix
@@ -71,6 +75,7 @@ class ModesInput:
     coarse: sp.spmatrix | None = None
     rigid: np.ndarray | None = None
     rigid_names: tuple[str, ...] = ()
+    constraint: sp.spmatrix | None = None
 
     @classmethod
     def from_fe(cls, fe: FEModel, config: ModesConfig, *, supported: bool) -> ModesInput:
@@ -89,7 +94,8 @@ class ModesInput:
                    coarse=None if config.method == "factor"
                    else p1_prolongation(fe.space, fe.free),
                    rigid=fe.rigid.fields[fe.free] if partly else None,
-                   rigid_names=fe.rigid.names if partly else ())
+                   rigid_names=fe.rigid.names if partly else (),
+                   constraint=None if fe.constraint is None else fe.constraint.T)
 
 
 def expects_factor(n_free: int, config: ModesConfig, *, supported: bool) -> bool:
@@ -126,16 +132,24 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
         raise ConfigError.field("modes.count", config.count,
                                 f"more than the {body.rigid.shape[1]} rigid-body mode(s) the "
                                 f"supports leave ({', '.join(body.rigid_names)})")
-    modes = solve_modes(body.K, body.M, config.count, supported=body.supported,
+    K, M, rigid, coarse, T = body.K, body.M, body.rigid, body.coarse, body.constraint
+    if T is not None:  # u = T q: an ordinary SPD pencil on q (pipeline.fe.constraints)
+        K, M = (T.T @ (K @ T)).tocsr(), (T.T @ (M @ T)).tocsr()
+        rigid = None if rigid is None else constraint_coordinates(T, rigid)
+        coarse = None if coarse is None else (T.T @ coarse).tocsr()
+    modes = solve_modes(K, M, config.count, supported=body.supported,
                         backend=config.solver, tolerance=config.tolerance,
                         progress=progress, keep=keep, precision=config.precision,
-                        method=config.method, coarse=body.coarse, analysis=analysis,
-                        expected_rigid=0 if body.rigid is None else body.rigid.shape[1])
+                        method=config.method, coarse=coarse, analysis=analysis,
+                        expected_rigid=0 if rigid is None else rigid.shape[1])
     try:
         names = ()
-        if body.rigid is not None:
-            modes = with_rigid_motions(modes, body.M, body.rigid, body.rigid_names)
+        if rigid is not None:
+            modes = with_rigid_motions(modes, M, rigid, body.rigid_names)
             names = tuple(f"rigid_{n}" for n in body.rigid_names)
+        if T is not None:
+            modes = dataclasses.replace(modes, shapes=np.asarray(T @ modes.shapes),
+                                        constraint=T)
         shapes = full_shapes(modes.shapes, body.free, body.node_points.shape[0])
         labels = label_modes(body.node_points, shapes, modes.n_rigid, body.node_weights)
         labels[:len(names)] = names
