@@ -325,7 +325,7 @@ def sid_text(sid: SidBody) -> str:
              f"         nelastq        = {nq}"]
     lines += [f"         ielastq({k + 1}) = {name} : {f:.10g} Hz"
               for k, (name, f) in enumerate(zip(sid.mode_names, sid.frequencies_hz))]
-    lines += ["      end refmod", "      frame"]
+    lines += ["      end refmod", "      new frame"]
     for n, node in enumerate(sid.nodes):
         lines += [f"         new node = {n + 1}", "            rframe = body ref"]
         for t in (node.origin, node.phi, node.psi, node.ap):
