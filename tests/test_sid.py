@@ -284,3 +284,16 @@ def test_terms_equal_the_ffrf_invariants(spun):
     np.testing.assert_allclose(Gr1, 2 * inv.inertia_second_order.transpose(2, 1, 3, 0), **close)
     np.testing.assert_allclose(T["Ke"]["m0"], inv.modal_stiffness, rtol=1e-9,
                                atol=1e-9 * np.abs(inv.modal_stiffness).max())
+
+
+def test_export_replaces_its_own_sid_but_not_a_foreign_file(spun):
+    from pipeline.errors import OutputError
+
+    folder = spun[0].parent
+    assert _cli("export", "spin.h5", "--to", "sid", cwd=folder).returncode == 0
+    foreign = folder / "foreign.SID_FEM"
+    foreign.write_text("not ours\n")
+    proc = _cli("export", "spin.h5", "--to", "sid", "-o", foreign, cwd=folder)
+    assert proc.returncode == OutputError.exit_code, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "--force" in proc.stderr
+    assert foreign.read_text() == "not ours\n"
