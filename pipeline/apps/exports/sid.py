@@ -258,10 +258,12 @@ def sid_body(h5_path: str | Path, fe_data: Any = None) -> SidBody:
         Taylor("De", np.diag(2 * zeta * omega), structure=1),
     )
     names = tuple(lbl or f"mode {k + 1}" for k, lbl in enumerate(mesh.labels[n_rigid:]))
-    log.info("SID of %s: %d modes, %d frame nodes, frame origin %s m (%s)", h5_path, nq,
-             len(body.regions), np.array2string(O, precision=4), source)
+    nodes = _nodes(body.points, body.cells, body.regions, x, Psi)
+    log.info("SID of %s: %d modes, frame origin %s m (%s); frame nodes: %s", h5_path, nq,
+             np.array2string(O, precision=4), source,
+             ", ".join(f"{n + 1} = {node.region}" for n, node in enumerate(nodes)))
     return SidBody(float(row_mass.sum()), names, mesh.frequencies_hz[n_rigid:].copy(),
-                   _nodes(body.points, body.cells, body.regions, x, Psi), terms, O,
+                   nodes, terms, O,
                    rot is not None)
 
 
