@@ -297,3 +297,20 @@ def test_export_replaces_its_own_sid_but_not_a_foreign_file(spun):
     assert proc.returncode == OutputError.exit_code, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "--force" in proc.stderr
     assert foreign.read_text() == "not ours\n"
+
+
+def test_free_body_drops_its_rigid_modes_and_its_modes_carry_no_momentum(tmp_path):
+    """A body without supports: the six rigid-body modes are not SID coordinates, and the
+    elastic free-free modes, M-orthogonal to the rigid ones, satisfy the mean-axis
+    conditions int rho psi dV = 0 and int rho x x psi dV = 0 (Ct = Cr = 0 to round-off
+    relative to the size the same integrals take for a supported body's modes)."""
+    text = SPIN.split("supports:")[0] + "modes: {count: 10}\n"
+    (tmp_path / "free.yaml").write_text(text)
+    assert _cli("run", "free.yaml", "-o", "free.h5", cwd=tmp_path).returncode == 0
+    assert _cli("export", "free.h5", "--to", "sid", cwd=tmp_path).returncode == 0
+    sid = read_sid(tmp_path / "free.SID_FEM")
+    assert sid["nq"] == 4 and sid["freqs"][0] > 100  # first free-free bending, no 0 Hz mode
+    T = sid["terms"]
+    scale = np.sqrt(sid["mass"])  # |int rho psi| <= sqrt(m) for an M-normalised psi
+    assert np.abs(T["Ct"]["m0"]).max() < 1e-8 * scale
+    assert np.abs(T["Cr"]["m0"]).max() < 1e-8 * scale * L_
