@@ -226,7 +226,8 @@ def test_resigned_file_that_fails_physics_is_refused_by_every_reader(good, tmp_p
     ("export", "{f}", "--to", "fmu", "-o", "{out}.fmu"),
     ("export", "{f}", "--to", "exudyn", "-o", "{out}.hdf5"),
     ("simulate", "{f}", ROOT / "configs/scenarios/step_load.yaml", "-o", "{out}.h5"),
-], ids=["inspect", "plot", "vtu", "xdmf", "mat", "json", "fmu", "exudyn", "simulate"])
+    ("export", "{f}", "--to", "sid", "-o", "{out}.SID_FEM"),
+], ids=["inspect", "plot", "vtu", "xdmf", "mat", "json", "fmu", "exudyn", "simulate", "sid"])
 def test_unstable_model_is_refused_by_every_consumer(good, tmp_path, command):
     """An unstable A (a passive body cannot gain energy) through every command: one line,
     exit code 7, nothing written."""

@@ -147,6 +147,7 @@ KINDS: dict[str, Callable[[Path], bool]] = {
     "csv": lambda p: (t := _text(p)) is not None and "," in t.split("\n", 1)[0],
     "html": lambda p: (t := _text(p)) is not None and t.lstrip().lower().startswith(
         ("<!doctype html", "<html")),
+    "sid": lambda p: (t := _text(p)) is not None and t.split()[:3] == ["part", "new", "modal"],
 }
 
 
@@ -156,7 +157,7 @@ def kind_of_suffix(path: Path) -> str | None:
     for ending, kind in ((".exudyn.hdf5", "exudyn"), (".h5", "h5"), (".hdf5", "h5"),
                          (".json", "json"), (".mat", "mat"), (".fmu", "fmu"), (".vtu", "vtu"), (".xdmf", "xdmf"),
                          (".png", "png"), (".svg", "svg"), (".pdf", "pdf"), (".msh", "msh"),
-                         (".csv", "csv"), (".html", "html")):
+                         (".csv", "csv"), (".html", "html"), (".sid_fem", "sid")):
         if name.endswith(ending):
             return kind
     return None

@@ -27,7 +27,7 @@ def run_export(h5_path: str | Path, fmt: str, out_path: str | Path | None = None
     ``options`` (e.g. ``model='filtered'`` for fmu) go to the format's writer."""
     from pipeline.apps.exports import export
 
-    if fmt == "exudyn" and options.get("fe_data") is None:
+    if fmt in ("exudyn", "sid") and options.get("fe_data") is None:
         options["fe_data"] = exudyn_fe_data(h5_path)
     return Path(export(Path(h5_path), fmt, out_path, **options))
 
@@ -56,7 +56,8 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
         "connection-point and Craig-Bampton models, names, frequencies); simscape: Reduced "
         "Order Flexible Solid parameters (.mat + .m); vtu/xdmf: mesh with every mode shape for ParaView; json: "
         "small summary (frequencies, ports, DC gains); exudyn: Exudyn FEMinterface file; fmu: "
-        "FMI 2.0 or 3.0 FMU (Model Exchange + Co-Simulation) of any model of the file. "
+        "FMI 2.0 or 3.0 FMU (Model Exchange + Co-Simulation) of any model of the file; sid: "
+        "SID standard input data (SIMPACK) with the centrifugal stiffening terms. "
         "See docs/exports.md (installed: pipeline/docs/exports.md).")
     p.add_argument("file", help="HDF5 result of 'python -m pipeline run'")
     p.add_argument("--to", required=True, choices=names, help="output format")

@@ -30,7 +30,7 @@ WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch")
 
 #: export format -> kind of the file it writes (see pipeline._util.paths.KINDS)
 EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn",
-                "fmu": "fmu", "simscape": "mat"}
+                "fmu": "fmu", "simscape": "mat", "sid": "sid"}
 
 
 def interrupted_by(exc: BaseException) -> bool:

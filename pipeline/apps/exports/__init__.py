@@ -70,6 +70,10 @@ EXPORTERS: dict[str, Exporter] = {
                     "FMI 2.0 or 3.0 (--fmi-version) FMU (Model Exchange + Co-Simulation, C "
                     "sources inside) of any model of the file (--model); compiled with gcc "
                     "at export", options=("model", "fmi_version")),
+    "sid": Exporter(_lazy("sid", "export_sid"), ".SID_FEM",
+                    "SID standard input data (SIMPACK and other FFRF codes): mass, inertia "
+                    "invariants, modal mass and stiffness, frame nodes per region, "
+                    "centrifugal stiffening from /rotation", options=("fe_data",)),
 }
 
 
