@@ -527,7 +527,11 @@ def read_rotation(path: str | Path) -> RotationModel | None:
             preload=(_array(h5, R.preload_stiffness, "f", (len(names), n_b, n_b)) if names
                      else np.zeros((0, n_b, n_b))),
             input_names=names, n_modes=int(attrs[R.attr.n_modes]),
-            static_shape=bool(attrs[R.attr.static_shape]))
+            static_shape=bool(attrs[R.attr.static_shape]),
+            **({} if R.centrifugal_load not in h5 else dict(
+                centrifugal_load=_array(h5, R.centrifugal_load, "f", (6, n_b)),
+                euler_load=_array(h5, R.euler_load, "f", (3, n_b)),
+                coriolis=_array(h5, R.coriolis, "f", (3, n_b, n_b)))))
 
 
 # --------------------------------------------------------------------------- sparse matrices

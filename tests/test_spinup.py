@@ -1,0 +1,232 @@
+"""The ``spin_up`` scenario (issue 37 item 4): a slender beam on a hub spun up through the
+Kane-Ryan-Banerjee ramp, stepped as the modal model with and without geometric stiffening.
+
+The body: a 0.5 m x 20 mm x 50 mm aluminium beam clamped at its root, spun about z through
+the root's centre (in-plane bending along y, first frequency ~65.8 Hz = 413.5 rad/s), to
+600 rad/s (1.45 x the first in-plane frequency) in 0.15 s: the classical setting in which
+the linear floating-frame model (spin softening, no stiffening) runs away once the hub
+passes the first frequency, and the stiffened one stays bounded.
+
+References and tolerances:
+- the hub profile: Omega(T) = Omega_s, alpha = Omega' and theta' = Omega by central
+  differences (step 1e-6 s: truncation ~ (2 pi / T)^2 h^2 / 6 relative, below 1e-8);
+- the runaway of the linear model begins where K_r - Omega^2 S_a loses definiteness: it
+  must come after that instant (the deflection then grows like exp(sqrt(Omega^2 - w1^2) t),
+  from ~25 mm to the body's 0.5 m within a few 1/sqrt(Omega^2 - w1^2) ~ 3 ms);
+- Exudyn's geometrically nonlinear ANCF beam (ObjectANCFCable2D, 10 elements, root
+  position and slope prescribed to follow the hub angle) against the stiffened modal
+  model: the same in-plane bending stiffness (EI set so that the cantilever's first
+  frequency equals the FE model's 65.8 Hz, removing the 3D-versus-beam-theory difference
+  of ~1.4 % in w^2), mass per length and axial stiffness. What is left: the 3D body's
+  shear and section effects on the deflection shape ((h/L)^2 ~ 0.2 %), the modal
+  truncation (6 modes), the ANCF discretisation and the implicit time step (h = 1e-4 s,
+  spectral radius 0.9), and the neglected second-order terms (deflection/L ~ 5 %, squared
+  0.25 %). Measured 0.3 % at the peak; bound: 2 % of the peak deflection, for the peak and
+  for the largest difference over the whole history.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import record_tolerance
+from pipeline.apps.simulate.spinup import hub_profile
+from pipeline.errors import ConfigError, FileFormatError
+
+L, H, B = 0.5, 0.02, 0.05
+E, RHO = 69.0e9, 2700.0
+SPEED, RAMP, DURATION = 600.0, 0.15, 0.3
+
+CONFIG = f"""\
+name: spin
+geometry: {{kind: box, length: {L}, height: {H}, depth: {B}}}
+mesh: {{order: 2, size: 0.025}}
+material: {{E: {E}, nu: 0.33, rho: {RHO}}}
+supports: [{{region: root, fix: all}}]
+modes: {{count: 6}}
+ports:
+  inputs:  [{{name: pull, region: tip, kind: force, direction: [1, 0, 0]}}]
+  outputs: [{{name: tip_y, region: tip, kind: displacement, direction: [0, 1, 0]}}]
+reduction: {{modes: 6, static_correction: residual}}
+rotation: {{axis: [0, 0, 1], point: [0, {H / 2}, {B / 2}], speeds_rad_s: [0, 300, 600],
+           correction_shapes: 1}}
+"""
+
+SCENARIO = f"""\
+- {{name: krb, kind: spin_up, final_speed: {SPEED}, ramp_time: {RAMP}, duration: {DURATION},
+   output_rate: 5000, damping: false, output: tip_y}}
+"""
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def spun(tmp_path_factory):
+    """(model file, result file) of the spin-up through the command line."""
+    tmp = tmp_path_factory.mktemp("spinup")
+    (tmp / "spin.yaml").write_text(CONFIG)
+    proc = _cli("run", "spin.yaml", "-o", "spin.h5", cwd=tmp)
+    assert proc.returncode == 0, proc.stderr
+    (tmp / "krb.yaml").write_text(SCENARIO)
+    proc = _cli("simulate", "spin.h5", "krb.yaml", "-o", "res.h5", cwd=tmp)
+    assert proc.returncode == 0, proc.stderr
+    return tmp / "spin.h5", tmp / "res.h5"
+
+
+def _signal(result, key: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+    with h5py.File(result, "r") as h5:
+        return h5[f"krb/{key}/time"][()], h5[f"krb/{key}/signals/{name}"][()]
+
+
+def test_hub_profile_is_the_krb_ramp():
+    t = np.linspace(0.0, 2 * RAMP, 301)
+    speed, alpha, angle = hub_profile(t, SPEED, RAMP)
+    assert speed[0] == alpha[0] == angle[0] == 0.0
+    assert speed[t >= RAMP] == pytest.approx(SPEED) and np.all(alpha[t >= RAMP] == 0.0)
+    h = 1e-6
+    tm = t[1:-1]
+    sp, ap, thp = hub_profile(tm + h, SPEED, RAMP)
+    sm, am, thm = hub_profile(tm - h, SPEED, RAMP)
+    s0, a0, _ = hub_profile(tm, SPEED, RAMP)
+    np.testing.assert_allclose((sp - sm) / (2 * h), a0, atol=1e-6 * SPEED / RAMP)
+    np.testing.assert_allclose((thp - thm) / (2 * h), s0, atol=1e-6 * SPEED)
+    assert hub_profile(RAMP, SPEED, RAMP)[2] == pytest.approx(SPEED * RAMP / 2)
+
+
+def test_stiffened_stays_bounded_and_linear_runs_away(spun):
+    model, result = spun
+    t, y = _signal(result, "stiffened", "tip_y/position")
+    assert t[-1] == pytest.approx(DURATION)
+    assert np.abs(y).max() < 0.1 * L  # bounded: ~25 mm during the ramp
+    after = t > RAMP
+    assert np.abs(y[after]).max() < 0.05 * np.abs(y).max()  # a small free oscillation
+    tl, yl = _signal(result, "linear", "tip_y/position")
+    assert tl[-1] < DURATION and abs(yl[-1]) > 0.9 * L  # stopped: ran away
+    with h5py.File(result, "r") as h5:
+        attrs = dict(h5["krb/linear"].attrs)
+        onset_s = attrs["predicted_instability_onset_s"]
+        onset = attrs["predicted_instability_speed_rad_s"]
+    from pipeline.store.read import read_rotation
+
+    w1 = math.sqrt(read_rotation(model).stiffness[0, 0])
+    assert onset == pytest.approx(w1, rel=0.02)  # S_a of the first in-plane mode is ~1
+    assert onset_s < attrs["measured_runaway_s"] < onset_s + 0.02
+    # early in the ramp both agree (the stiffening term is second order in Omega)
+    early = t < 0.02
+    np.testing.assert_allclose(yl[:early.sum()], y[early], atol=0.01 * np.abs(y).max())
+    for ext in ("krb.csv", "krb.png"):
+        assert (result.parent / f"res.{ext}").stat().st_size > 0
+
+
+def test_inertia_terms_are_stored(spun):
+    from pipeline.store.read import read_rotation
+
+    rot = read_rotation(spun[0])
+    n_b = rot.stiffness.shape[0]
+    assert n_b == 7 and rot.centrifugal_load.shape == (6, n_b)  # 6 modes + 1 correction
+    # spun about z through the root centre, the beam's centrifugal load (zz entry) is an
+    # axial stretch, orthogonal to the bending modes at rest (their sections are
+    # symmetric, up to the unstructured mesh's asymmetry: measured 6e-7); the xy entry
+    # loads the in-plane bending (first) mode
+    f = rot.centrifugal_load
+    assert abs(f[2, 0]) < 1e-5 * abs(f[3, 0])
+    C = rot.coriolis
+    assert np.abs(C + C.transpose(0, 2, 1)).max() < 1e-12 * np.abs(C).max()  # skew
+    # the Euler load of the first (in-plane) mode: int rho phi_y x dV, with the beam mode
+    # normalised to unit modal mass ~ sqrt(m) * 0.5680 * L ... its sign and size
+    m = RHO * L * H * B
+    assert 0.5 * math.sqrt(m) * L < abs(rot.euler_load[2, 0]) < math.sqrt(m) * L
+
+
+def test_stiffened_model_matches_exudyn_ancf(spun):
+    """The independent, geometrically nonlinear solver (see the module docstring)."""
+    exu = pytest.importorskip("exudyn")
+    from exudyn.itemInterface import (CoordinateConstraint, MarkerNodeCoordinate,
+                                      NodePoint2DSlope1, NodePointGround, ObjectANCFCable2D,
+                                      SensorNode)
+    from pipeline.store.read import read_rotation
+
+    w1 = math.sqrt(read_rotation(spun[0]).stiffness[0, 0])
+    rho_a = RHO * H * B
+    EI = w1 ** 2 * rho_a * L ** 4 / 1.8751040687119611 ** 4
+    n_el = 10
+    sc = exu.SystemContainer()
+    mbs = sc.AddSystem()
+    nodes = [mbs.AddNode(NodePoint2DSlope1(referenceCoordinates=[L * i / n_el, 0, 1, 0]))
+             for i in range(n_el + 1)]
+    for a, b in zip(nodes, nodes[1:]):
+        mbs.AddObject(ObjectANCFCable2D(nodeNumbers=[a, b], length=L / n_el,
+                                        massPerLength=rho_a, bendingStiffness=EI,
+                                        axialStiffness=E * H * B))
+    ground = mbs.AddMarker(MarkerNodeCoordinate(nodeNumber=mbs.AddNode(NodePointGround()),
+                                                coordinate=0))
+
+    def angle(t):
+        return float(hub_profile(t, SPEED, RAMP)[2])
+
+    # the root follows the hub: position fixed, slope (cos theta, sin theta)
+    offsets = [0, 0, lambda mbs, t, item, off: math.cos(angle(t)) - 1.0,
+               lambda mbs, t, item, off: math.sin(angle(t))]
+    for k, offset in enumerate(offsets):
+        marker = mbs.AddMarker(MarkerNodeCoordinate(nodeNumber=nodes[0], coordinate=k))
+        mbs.AddObject(CoordinateConstraint(markerNumbers=[ground, marker],
+                                           offsetUserFunction=offset))
+    sensor = mbs.AddSensor(SensorNode(nodeNumber=nodes[-1], storeInternal=True,
+                                      outputVariableType=exu.OutputVariableType.Position))
+    mbs.Assemble()
+    settings = exu.SimulationSettings()
+    settings.timeIntegration.numberOfSteps = int(round(DURATION / 1e-4))
+    settings.timeIntegration.endTime = DURATION
+    settings.timeIntegration.generalizedAlpha.spectralRadius = 0.9
+    settings.timeIntegration.verboseMode = 0
+    settings.solution.file.write = False
+    settings.solution.sensors.writePeriod = 1e-3
+    exu.SolveDynamic(mbs, settings)
+    data = mbs.GetSensorStoredData(sensor)
+    theta = hub_profile(data[:, 0], SPEED, RAMP)[2]
+    v_exudyn = -np.sin(theta) * data[:, 1] + np.cos(theta) * data[:, 2]  # hub frame
+    t, y = _signal(spun[1], "stiffened", "tip_y/position")
+    ours = np.interp(data[:, 0], t, y)
+    peak = np.abs(v_exudyn).max()
+    peak_error = abs(np.abs(ours).max() / peak - 1.0)
+    history_error = np.abs(ours - v_exudyn).max() / peak
+    record_tolerance("spin_up: peak deflection vs Exudyn ANCF", peak_error, 0.02)
+    record_tolerance("spin_up: history vs Exudyn ANCF (of the peak)", history_error, 0.02)
+    assert peak_error < 0.02 and history_error < 0.02
+
+
+@pytest.mark.parametrize("raw, key", [
+    ({"final_speed": 0.0}, "scenario.final_speed"),
+    ({"final_speed": 2e6}, "scenario.final_speed"),
+    ({"ramp_time": -1.0}, "scenario.ramp_time"),
+    ({"ramp_time": "slow"}, "scenario.ramp_time"),
+    ({"mass": 1.0}, "scenario"),
+])
+def test_bad_spin_up_keys_are_one_line(raw, key):
+    from pipeline.apps.simulate import parse_scenarios
+
+    scenario = {"kind": "spin_up", "final_speed": 100.0, "ramp_time": 1.0, "duration": 2.0,
+                **raw}
+    with pytest.raises(ConfigError) as info:
+        parse_scenarios(scenario)
+    assert info.value.key.startswith(key) and "\n" not in str(info.value)
+
+
+def test_file_without_rotation_is_refused_in_one_line(tmp_path):
+    (tmp_path / "plain.yaml").write_text(CONFIG.split("rotation:")[0])
+    assert _cli("run", "plain.yaml", "-o", "plain.h5", cwd=tmp_path).returncode == 0
+    (tmp_path / "krb.yaml").write_text(SCENARIO)
+    proc = _cli("simulate", "plain.h5", "krb.yaml", "-o", "res.h5", cwd=tmp_path)
+    assert proc.returncode == FileFormatError.exit_code
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "/rotation" in line and "krb" in line
+    assert not (tmp_path / "res.h5").exists()
