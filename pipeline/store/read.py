@@ -368,6 +368,14 @@ def _lumped_chain(h5, chain: StateSpace | None) -> dict[str, Any] | None:
                 "joint_positions"):
         if L.LUMPED.dataset(key) in h5:
             out[key] = np.asarray(h5[L.LUMPED.dataset(key)][()], float)
+    table = {}
+    for key in ("joint", "dof", "axis", "stiffness", "damping"):
+        path = L.LUMPED.dataset(f"joint_table/{key}")
+        if path in h5:
+            table[key] = (tuple(read_strings(h5[path])) if key == "dof"
+                          else np.asarray(h5[path][()], float))
+    if len(table) == 5:
+        out["joint_table"] = table
     return out
 
 

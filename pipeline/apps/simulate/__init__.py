@@ -26,8 +26,9 @@ Scenarios (docs/simulate.md lists every key):
   the tip mass on; planar rotation coupled to the elastic model (the elastic input is the
   tip reaction force in the rotating body frame);
 - ``spin_up``: a hub spun up through a prescribed speed ramp, the body's modal model with
-  and without geometric stiffening in the hub frame (time-varying, not LTI: stepped by
-  :mod:`.spinup` with solve_ivp alone).
+  and without geometric stiffening in the hub frame, and the lumped chain with its
+  nonlinear planar kinematics (time-varying, not LTI: stepped by :mod:`.spinup` and
+  :mod:`.spinchain` with solve_ivp alone).
 
 Each runs on the FE model and, when the file has one and its tip matches the ports, on the
 lumped chain too. Measured (from the response: zero crossings, FFT peak refined by

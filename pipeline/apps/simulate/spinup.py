@@ -20,7 +20,7 @@ stress per unit Omega^2 (the stiffening); S_a = sum_ij a_i a_j S_ij, the spin so
 C_a = sum_k a_k C_k (skew: Coriolis 2 Omega C_a q', and the Euler force of the
 deflection Omega' C_a q); f_a = sum_ij a_i a_j f_ij the centrifugal load and e_a =
 sum_k a_k E_k the Euler (tangential) load of the undeformed body; D = diag(2 zeta_k w_k)
-the file's modal damping (``damping: false``: none). Two models are stepped:
+the file's modal damping (``damping: false``: none). Two modal models are stepped:
 
 - ``stiffened``: the equations above;
 - ``linear``: the same without G_a, the classical linear floating-frame model whose
@@ -32,7 +32,7 @@ Recorded: the deflection of the output port (the region's mean displacement alon
 port's direction, in the hub frame, m), the hub speed (rad/s) and angle (rad). Predicted
 beside it: the quasi-static deflection K(Omega)^-1 (Omega^2 f_a - Omega' e_a) at the peak
 and at the end, and the speed where the linear model's stiffness loses definiteness.
-The lumped chain's nonlinear spin-up is not stepped here (docs/simulate.md).
+The lumped chain is stepped with its rigid-body kinematics by :mod:`.spinchain`.
 """
 
 from __future__ import annotations
@@ -53,12 +53,14 @@ from pipeline.store.read import ModelFile, read_fe_model, read_rotation
 from pipeline.apps.simulate.integrate import time_grid
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult
 from pipeline.apps.simulate.scenarios import Scenario
+from pipeline.apps.simulate.spinchain import planar_chain, step_chain
 
 __all__ = ["hub_profile", "SpinSystem", "spin_system", "step_spin", "run_spin_up",
            "port_row", "check_spin_file", "plot_spin_up"]
 
 #: labels of the two modal models a spin_up scenario steps
-MODELS = {"stiffened": "modal, geometric stiffening", "linear": "modal, no stiffening"}
+MODELS = {"stiffened": "modal, geometric stiffening", "linear": "modal, no stiffening",
+          "lumped": "lumped chain, rigid-body kinematics"}
 
 
 def hub_profile(t, final_speed: float, ramp_time: float
@@ -309,8 +311,24 @@ def run_spin_up(mf: ModelFile, sc: Scenario, port: str) -> ScenarioResult:
                 notes.append(f"the linear model ran away at t = {ran:.4g} s (deflection past "
                              f"{limit:.3g} m, the body's size); the hub passed {onset:.4g} "
                              "rad/s, where its stiffness K_r - Omega^2 S_a loses definiteness")
-    notes.append("the lumped chain's nonlinear spin-up is not stepped (spin_up steps the "
-                 "modal models only)")
+    chain, why = planar_chain(mf, rot.axis, rot.point, port, sc.damping) if sc.lumped \
+        else (None, "lumped: false")
+    if chain is None:
+        notes.append(f"no lumped run: {why}")
+        return result
+    t, y, stats = step_chain(chain, sc, lambda x: hub_profile(x, sc.final_speed, sc.ramp_time),
+                             limit, float(quasi[k_peak]), math.sqrt(system.stiffness[0, 0]))
+    speed, _, angle = hub_profile(t, sc.final_speed, sc.ramp_time)
+    run = Run(MODELS["lumped"], "lumped", t, {f"{port}/position": y, "hub_speed": speed,
+                                              "hub_angle": angle},
+              {f"{port}/position": "m", "hub_speed": "rad/s", "hub_angle": "rad"}, {}, {},
+              dict(stats))
+    peak = float(y[np.argmax(np.abs(y))]) if y.size else math.nan
+    run.measured["peak_deflection"] = peak
+    run.predicted["peak_deflection"] = float(quasi[k_peak])
+    result.runs.append(run)
+    result.rows.append(Row(sc.name, run.model, "peak deflection", peak, float(quasi[k_peak]),
+                           "m", "stiffened modal quasi-static"))
     return result
 
 
@@ -325,7 +343,8 @@ def plot_spin_up(path, s: ScenarioResult, port: str):
     from pipeline._util.atomic import atomic_path
 
     sc = s.scenario
-    style = {"stiffened": dict(color="C0", lw=1.4), "linear": dict(color="C3", lw=1.0, ls="--")}
+    style = {"stiffened": dict(color="C0", lw=1.4), "linear": dict(color="C3", lw=1.0, ls="--"),
+             "lumped": dict(color="C2", lw=1.0, ls="-.")}
     fig = Figure(figsize=(10, 6.2))
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     for run in s.runs:
@@ -333,6 +352,16 @@ def plot_spin_up(path, s: ScenarioResult, port: str):
                  **style.get(run.key, {}))
         if run.key == "stiffened":
             ax2.plot(run.t, run.signals["hub_speed"], color="k", lw=1.2)
+    bounded = [np.abs(r.signals[f"{port}/position"]).max() for r in s.runs
+               if "runaway_s" not in r.info and r.t.size]
+    if bounded and max(bounded) > 0:  # the runaway leaves the axes: the bounded ones stay legible
+        ax1.set_ylim(-3e3 * max(bounded), 3e3 * max(bounded))
+    for run in s.runs:
+        if "runaway_s" in run.info:
+            ax1.axvline(run.info["runaway_s"], color="C3", ls=":", lw=0.8)
+            ax1.annotate(f"{run.model}: runs away ({run.info['runaway_s']:.3g} s)",
+                         (run.info["runaway_s"], 0), xytext=(4, 4),
+                         textcoords="offset points", fontsize=8, color="C3")
     ax1.set_ylabel(f"{port} deflection, hub frame [mm]")
     ax1.legend(fontsize=8, loc="best")
     ax2.set_ylabel("hub speed [rad/s]")
