@@ -29,7 +29,7 @@ from pipeline.apps.simulate.measure import (decay_damping_ratio, fft_peak_freque
 from pipeline.apps.simulate.output import write_outputs
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult, SimulationResults
 from pipeline.apps.simulate.scenarios import Scenario, as_scenarios, check_step_budget
-from pipeline.apps.simulate.spinup import check_spin_file, port_row, run_spin_up
+from pipeline.apps.simulate.spinup import check_spin_budget, run_spin_up
 from pipeline.apps.simulate.stress import add_stress_outputs, gauge_ports
 from pipeline.apps.simulate.systems import (SteppedSystem, coupled_system, directions,
                                             filtered_for, lumped_for, mount_for, step_system,
@@ -256,8 +256,7 @@ def check_against_model(mf: ModelFile, sc: Scenario) -> None:
     (the same checks the run makes, done up front)."""
     inp, port = scenario_ports(mf, sc)
     if sc.kind == "spin_up":
-        check_spin_file(mf, sc)
-        port_row(mf, port, 1)
+        check_spin_budget(mf, sc, port)
         return
     if sc.kind == "step_load":  # the plant is the stepped system: its budget, up front
         check_step_budget(mf.plant.A, sc.duration, sc.integrator.method, sc.name,

@@ -52,11 +52,11 @@ from pipeline.store.read import ModelFile, read_fe_model, read_rotation
 
 from pipeline.apps.simulate.integrate import time_grid
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult
-from pipeline.apps.simulate.scenarios import Scenario
+from pipeline.apps.simulate.scenarios import Scenario, check_step_budget
 from pipeline.apps.simulate.spinchain import planar_chain, step_chain
 
 __all__ = ["hub_profile", "SpinSystem", "spin_system", "step_spin", "run_spin_up",
-           "port_row", "check_spin_file", "plot_spin_up"]
+           "port_row", "check_spin_file", "check_spin_budget", "plot_spin_up"]
 
 #: labels of the two modal models a spin_up scenario steps
 MODELS = {"stiffened": "modal, geometric stiffening", "linear": "modal, no stiffening",
@@ -242,6 +242,18 @@ def _jacobian(system: SpinSystem, time: float, W: float, T: float, stiffened: bo
     J[n:, :n] = -system.stiffness_at(float(speed), float(alpha), stiffened)
     J[n:, n:] = -(system.damping + 2 * float(speed) * system.coriolis)
     return J
+
+
+def check_spin_budget(mf: ModelFile, sc: Scenario, port: str) -> None:
+    """Refuse (SolverError, one line, before any run) a spin-up the integrator cannot step
+    within the stepper's budget: the estimate of
+    :func:`~pipeline.apps.simulate.scenarios.check_step_budget` for the stiffened modal
+    system at the final speed (its fastest oscillation)."""
+    system = spin_system(mf, check_spin_file(mf, sc), sc, port, [])
+    n = system.stiffness.shape[0]
+    A = np.block([[np.zeros((n, n)), np.eye(n)],
+                  [-system.stiffness_at(sc.final_speed), -system.damping]])
+    check_step_budget(A, sc.duration, sc.integrator.method, sc.name, rtol=sc.integrator.rtol)
 
 
 def check_spin_file(mf: ModelFile, sc: Scenario) -> RotationModel:
