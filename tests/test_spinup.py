@@ -221,15 +221,21 @@ def test_bad_spin_up_keys_are_one_line(raw, key):
     assert info.value.key.startswith(key) and "\n" not in str(info.value)
 
 
-def test_file_without_rotation_is_refused_in_one_line(tmp_path):
-    (tmp_path / "plain.yaml").write_text(CONFIG.split("rotation:")[0])
-    assert _cli("run", "plain.yaml", "-o", "plain.h5", cwd=tmp_path).returncode == 0
+def _refusal(tmp_path, config: str, error) -> str:
+    """Build ``config``, run SCENARIO on it: the last stderr line of the refusal, after
+    checking its exit code and that nothing was written."""
+    (tmp_path / "body.yaml").write_text(config)
+    assert _cli("run", "body.yaml", "-o", "body.h5", cwd=tmp_path).returncode == 0
     (tmp_path / "krb.yaml").write_text(SCENARIO)
-    proc = _cli("simulate", "plain.h5", "krb.yaml", "-o", "res.h5", cwd=tmp_path)
-    assert proc.returncode == FileFormatError.exit_code
-    line = proc.stderr.strip().splitlines()[-1]
-    assert "/rotation" in line and "krb" in line
+    proc = _cli("simulate", "body.h5", "krb.yaml", "-o", "res.h5", cwd=tmp_path)
+    assert proc.returncode == error.exit_code
     assert not (tmp_path / "res.h5").exists()
+    return proc.stderr.strip().splitlines()[-1]
+
+
+def test_file_without_rotation_is_refused_in_one_line(tmp_path):
+    line = _refusal(tmp_path, CONFIG.split("rotation:")[0], FileFormatError)
+    assert "/rotation" in line and "krb" in line
 
 
 def test_planar_chain_spinning_pendulum():
@@ -329,3 +335,15 @@ def test_stiffened_peak_against_the_full_fe_prestressed_statics(spun, tmp_path):
         attrs = dict(h5["krb/stiffened"].attrs)
     assert attrs["predicted_peak_deflection"] == pytest.approx(worst, rel=2e-3)
     assert attrs["measured_peak_deflection"] == pytest.approx(worst, rel=1e-2)
+
+
+def test_a_final_speed_past_the_stiffened_instability_is_named(tmp_path):
+    """Spun about its own length the beam softens, w^2 = w0^2 - Omega^2 (no tension): at
+    600 rad/s, past w0 = 413 rad/s, the stiffened model itself is unstable: refused in one
+    line naming the speed, nothing written."""
+    from pipeline.errors import SolverError
+
+    text = CONFIG.replace("axis: [0, 0, 1]", "axis: [1, 0, 0]").replace(
+        "speeds_rad_s: [0, 300, 600]", "speeds_rad_s: [0, 300]")
+    line = _refusal(tmp_path, text, SolverError)
+    assert "krb'.final_speed" in line and "600 rad/s" in line

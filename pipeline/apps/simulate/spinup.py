@@ -245,12 +245,22 @@ def _jacobian(system: SpinSystem, time: float, W: float, T: float, stiffened: bo
 
 
 def check_spin_budget(mf: ModelFile, sc: Scenario, port: str) -> None:
-    """Refuse (SolverError, one line, before any run) a spin-up the integrator cannot step
-    within the stepper's budget: the estimate of
-    :func:`~pipeline.apps.simulate.scenarios.check_step_budget` for the stiffened modal
-    system at the final speed (its fastest oscillation)."""
+    """Refuse (SolverError, one line, before any run) a spin-up whose stiffened modal
+    model is unstable at the final speed (K_r + Omega_s^2 (G_a - S_a) not positive
+    definite: a spin-softening instability or buckling under the centrifugal stress; it
+    is then definite at every lower speed of the ramp, K being affine in Omega^2), or
+    which the integrator cannot step within the stepper's budget (the estimate of
+    :func:`~pipeline.apps.simulate.scenarios.check_step_budget` for the stiffened system
+    at the final speed)."""
     system = spin_system(mf, check_spin_file(mf, sc), sc, port, [])
     n = system.stiffness.shape[0]
+    K = system.stiffness_at(sc.final_speed)
+    if np.linalg.eigvalsh(0.5 * (K + K.T))[0] <= 0.0:
+        raise SolverError(
+            f"scenario '{sc.name}'.final_speed: at {sc.final_speed:g} rad/s the prestressed "
+            "stiffness K_r + Omega^2 (G - S) of the modal model is not positive definite (a "
+            "spin-softening instability or buckling under the centrifugal stress); expected "
+            "a speed below it", key=f"{sc.name}.final_speed", value=sc.final_speed)
     A = np.block([[np.zeros((n, n)), np.eye(n)],
                   [-system.stiffness_at(sc.final_speed), -system.damping]])
     check_step_budget(A, sc.duration, sc.integrator.method, sc.name, rtol=sc.integrator.rtol)
