@@ -58,7 +58,7 @@ from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PrestressTerms", "prestress_terms", "RotationModel", "reduced_basis", "project",
+__all__ = ["PrestressTerms", "prestress_terms", "inertia_loads", "RotationModel", "reduced_basis", "project",
            "reduced_frequencies", "full_frequencies", "build_rotation", "rotation_model"]
 
 
@@ -71,6 +71,9 @@ class PrestressTerms:
     softening: six (n_s x n_s) CSR M_ij (kg).
     preload_shapes: (n_s, n_in) static displacements per unit input (m per N or N m).
     preload_geometric: n_in (n_s x n_s) CSR K_G per unit input (N/m per N or N m).
+    centrifugal_loads: (n_s, 6) the consistent centrifugal loads f_ij per unit W_ij.
+    node_mass: (n_nodes x n_nodes) CSR the scalar consistent mass m (kg).
+    node_offsets: (n_nodes, 3) x - point of every node (m).
     """
 
     centrifugal_shapes: np.ndarray
@@ -78,6 +81,9 @@ class PrestressTerms:
     softening: tuple[sp.csr_matrix, ...]
     preload_shapes: np.ndarray
     preload_geometric: tuple[sp.csr_matrix, ...]
+    centrifugal_loads: np.ndarray | None = None
+    node_mass: sp.csr_matrix | None = None
+    node_offsets: np.ndarray | None = None
 
     def spin_matrices(self, axis) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """(K_G1, M_perp) of a spin about the unit ``axis``: K(Omega) = K + Omega^2 (K_G1 -
@@ -123,7 +129,33 @@ def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
                       for i, j in TENSOR_ENTRIES)
     k = len(TENSOR_ENTRIES)
     return PrestressTerms(shapes[:, :k], tuple(geometric[:k]), softening, shapes[:, k:],
-                          tuple(geometric[k:]))
+                          tuple(geometric[k:]), loads[free], node_mass,
+                          space.node_points - np.asarray(point, dtype=float))
+
+
+def inertia_loads(terms: PrestressTerms, free: np.ndarray, V: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inertia loads of a prescribed rotation on the basis V (n_s x n_b):
+
+    centrifugal (6, n_b): V^T f_ij, the load per unit W_ij of the undeformed body;
+    euler (3, n_b): E_k = V^T (m (x) I) (e_k x (x - p)) (kg m), the generalized force of
+    an angular acceleration alpha is -sum_k alpha_k E_k;
+    coriolis (3, n_b, n_b): C_k = V^T (m (x) [e_k x]) V (kg, skew), the Coriolis force
+    is -2 sum_k omega_k C_k q' and the Euler force of the deflection -sum_k alpha_k C_k q.
+    """
+    n_nodes = terms.node_mass.shape[0]
+    full = np.zeros((3 * n_nodes, V.shape[1]))
+    full[free] = V
+    nodal = full.reshape(n_nodes, 3, -1)
+    euler = np.empty((3, V.shape[1]))
+    coriolis = np.empty((3, V.shape[1], V.shape[1]))
+    for k, e in enumerate(np.eye(3)):
+        arm = np.cross(e, terms.node_offsets)  # (n_nodes, 3)
+        euler[k] = full.T @ (terms.node_mass @ arm).reshape(-1)
+        turned = np.cross(e[None, :, None], nodal, axis=1)  # e_k x each column's vectors
+        mass_turned = (terms.node_mass @ turned.reshape(n_nodes, -1)).reshape(3 * n_nodes, -1)
+        coriolis[k] = full.T @ mass_turned
+    return (V.T @ terms.centrifugal_loads).T, euler, coriolis
 
 
 def reduced_basis(shapes: np.ndarray, M: sp.spmatrix, extra: np.ndarray | None = None
@@ -223,6 +255,7 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
     V = reduced_basis(with_static, M, corrections)
     n_m = shapes.shape[1]
     plain = V.shape[1] == n_m
+    centrifugal, euler, coriolis = inertia_loads(terms, free, V)
     model = RotationModel(
         axis=axis, point=np.asarray(rotation.point, float),
         speeds_rad_s=np.asarray(rotation.speeds_rad_s, float),
@@ -231,7 +264,8 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         mass=np.eye(n_m) if plain else V.T @ (M @ V),
         geometric=project(V, terms.geometric), softening=project(V, terms.softening),
         preload=project(V, terms.preload_geometric), input_names=tuple(input_names),
-        n_modes=n_m, static_shape=with_static.shape[1] > n_m)
+        n_modes=n_m, static_shape=with_static.shape[1] > n_m,
+        centrifugal_load=centrifugal, euler_load=euler, coriolis=coriolis)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
     on_q = (lambda A: A) if constraint is None else \
         (lambda A: (constraint.T @ (A @ constraint)).tocsr())

@@ -42,6 +42,15 @@ class RotationModel:
     preload: (n_in, n_b, n_b) P_k (N/m per unit input); input_names: (n_in,).
     n_modes: the number of modes at the head of the basis (the rest: the centrifugal
     static shape when ``static_shape``, then the correction shapes).
+    centrifugal_load: (6, n_b) V^T f_ij, the centrifugal load of the undeformed body per
+    unit W_ij; euler_load: (3, n_b) E_k = V^T M (e_k x (x - point)) (kg m); coriolis:
+    (3, n_b, n_b) C_k = V^T M [e_k x] V (kg, skew). The body-frame equations of a
+    prescribed rotation (omega, alpha = omega') are then
+
+        M_r q'' + 2 sum_k omega_k C_k q' + (K_r(omega) + sum_k alpha_k C_k) q
+            = sum_ij W_ij f_ij - sum_k alpha_k E_k
+
+    (None in files written before these terms were stored).
     """
 
     axis: np.ndarray
@@ -57,6 +66,9 @@ class RotationModel:
     input_names: tuple[str, ...]
     n_modes: int
     static_shape: bool
+    centrifugal_load: np.ndarray | None = None
+    euler_load: np.ndarray | None = None
+    coriolis: np.ndarray | None = None
 
     def stiffness_at(self, omega, preload=None) -> np.ndarray:
         """K_r(omega, lambda) (n_b, n_b) N/m at the angular velocity ``omega`` (3,) rad/s

@@ -223,9 +223,11 @@ ROTATION = Group(
     "rotation",
     ("axis", "point", "speeds_rad_s", "frequencies_hz", "frequencies_reduced_hz",
      "tensor_entries", "basis_stiffness", "basis_mass", "geometric_stiffness",
-     "spin_softening", "preload_stiffness", "input_names"),
+     "spin_softening", "preload_stiffness", "input_names", "centrifugal_load",
+     "euler_load", "coriolis"),
     attrs=("n_modes", "n_basis", "static_shape", "correction_shapes"),
-    optional=("preload_stiffness", "input_names"))
+    optional=("preload_stiffness", "input_names", "centrifugal_load", "euler_load",
+              "coriolis"))
 
 # --------------------------------------------------------------------------- simulation results
 # A simulation's RESULT.h5 (docs/simulate.md, "RESULT.h5 layout"), written through the same

@@ -368,6 +368,14 @@ def _lumped_chain(h5, chain: StateSpace | None) -> dict[str, Any] | None:
                 "joint_positions"):
         if L.LUMPED.dataset(key) in h5:
             out[key] = np.asarray(h5[L.LUMPED.dataset(key)][()], float)
+    table = {}
+    for key in ("joint", "dof", "axis", "stiffness", "damping"):
+        path = L.LUMPED.dataset(f"joint_table/{key}")
+        if path in h5:
+            table[key] = (tuple(read_strings(h5[path])) if key == "dof"
+                          else np.asarray(h5[path][()], float))
+    if len(table) == 5:
+        out["joint_table"] = table
     return out
 
 
@@ -527,7 +535,11 @@ def read_rotation(path: str | Path) -> RotationModel | None:
             preload=(_array(h5, R.preload_stiffness, "f", (len(names), n_b, n_b)) if names
                      else np.zeros((0, n_b, n_b))),
             input_names=names, n_modes=int(attrs[R.attr.n_modes]),
-            static_shape=bool(attrs[R.attr.static_shape]))
+            static_shape=bool(attrs[R.attr.static_shape]),
+            **({} if R.centrifugal_load not in h5 else dict(
+                centrifugal_load=_array(h5, R.centrifugal_load, "f", (6, n_b)),
+                euler_load=_array(h5, R.euler_load, "f", (3, n_b)),
+                coriolis=_array(h5, R.coriolis, "f", (3, n_b, n_b)))))
 
 
 # --------------------------------------------------------------------------- sparse matrices

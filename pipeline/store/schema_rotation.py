@@ -48,6 +48,16 @@ def rotation_tree(model: RotationModel) -> tuple[dict[str, Dataset], dict[str, d
                                             "n_basis) per unit value of input port k")
         tree[R.input_names] = Dataset(list(model.input_names), "", "the input ports of "
                                       "preload_stiffness")
+    if model.centrifugal_load is not None:
+        tree[R.centrifugal_load] = Dataset(model.centrifugal_load, "N per rad^2/s^2",
+                                           "V^T f_ij (6, n_basis): the centrifugal load of "
+                                           "the undeformed body per unit W_ij")
+        tree[R.euler_load] = Dataset(model.euler_load, "kg m", "E_k = V^T M (e_k x (x - "
+                                     "point)) (3, n_basis): the load of an angular "
+                                     "acceleration alpha is -sum_k alpha_k E_k")
+        tree[R.coriolis] = Dataset(model.coriolis, "kg", "C_k = V^T M [e_k x] V (3, "
+                                   "n_basis, n_basis), skew: Coriolis force -2 sum_k "
+                                   "omega_k C_k q'")
     attrs = {R.path: {R.attr.n_modes: np.int64(model.n_modes), R.attr.n_basis: np.int64(n_b),
                       R.attr.static_shape: np.bool_(model.static_shape),
                       R.attr.correction_shapes: np.int64(n_b - model.n_modes

@@ -24,7 +24,11 @@ Scenarios (docs/simulate.md lists every key):
 - ``mass_sweep``: the body load for several masses, T^2 fitted against the mass;
 - ``spring_mount``: the body's root on a revolute joint about z with a torsional spring,
   the tip mass on; planar rotation coupled to the elastic model (the elastic input is the
-  tip reaction force in the rotating body frame).
+  tip reaction force in the rotating body frame);
+- ``spin_up``: a hub spun up through a prescribed speed ramp, the body's modal model with
+  and without geometric stiffening in the hub frame, and the lumped chain with its
+  nonlinear planar kinematics (time-varying, not LTI: stepped by :mod:`.spinup` and
+  :mod:`.spinchain` with solve_ivp alone).
 
 Each runs on the FE model and, when the file has one and its tip matches the ports, on the
 lumped chain too. Measured (from the response: zero crossings, FFT peak refined by
@@ -35,6 +39,7 @@ Modules (each one job): :mod:`.scenarios` (Scenario records, parsing and validat
 :mod:`.systems` (model algebra: undamped, refilter, filtered/lumped model choice,
 coupled and mount systems), :mod:`.integrate` (exact propagation and solve_ivp),
 :mod:`.measure` (steady state, damping from decay, zero-crossing and FFT frequencies),
+:mod:`.spinup` (the spin_up scenario: hub profile, rotating-frame modal equations),
 :mod:`.results` (Run, Row, ScenarioResult, SimulationResults), :mod:`.run` (scenarios ->
 runs, checks against the model, :func:`simulate`), :mod:`.output` (HDF5 results tree,
 CSV, plots). The command line is :mod:`pipeline.cli.simulate`.

@@ -29,6 +29,7 @@ from pipeline.store.read import ModelFile
 from pipeline.store.tree import Dataset
 
 from pipeline.apps.simulate.results import ScenarioResult, SimulationResults
+from pipeline.apps.simulate.spinup import plot_spin_up
 from pipeline.apps.simulate.stress import plot_stress, stress_peak_datasets
 
 __all__ = ["slug", "results_tree", "write_csv", "plot", "write_outputs"]
@@ -118,6 +119,8 @@ def plot(path: Path, s: ScenarioResult, port: str) -> Path:
     from matplotlib.figure import Figure
 
     sc = s.scenario
+    if sc.kind == "spin_up":
+        return plot_spin_up(path, s, port)
     style = {"fe": dict(color="C0", lw=1.4), "lumped": dict(color="C3", lw=1.0, ls="--")}
     if sc.kind == "mass_sweep":
         fig = Figure(figsize=(11, 4.2))

@@ -29,6 +29,7 @@ from pipeline.apps.simulate.measure import (decay_damping_ratio, fft_peak_freque
 from pipeline.apps.simulate.output import write_outputs
 from pipeline.apps.simulate.results import Row, Run, ScenarioResult, SimulationResults
 from pipeline.apps.simulate.scenarios import Scenario, as_scenarios, check_step_budget
+from pipeline.apps.simulate.spinup import check_spin_budget, run_spin_up
 from pipeline.apps.simulate.stress import add_stress_outputs, gauge_ports
 from pipeline.apps.simulate.systems import (SteppedSystem, coupled_system, directions,
                                             filtered_for, lumped_for, mount_for, step_system,
@@ -57,6 +58,9 @@ def scenario_ports(mf: ModelFile, sc: Scenario) -> tuple[str, str]:
         return name
 
     gauges = gauge_ports(mf)  # strain/stress outputs are recorded, never driven or coupled
+    if sc.kind == "spin_up":  # driven by the hub, not by an input port
+        return ("", pick(sc.output, [p for p in mf.plant.ports if p not in gauges],
+                         "motion output", "output"))
     return (pick(sc.input, list(mf.plant.input_names), "input", "input"),
             pick(sc.output, [p for p in mf.plant.ports if p not in gauges], "motion output",
                  "output"))
@@ -252,6 +256,9 @@ def check_against_model(mf: ModelFile, sc: Scenario) -> None:
     of every FE run of ``sc`` against the file (the same checks the run makes, done up
     front, so that nothing runs when one would be refused)."""
     inp, port = scenario_ports(mf, sc)
+    if sc.kind == "spin_up":
+        check_spin_budget(mf, sc, port)
+        return
     if sc.kind == "step_load":  # the plant is the stepped system: its budget, up front
         check_step_budget(mf.plant.A, sc.duration, sc.integrator.method, sc.name,
                           rtol=sc.integrator.rtol)
@@ -271,6 +278,8 @@ def check_against_model(mf: ModelFile, sc: Scenario) -> None:
 
 def run_scenario(mf: ModelFile, sc: Scenario) -> ScenarioResult:
     inp, port = scenario_ports(mf, sc)
+    if sc.kind == "spin_up":
+        return run_spin_up(mf, sc, port)
     notes: list[str] = []
     models: list[tuple[str, StateSpace, bool]] = []   # key, model, exact loop
     if sc.kind == "step_load":

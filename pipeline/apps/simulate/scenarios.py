@@ -26,7 +26,7 @@ __all__ = ["KINDS", "METHODS", "LOOPS", "DEFAULT_GRAVITY", "MAX_SAMPLES", "SCENA
            "Integrator", "Scenario", "parse_scenario", "parse_scenarios", "load_scenarios",
            "as_scenarios"]
 
-KINDS = ("step_load", "body_load", "mass_sweep", "spring_mount")
+KINDS = ("step_load", "body_load", "mass_sweep", "spring_mount", "spin_up")
 METHODS = ("LSODA", "Radau", "BDF", "RK45", "DOP853")
 LOOPS = ("filtered", "exact")
 #: ``gravity: true`` means this vector (m/s^2): the reference cantilever hangs along -y.
@@ -82,15 +82,19 @@ SCENARIO_KEYS = {
     "mass_sweep": _COMMON + ("masses", "cycles") + _LOOP_KEYS,
     "spring_mount": _COMMON + ("mass", "stiffness", "joint_damping", "joint",
                                "initial_angle") + _LOOP_KEYS,
+    "spin_up": _COMMON + ("final_speed", "ramp_time"),
 }
 _REQUIRED = {"step_load": ("force",), "body_load": ("mass",), "mass_sweep": ("masses",),
-             "spring_mount": ("mass", "stiffness")}
+             "spring_mount": ("mass", "stiffness"), "spin_up": ("final_speed", "ramp_time")}
 _INTEGRATOR_KEYS = ("method", "rtol", "atol")
 #: Largest joint coordinate (m): the arm's inertia m r^2 overflows far beyond it, and a
 #: joint a thousand km from the body is no mount.
 MAX_JOINT_M = 1e6
 #: Largest |initial_angle| (rad): the mount is linearised about theta = 0.
 MAX_INITIAL_ANGLE = 0.1
+#: Largest |final_speed| of a spin_up (rad/s), the rotation section's MAX_SPEED: a body at
+#: 1e6 rad/s has left linear elasticity.
+MAX_SPIN_SPEED = 1e6
 
 
 # =========================================================================== scenarios
@@ -122,6 +126,9 @@ class Scenario:
     file's filtered model). spring_mount: stiffness (N m/rad), joint_damping (N m s/rad),
     joint ((3,) m, the revolute joint's point; None: centroid of the support region),
     initial_angle (rad, the joint's angle at t = 0).
+    spin_up: final_speed (rad/s, the hub's speed after the ramp; the sign is the sense of
+    rotation about the file's spin axis), ramp_time (s, the Kane-Ryan-Banerjee ramp's
+    length T).
     """
 
     name: str
@@ -148,6 +155,8 @@ class Scenario:
     initial_angle: float = 0.0
     cycles: float | None = None
     stress_instants: tuple[float, ...] = ()
+    final_speed: float = 0.0
+    ramp_time: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         """The keys a scenario file would hold for this scenario (round-trips)."""
@@ -251,6 +260,12 @@ def parse_scenario(raw: Any, path: str) -> Scenario:
         items = {f"stress_instants[{i}]": x for i, x in enumerate(raw_instants)}
         instants = tuple(v.number(items, k, path, lo=0.0, hi=duration) for k in items)
         return Scenario(**common, force=force, t_on=t_on, t_off=t_off, stress_instants=instants)
+    if kind == "spin_up":
+        speed = v.number(raw, "final_speed", path, lo=-MAX_SPIN_SPEED, hi=MAX_SPIN_SPEED)
+        if speed == 0.0:
+            raise v.fail(f"{path}.final_speed", speed, "a non-zero hub speed (rad/s)")
+        ramp = v.number(raw, "ramp_time", path, lo=MIN_DURATION_S)
+        return Scenario(**common, final_speed=speed, ramp_time=ramp)
 
     loop = v.choice(raw, "loop", path, LOOPS, "filtered")
     gravity_raw = raw.get("gravity", False)
