@@ -176,3 +176,23 @@ def test_free_body_on_two_ranks(tmp_path):
         x, y = a["modes/shapes"][()][..., 6:], b["modes/shapes"][()][..., 6:]
         np.testing.assert_allclose(y, x, rtol=0, atol=DATASET_TOL * np.abs(x).max())
         assert list(a["modes/labels"][()]) == list(b["modes/labels"][()])
+
+
+@pytest.mark.parametrize("overrides, key", [
+    (["rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100]}"],
+     "rotation"),
+    (["supports=[{region: root, spring: {total: [1.0e6, 1.0e6, 1.0e6]}}]"], "supports"),
+    (["masses=[{name: m, kind: point, mass: 0.1, point: [0.5, 0.01, 0.025], region: tip}]"],
+     "masses"),
+])
+def test_what_the_distributed_path_does_not_handle_is_refused_before_work(overrides, key):
+    """Features each rank's assembly would silently drop (materials, masses, springs,
+    rotation) stop the distributed path in one line naming the key, before any meshing."""
+    from pipeline.config import load_config
+    from pipeline.distributed.stage import check_supported
+    from pipeline.errors import ConfigError
+
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml",
+                      ["modes.solver=slepc", "mesh.size=0.02"] + overrides)
+    with pytest.raises(ConfigError, match=rf"^{key} with modes.solver: slepc"):
+        check_supported(cfg)

@@ -33,6 +33,7 @@ from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
+from pipeline.fe.supports import rigid_freedoms
 from pipeline.solve.eigen import _rayleigh_ritz, default_shift
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
@@ -65,6 +66,19 @@ def check_supported(cfg: Config) -> None:
                               "distributing, or another modes.solver",
                               key=f"masses[{i}].coupling", value="rigid",
                               expected="distributing")
+    not_yet = [(key, what) for key, what, present in (
+        ("materials", "several materials", bool(cfg.materials)),
+        ("masses", "added masses", bool(cfg.masses)),
+        ("rotation", "a rotating body", cfg.rotation is not None),
+        ("supports", "elastic supports (spring, bushing)",
+         any(s.spring is not None or s.bushing is not None for s in cfg.supports)))
+        if present]
+    if not_yet:
+        key, what = not_yet[0]
+        raise ConfigError(f"{key} with modes.solver: slepc: the distributed path does not "
+                          f"handle {what} yet (each rank assembles one isotropic material, "
+                          "held or free); expected no such key, or another modes.solver",
+                          key=key, value=what, expected=f"no {key} with modes.solver: slepc")
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -145,6 +159,16 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
+        if cfg.supports:  # partly held: its rigid modes need the serial path's handling
+            left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
+            if left.count:
+                raise ConfigError(
+                    f"supports with modes.solver: slepc: the supports leave {left.count} "
+                    f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
+                    "body is not distributed yet; expected supports that hold every rigid "
+                    "motion, no supports (a free body), or another modes.solver",
+                    key="supports", value=f"{left.count} rigid motion(s) left",
+                    expected="a fully held or a free body")
         part = slab_partition(space.node_points, free, comm.size)
         rows = local_rows(space, cfg.material, free, part, comm.rank)
         log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries", comm.rank, rows.lo,
