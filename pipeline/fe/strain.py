@@ -277,7 +277,7 @@ def _point_strain_row(space: FESpace, point, key: str) -> np.ndarray:
     try:
         e = int(mesh.element_finder()(*[np.array([v]) for v in p])[0])
     except ValueError:
-        raise RegionError(f"config key '{key}': point {list(p)} lies outside the mesh; expected "
+        raise RegionError(f"config key '{key}': point {p.tolist()} lies outside the mesh; expected "
                           "a point inside the body (or set a radius > 0)") from None
     X = mesh.mapping().invF(p[:, None, None], tind=np.array([e]))[:, 0, :]  # (3, 1) local
     basis = _basis(space, np.array([e]), quadrature=(X, np.array([1.0])))
