@@ -159,6 +159,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
         free = free_dofs(space.n_dofs, fixed)
+        left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
         if cfg.supports:  # partly held: its rigid modes need the serial path's handling
             left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
             if left.count:
@@ -180,7 +181,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=RowMatrix(comm, rows.K, part), M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
-                   n_elements=body.n_tetrahedra)
+                   n_elements=body.n_tetrahedra, rigid=left)
 
 
 def compute_modes(fe: FEModel, cfg: Config) -> Modes:
