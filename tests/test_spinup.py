@@ -147,6 +147,9 @@ def test_inertia_terms_are_stored(spun):
     assert 0.5 * math.sqrt(m) * L < abs(rot.euler_load[2, 0]) < math.sqrt(m) * L
 
 
+# slow (13 s, mostly Exudyn's Python user functions); the full-FE prestressed checks of the
+# same spin-up run by default
+@pytest.mark.slow
 def test_stiffened_model_matches_exudyn_ancf(spun):
     """The independent, geometrically nonlinear solver (see the module docstring)."""
     exu = pytest.importorskip("exudyn")

@@ -244,6 +244,9 @@ def shaft(supports, count=4, order=2):
                   count=count, regions=BANDS)
 
 
+# slow (18 s): the exact radial hold itself runs by default in
+# test_radial_support_against_exact_constraint_and_calculix
+@pytest.mark.slow
 def test_shaft_on_radial_bearings_keeps_spin_and_axial_translation(tmp_path):
     """Held radially on two bands (no tangential, no axial hold): the spin about the
     axis and the axial translation stay free, at 0 Hz; the summary says they are held
