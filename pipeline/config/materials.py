@@ -7,7 +7,8 @@ entry claims take ``material:`` (the default). Laws (Pa, kg/m^3):
 - ``isotropic``: E, nu;
 - ``orthotropic``: E = [E1, E2, E3], nu = [nu12, nu13, nu23], G = [G12, G13, G23] in the
   material frame ``axes`` (x: material axis 1, y: axis 2 in global coordinates; axis 3 =
-  1 x 2); the compliance S (Voigt order 11, 22, 33, 23, 13, 12, engineering shear) has
+  1 x 2; or ``axes: <name>``, a system of ``coordinate_systems``, :mod:`pipeline.config.frames`);
+  the compliance S (Voigt order 11, 22, 33, 23, 13, 12, engineering shear) has
   S_11 = 1/E1, S_12 = -nu12/E1, S_13 = -nu13/E1, S_23 = -nu23/E2, S_44 = 1/G23,
   S_55 = 1/G13, S_66 = 1/G12, and it must be positive definite;
 - ``transversely_isotropic``: the orthotropic law with axis 1 the fibre and 2-3 the plane
@@ -68,7 +69,8 @@ class MaterialEntry:
     isotropic: E, nu. orthotropic: moduli (E1, E2, E3), poisson (nu12, nu13, nu23),
     shear (G12, G13, G23) (transversely isotropic entries are stored expanded to this).
     anisotropic: stiffness, 6 rows of 6 (Pa). axes: rows material axes 1, 2, 3 in global
-    coordinates (unit, right-handed).
+    coordinates (unit, right-handed); frame: the ``coordinate_systems`` name they came
+    from ("" when given inline).
     """
 
     name: str
@@ -83,6 +85,7 @@ class MaterialEntry:
     stiffness: tuple[tuple[float, ...], ...] | None = None
     axes: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
                                                     (0.0, 0.0, 1.0))
+    frame: str = ""  # the coordinate system ``axes`` named ("": given inline)
 
 
 @dataclass(frozen=True)
@@ -123,7 +126,7 @@ def material_frame(axes) -> np.ndarray:
     return np.asarray(axes, dtype=float).T
 
 
-def _frame(raw: Any, path: str) -> tuple[tuple[float, float, float], ...]:
+def frame_axes(raw: Any, path: str) -> tuple[tuple[float, float, float], ...]:
     """Orthonormal axes from {x: axis 1, y: axis 2} (y made orthogonal to x by
     Gram-Schmidt only if it already is, to 1e-9: a skew y is refused)."""
     if raw is None:
@@ -194,7 +197,18 @@ def _selector(raw: Any, path: str) -> ElementSelector:
 _MATERIAL_KEYS = ("name", "kind", "E", "nu", "G", "rho", "axes", "stiffness", "elements")
 
 
-def _material_entry(raw: Any, path: str) -> MaterialEntry:
+def _entry_axes(raw: Any, path: str, systems: Mapping) -> tuple[tuple, str]:
+    """(axes, name) of an entry's ``axes``: inline {x, y} (name "") or the name of a
+    ``coordinate_systems`` entry (its axes)."""
+    if not isinstance(raw, str):
+        return frame_axes(raw, path), ""
+    if raw not in systems:
+        raise v.fail(path, raw, "{x: [..], y: [..]} or the name of a coordinate system: "
+                     + (", ".join(sorted(systems)) or "(coordinate_systems defines none)"))
+    return systems[raw].axes, raw
+
+
+def _material_entry(raw: Any, path: str, systems: Mapping = {}) -> MaterialEntry:
     raw = v.mapping(raw, path, _MATERIAL_KEYS, ("name", "rho", "elements"))
     kind = v.choice(raw, "kind", path, MATERIAL_KINDS, "isotropic")
     allowed = {"isotropic": {"E", "nu"}, "orthotropic": {"E", "nu", "G", "axes"},
@@ -211,7 +225,7 @@ def _material_entry(raw: Any, path: str) -> MaterialEntry:
         return MaterialEntry(**common, E=v.number(raw, "E", path, lo=0.0, lo_open=True, hi=1e13),
                              nu=v.number(raw, "nu", path, lo=-1.0, hi=0.5, lo_open=True,
                                          hi_open=True))
-    axes = _frame(raw.get("axes"), f"{path}.axes")
+    axes, frame = _entry_axes(raw.get("axes"), f"{path}.axes", systems)
     if kind == "anisotropic":
         rows = raw.get("stiffness", v.MISSING)
         if rows is v.MISSING:
@@ -223,7 +237,7 @@ def _material_entry(raw: Any, path: str) -> MaterialEntry:
         D = tuple(_triple({"stiffness": r}, "stiffness", f"{path}.stiffness[{i}]", 6, lo=None)
                   for i, r in enumerate(rows))
         check_positive_definite(np.array(D), f"{path}.stiffness", "stiffness matrix")
-        return MaterialEntry(**common, stiffness=D, axes=axes)
+        return MaterialEntry(**common, stiffness=D, axes=axes, frame=frame)
     if kind == "orthotropic":
         moduli = _triple(raw, "E", path)
         poisson = _triple(raw, "nu", path, lo=-1e3, lo_open=False)
@@ -237,18 +251,19 @@ def _material_entry(raw: Any, path: str) -> MaterialEntry:
                             "compliance matrix of the engineering constants")
     common["kind"] = "orthotropic"  # transversely isotropic: stored as its expansion
     return MaterialEntry(**common, moduli=moduli, poisson=poisson,
-                         shear=shear, axes=axes)
+                         shear=shear, axes=axes, frame=frame)
 
 
-def parse_materials(raw: Any) -> tuple[MaterialEntry, ...]:
-    """The ``materials:`` list (None: none)."""
+def parse_materials(raw: Any, systems: Mapping = {}) -> tuple[MaterialEntry, ...]:
+    """The ``materials:`` list (None: none); ``systems``: the named coordinate systems
+    (:mod:`pipeline.config.frames`) an entry's ``axes`` may name."""
     if raw is None:
         return ()
     if not isinstance(raw, list):
         raise v.fail("materials", raw, "a list of {name, E, nu, rho, elements, ...}")
     out, seen = [], {}
     for i, item in enumerate(raw):
-        entry = _material_entry(item, f"materials[{i}]")
+        entry = _material_entry(item, f"materials[{i}]", systems)
         if entry.name in seen:
             raise v.fail(f"materials[{i}].name", entry.name, f"a name not used already (it "
                         f"names materials[{seen[entry.name]}])")
@@ -349,7 +364,7 @@ def material_dict(m: MaterialEntry) -> dict:
     else:
         out["stiffness"] = [list(r) for r in m.stiffness]
     if m.kind != "isotropic":
-        out["axes"] = {"x": list(m.axes[0]), "y": list(m.axes[1])}
+        out["axes"] = m.frame or {"x": list(m.axes[0]), "y": list(m.axes[1])}
     out.update(rho=m.rho, elements=selector_dict(m.elements))
     return out
 

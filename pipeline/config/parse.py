@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence, get_args
 
 from pipeline._util import validate as v
 from pipeline._util.yamlio import is_stream, parse_yaml, read_text_bounded
+from pipeline.config.frames import parse_coordinate_systems
 from pipeline.config.gauges import AREA_KEYS, gauge_area
 from pipeline.config.numerics import check_box_thickness, check_numerics
 from pipeline.config.materials import lumped_mass_problem, parse_masses, parse_materials
@@ -295,7 +296,7 @@ def _connections(raw: Any) -> tuple[Connection, ...]:
 
 TOP_KEYS = ("name", "geometry", "mesh", "material", "supports", "constraints", "modes", "regions",
             "ports", "damping", "reduction", "filter", "lumped", "connections",
-            "craig_bampton", "materials", "masses", "rotation")
+            "craig_bampton", "materials", "masses", "rotation", "coordinate_systems")
 
 
 def _section(raw: Mapping, key: str) -> Any:
@@ -324,6 +325,7 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
                   precision=v.choice(modes_raw, "precision", "modes", PRECISIONS, "auto"),
                   method=v.choice(modes_raw, "method", "modes", EIGEN_METHODS, "auto"))
     regions = _regions(raw.get("regions"))
+    systems = parse_coordinate_systems(raw.get("coordinate_systems"))
     for name in regions:
         if geometry.kind == "box" and name in BOX_FACES:
             raise v.fail(f"regions.{name}", name, f"a name other than the box's own faces "
@@ -346,10 +348,11 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
         craig_bampton_modes=v.integer(v.mapping(_section(raw, "craig_bampton"), "craig_bampton",
                                               ("modes",)), "modes", "craig_bampton", 0,
                                      lo=0, hi=500),
-        materials=parse_materials(raw.get("materials")),
+        materials=parse_materials(raw.get("materials"), systems),
         masses=parse_masses(raw.get("masses")),
         source=source,
         rotation=parse_rotation(raw.get("rotation")),
+        coordinate_systems=systems,
     )
     # a box's and a CAD file's region names are all known here (its faces, the selectors);
     # a mesh file's or a .geo script's named groups are checked where the mesh is read,

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Literal, Mapping, get_args
 if TYPE_CHECKING:
     from pipeline.config.rotation import Rotation
 
+from pipeline.config.frames import CoordinateSystem
 from pipeline.config.materials import AddedMass, MaterialEntry
 from pipeline.config.supports import BushingSpec, SpringSpec, SupportFrame
 
@@ -250,3 +251,4 @@ class Config:
     masses: tuple[AddedMass, ...] = ()
     source: str = ""  # the file the config came from (not part of the YAML contract)
     rotation: "Rotation | None" = None  # pipeline.config.rotation
+    coordinate_systems: Mapping[str, CoordinateSystem] = field(default_factory=dict)  # named material frames

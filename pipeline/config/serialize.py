@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, fields
 from typing import Any
 
+from pipeline.config.frames import coordinate_system_dict
 from pipeline.config.materials import mass_dict, material_dict
 from pipeline.config.schema import Config
 from pipeline.config.supports import support_dict
@@ -47,6 +48,10 @@ def config_to_dict(cfg: Config) -> dict:
             if value:
                 out[f.name] = [(material_dict if f.name == "materials" else mass_dict)(m)
                                for m in value]
+            continue
+        elif f.name == "coordinate_systems":
+            if value:
+                out[f.name] = {k: coordinate_system_dict(cs) for k, cs in value.items()}
             continue
         elif f.name == "connections":
             value = [asdict(c) for c in value]
