@@ -293,10 +293,11 @@ def test_version_1_files_without_rotation_still_load(tmp_path, monkeypatch):
 
 
 # --------------------------------------------------------------------------- CalculiX
-def _ccx_deck(fe, speed: float, axis, point) -> str:
+def _ccx_deck(fe, speed: float, axis, point, laws=None) -> str:
     """A CalculiX deck of the same mesh (C3D10 numbers its nodes as meshio's tetra10),
     the same material and clamp: a frequency step at rest, a linear static step under
-    *DLOAD CENTRIF, and a *FREQUENCY perturbation step about it."""
+    *DLOAD CENTRIF, and a *FREQUENCY perturbation step about it. ``laws``: (element
+    indices, E, nu, rho) of each material (None: aluminium everywhere)."""
     x, elements = fe.space.node_points, fe.space.element_nodes
     fixed_nodes = np.unique(np.setdiff1d(np.arange(fe.space.n_dofs), fe.free) // 3)
     lines = ["*NODE, NSET=Nall"]
@@ -306,9 +307,13 @@ def _ccx_deck(fe, speed: float, axis, point) -> str:
         lines += [f"{e + 1}, " + ", ".join(map(str, nodes[:8])) + ",",
                   ", ".join(map(str, nodes[8:]))]
     lines += ["*NSET, NSET=Fix"] + [f"{n + 1}," for n in fixed_nodes]
-    lines += ["*BOUNDARY", "Fix, 1, 3", "*MATERIAL, NAME=AL", "*ELASTIC",
-              f"{ALUMINIUM.E:.17g}, {ALUMINIUM.nu}", "*DENSITY", f"{ALUMINIUM.rho}",
-              "*SOLID SECTION, ELSET=Eall, MATERIAL=AL"]
+    lines += ["*BOUNDARY", "Fix, 1, 3"]
+    if laws is None:
+        laws = [(np.arange(len(elements)), ALUMINIUM.E, ALUMINIUM.nu, ALUMINIUM.rho)]
+    for k, (ids, E, nu, rho) in enumerate(laws):
+        lines += [f"*ELSET, ELSET=E{k}"] + [f"{i + 1}," for i in ids]
+        lines += [f"*MATERIAL, NAME=M{k}", "*ELASTIC", f"{E:.17g}, {nu}", "*DENSITY",
+                  f"{rho}", f"*SOLID SECTION, ELSET=E{k}, MATERIAL=M{k}"]
     centrif = (f"Eall, CENTRIF, {speed ** 2:.17g}, " + ", ".join(f"{v:.17g}" for v in point)
                + ", " + ", ".join(f"{v:.17g}" for v in axis))
     lines += ["*STEP", "*FREQUENCY", "6", "*END STEP",

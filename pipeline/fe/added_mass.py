@@ -145,6 +145,22 @@ def added_mass_matrix(space: FESpace, regions: Mapping[str, np.ndarray],
     return total.tocsr()
 
 
+def area_node_mass(space: FESpace, regions: Mapping[str, np.ndarray],
+                   masses: Sequence[AddedMass]) -> sp.csr_matrix | None:
+    """(n_nodes, n_nodes) CSR kg: the scalar consistent mass of the area masses (their
+    share of M is this (x) I_3, as a body's own), None if none. The rotating body's
+    centrifugal load, spin softening and inertia loads take it with the body's."""
+    total = None
+    for i, m in enumerate(masses):
+        if m.kind != "area":
+            continue
+        tris = get_region(regions, m.region, f"masses[{i}].region")
+        r, c, val = _area_mass(space, tris, m.density)
+        N = sp.csr_matrix((val, (r, c)), shape=(space.n_nodes, space.n_nodes))
+        total = N if total is None else total + N
+    return total
+
+
 def refuse_rigid_couplings(raw_masses, path) -> None:
     """Refuse (ConfigError, one line) an Exudyn export of the file ``path`` whose stored
     config (``raw_masses``: its ``masses`` list as read) has a point mass with a rigid

@@ -55,6 +55,7 @@ import scipy.sparse as sp
 from pipeline.config import Material
 from pipeline.config.rotation import TENSOR_ENTRIES, TENSOR_NAMES, entry_matrix, tensor_weights
 from pipeline.fe.kernels import lame_parameters
+from pipeline.fe.materials import VOIGT_INDEX, ElementMaterials
 from pipeline.fe.space import FESpace
 
 log = logging.getLogger(__name__)
@@ -62,18 +63,28 @@ log = logging.getLogger(__name__)
 __all__ = ["TENSOR_ENTRIES", "TENSOR_NAMES", "entry_matrix", "tensor_weights",
            "node_mass_matrix", "tensor_mass", "centrifugal_loads", "geometric_stiffness"]
 
-def node_mass_matrix(space: FESpace, rho: float) -> sp.csr_matrix:
+def node_mass_matrix(space: FESpace, rho) -> sp.csr_matrix:
     """The scalar consistent mass m (n_nodes x n_nodes, kg): m_ab = int rho N_a N_b dV,
-    so the vector mass matrix is m (x) I_3. Assembled with scikit-fem's scalar Lagrange
-    element of the space's order (its DOFs are the space's nodes, in the same order)."""
+    so the vector mass matrix is m (x) I_3. ``rho``: one density (kg/m^3) or each
+    element's, (n_e,). Assembled with scikit-fem's scalar Lagrange element of the space's
+    order (its DOFs are the space's nodes, in the same order)."""
     from skfem import Basis, BilinearForm, ElementTetP1, ElementTetP2
 
-    @BilinearForm
-    def mass(u, v, w):
-        return rho * u * v
-
     element = ElementTetP2() if space.order == 2 else ElementTetP1()
-    return mass.assemble(Basis(space.skfem_mesh, element, intorder=2 * space.order)).tocsr()
+    basis = Basis(space.skfem_mesh, element, intorder=2 * space.order)
+    if np.ndim(rho) == 0:
+        @BilinearForm
+        def mass(u, v, w):
+            return rho * u * v
+
+        return mass.assemble(basis).tocsr()
+
+    @BilinearForm
+    def mass_per_element(u, v, w):
+        return w["rho"] * u * v
+
+    rho_q = np.repeat(np.asarray(rho, dtype=float)[:, None], basis.X.shape[-1], axis=1)
+    return mass_per_element.assemble(basis, rho=rho_q).tocsr()
 
 
 def tensor_mass(node_mass: sp.spmatrix, A: np.ndarray) -> sp.csr_matrix:
@@ -96,16 +107,31 @@ def centrifugal_loads(space: FESpace, node_mass: sp.spmatrix,
     return out
 
 
+def _element_stress(D: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    """(3, 3, n_e, n_q) Pa: sigma = D_e gamma of the strain tensors eps (3, 3, n_e, n_q)
+    with D (n_e, 6, 6) (Voigt order VOIGT_INDEX, engineering shear gamma_ij = 2 eps_ij)."""
+    gamma = np.stack([eps[i, j] * (1.0 if i == j else 2.0) for i, j in VOIGT_INDEX])
+    sig_v = np.einsum("eIJ,Jeq->Ieq", D, gamma)
+    sig = np.empty_like(eps)
+    for I, (i, j) in enumerate(VOIGT_INDEX):
+        sig[i, j] = sig[j, i] = sig_v[I]
+    return sig
+
+
 def _chunks(n: int, size: int):
     for start in range(0, n, size):
         yield np.arange(start, min(n, start + size))
 
 
-def geometric_stiffness(space: FESpace, material: Material, displacements: np.ndarray,
-                        chunk_size: int = 8000) -> list[sp.csr_matrix]:
+def geometric_stiffness(space: FESpace, material: "Material | ElementMaterials",
+                        displacements: np.ndarray, chunk_size: int = 8000
+                        ) -> list[sp.csr_matrix]:
     """The geometric stiffness K_G(sigma(u)) (n_dofs x n_dofs, CSR, N/m) of each column
     of ``displacements`` (n_dofs, k) (m): sigma = 2 mu eps(u) + lambda tr(eps(u)) I,
-    eps = sym grad u, and K_G[u, v] = int sigma_ij du_k/dx_i dv_k/dx_j dV.
+    eps = sym grad u (one isotropic ``material``), or sigma = D_e gamma(u) with each
+    element's own law (``material`` an :class:`~pipeline.fe.materials.ElementMaterials`
+    whose elements differ: Voigt order and engineering shear of pipeline.fe.materials),
+    and K_G[u, v] = int sigma_ij du_k/dx_i dv_k/dx_j dV.
 
     The form couples equal components only, so K_G = g (x) I_3 with the scalar
     g_ab = int sigma_ij dN_a/dx_i dN_b/dx_j dV, assembled with scikit-fem's scalar
@@ -115,7 +141,11 @@ def geometric_stiffness(space: FESpace, material: Material, displacements: np.nd
     from skfem import BilinearForm, Basis, ElementTetP1, ElementTetP2
     from skfem.helpers import dot, grad, mul
 
-    lam, mu = lame_parameters(material)
+    if isinstance(material, ElementMaterials) and material.uniform is not None:
+        material = material.uniform  # one isotropic law: the single-material path
+    per_element = isinstance(material, ElementMaterials)
+    if not per_element:
+        lam, mu = lame_parameters(material)
     U = np.asarray(displacements, dtype=float).reshape(space.n_dofs, -1)
 
     @BilinearForm
@@ -132,7 +162,10 @@ def geometric_stiffness(space: FESpace, material: Material, displacements: np.nd
             # du_c/dx_j of each component c: (3, 3, n_e, n_q)
             G = np.stack([basis.interpolate(U[c::3, col]).grad for c in range(3)])
             eps = 0.5 * (G + G.transpose(1, 0, 2, 3))
-            sig = 2.0 * mu * eps + lam * np.einsum("ii...->...", eps) * np.eye(3)[:, :, None, None]
+            if per_element:
+                sig = _element_stress(material.element_D(elements), eps)
+            else:
+                sig = 2.0 * mu * eps + lam * np.einsum("ii...->...", eps) * np.eye(3)[:, :, None, None]
             scalar[col] = scalar[col] + initial_stress.assemble(basis, sig=sig).tocsr()
     eye = sp.identity(3, format="csr")
     return [sp.kron(g, eye, format="csr") for g in scalar]

@@ -48,6 +48,7 @@ import scipy.sparse as sp
 from pipeline.config.rotation import Rotation
 from pipeline.errors import SolverError
 from pipeline.fe.assemble import restrict
+from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
                                    geometric_stiffness, node_mass_matrix, tensor_mass,
                                    tensor_weights)
@@ -106,13 +107,20 @@ def _weighted(matrices, weights) -> sp.csr_matrix:
 
 def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
                     F_inputs: np.ndarray | None = None, solve=None,
-                    backend: str = "auto", constraint=None) -> PrestressTerms:
+                    backend: str = "auto", constraint=None,
+                    extra_node_mass: sp.spmatrix | None = None) -> PrestressTerms:
     """The :class:`PrestressTerms` of the body of ``space`` (supported: ``free`` DOFs,
     ``K`` (n_s x n_s) its stiffness) spinning about ``point`` (3,) m, and preloaded by
     the input loads ``F_inputs`` (n_dofs x n_in, per unit input; None: none).
+    ``material``: one isotropic Material or each element's
+    (:class:`~pipeline.fe.materials.ElementMaterials`: its densities in the mass, its laws
+    in the stress); ``extra_node_mass``: a scalar node mass (n_nodes x n_nodes, kg) added
+    to the body's (the area masses), or None.
     ``solve``: b -> K^-1 b when a factor of K is at hand; ``constraint``: T of an exact
     constraint u = T q (n_s x n_q, ``solve`` then that of T^T K T), or None."""
-    node_mass = node_mass_matrix(space, material.rho)
+    node_mass = node_mass_matrix(space, _density(material))
+    if extra_node_mass is not None:
+        node_mass = (node_mass + extra_node_mass).tocsr()
     loads = centrifugal_loads(space, node_mass, point)  # (n_dofs, 6)
     n_in = 0 if F_inputs is None else F_inputs.shape[1]
     rhs = loads[free]
@@ -131,6 +139,13 @@ def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
     return PrestressTerms(shapes[:, :k], tuple(geometric[:k]), softening, shapes[:, k:],
                           tuple(geometric[k:]), loads[free], node_mass,
                           space.node_points - np.asarray(point, dtype=float))
+
+
+def _density(material):
+    """kg/m^3: one density, or each element's (n_e,) where they differ."""
+    if isinstance(material, ElementMaterials):
+        return material.uniform.rho if material.uniform is not None else material.rho
+    return material.rho
 
 
 def inertia_loads(terms: PrestressTerms, free: np.ndarray, V: np.ndarray
@@ -211,25 +226,30 @@ def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.
     force and moment input ports as preloads, eigensolver backend) and the modes stage's
     :class:`~pipeline.solve.modes.Modes` (its kept factor of ``K`` is used)."""
     from pipeline.config import Ports
+    from pipeline.fe.added_mass import area_node_mass
     from pipeline.fe.ports import port_matrices
 
     inputs = tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment"))
     F = port_matrices(space, regions, Ports(inputs=inputs)).F if inputs else None
-    return build_rotation(cfg.rotation, space, cfg.material, free, K, M, modes.shapes,
+    material = config_materials(space, cfg) if cfg.materials or cfg.masses else cfg.material
+    return build_rotation(cfg.rotation, space, material, free, K, M, modes.shapes,
                           modes.omega2, F, tuple(p.name for p in inputs), modes.solve,
-                          cfg.modes.solver, getattr(modes, "constraint", None))
+                          cfg.modes.solver, getattr(modes, "constraint", None),
+                          area_node_mass(space, regions, cfg.masses))
 
 
 def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.spmatrix,
                    M: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray,
                    F_inputs=None, input_names: tuple[str, ...] = (), solve=None,
-                   backend: str = "auto", constraint=None) -> RotationModel:
+                   backend: str = "auto", constraint=None,
+                   extra_node_mass: sp.spmatrix | None = None) -> RotationModel:
     """The :class:`RotationModel` of the config's ``rotation`` section for the supported
     body (``K``, ``M`` (n_s x n_s), its modes ``shapes`` (n_s x n_m, M-orthonormal) and
     ``omega2`` (n_m,) rad^2/s^2); ``F_inputs`` (n_dofs x n_in) the input-port loads;
     ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed);
     ``constraint``: T of an exact constraint u = T q (n_s x n_q; ``solve`` is then that
-    of T^T K T and the full sweep runs on the coordinates q), or None."""
+    of T^T K T and the full sweep runs on the coordinates q), or None; ``material`` and
+    ``extra_node_mass`` as :func:`prestress_terms` takes them."""
     _check_point(rotation.point, space.node_points)
     axis = unit(rotation.axis)
     _check_stress(rotation, axis, space.node_points, material)
@@ -240,7 +260,7 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         solve = own.solve
     try:
         terms = prestress_terms(space, material, free, K, rotation.point, F_inputs, solve,
-                                backend, constraint)
+                                backend, constraint, extra_node_mass)
         K_G1, M_perp = terms.spin_matrices(axis)
         static = terms.centrifugal_shape(axis)[:, None] if rotation.static_shape else None
         corrections = None
@@ -297,8 +317,14 @@ def _check_stress(rotation: Rotation, axis: np.ndarray, node_points: np.ndarray,
     r = node_points - np.asarray(rotation.point, dtype=float)
     radius = float(np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1)))
     top = float(np.max(np.abs(rotation.speeds_rad_s)))
-    stress = 0.5 * material.rho * top ** 2 * radius ** 2
-    if stress > 0.01 * material.E:
+    if isinstance(material, ElementMaterials):  # the densest law, the softest direction
+        rho = float(np.max(material.rho))
+        E = float(min(1.0 / np.max(np.diag(np.linalg.inv(D))[:3]) for D in
+                      material.D[np.unique(material.index)]))
+    else:
+        rho, E = material.rho, material.E
+    stress = 0.5 * rho * top ** 2 * radius ** 2
+    if stress > 0.01 * E:
         log.warning("rotation.speeds_rad_s: at %g rad/s the centrifugal stress reaches about "
                     "%.3g Pa, %.3g times E: beyond the small strains of the linear prestress "
-                    "(its frequencies are not physical there)", top, stress, stress / material.E)
+                    "(its frequencies are not physical there)", top, stress, stress / E)
