@@ -404,11 +404,12 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     if cfg.rotation is not None and not cfg.supports:
         raise v.fail("rotation", raw.get("rotation"), "a body with supports (the static "
                     "centrifugal stress of a free body has no equilibrium to solve for)")
-    point_masses = [i for i, m in enumerate(cfg.masses) if m.kind == "point"]
-    if cfg.rotation is not None and point_masses:
-        raise v.fail(f"masses[{point_masses[0]}].kind", "point", "area or volume masses "
-                    "with `rotation` (a point mass's centrifugal moment and the geometric "
-                    "stiffness of its rotation are not built)")
+    rigid = [i for i, m in enumerate(cfg.masses) if m.kind == "point" and m.coupling == "rigid"]
+    if cfg.rotation is not None and rigid:
+        raise v.fail(f"masses[{rigid[0]}].coupling", "rigid", "distributing with `rotation` "
+                    "(a rigidly coupled mass moves as coordinates of the constraint u = T q, "
+                    "where its centrifugal load, softening and own geometric stiffness have "
+                    "no place yet)")
     if cfg.rotation is not None and cfg.rotation.correction_shapes > cfg.modes.count:
         raise v.fail("rotation.correction_shapes", cfg.rotation.correction_shapes,
                     f"at most modes.count = {cfg.modes.count} (one per mode)")

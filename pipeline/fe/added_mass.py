@@ -161,6 +161,22 @@ def area_node_mass(space: FESpace, regions: Mapping[str, np.ndarray],
     return total
 
 
+def distributing_point_masses(space: FESpace, regions: Mapping[str, np.ndarray],
+                              masses: Sequence[AddedMass]) -> list[tuple]:
+    """(dofs (3 n_r,), G (6, 3 n_r), M6 (6, 6), point (3,) m) of every point mass with a
+    distributing coupling: its six motions q = G u[dofs] and its rigid mass (the same
+    fit as :func:`added_mass_matrix`'s, M_add = G^T M6 G)."""
+    out = []
+    for i, m in enumerate(masses):
+        if m.kind != "point" or m.coupling != "distributing":
+            continue
+        tris = get_region(regions, m.region, f"masses[{i}].region")
+        nodes, G = _distributing_map(space, m.region, tris, m.point, f"masses[{i}].region")
+        out.append(((3 * nodes[:, None] + np.arange(3)).ravel(), G,
+                    point_rigid_mass(m.mass, m.inertia), np.asarray(m.point, dtype=float)))
+    return out
+
+
 def refuse_rigid_couplings(raw_masses, path) -> None:
     """Refuse (ConfigError, one line) an Exudyn export of the file ``path`` whose stored
     config (``raw_masses``: its ``masses`` list as read) has a point mass with a rigid

@@ -40,6 +40,13 @@ and the prestressed modes at a spin Omega about a solve
 in the classical rotating-blade results). A static preload F (the input ports) gives
 K + lambda K_G(sigma(F)) the same way (no softening term).
 
+With several materials m takes each element's density and sigma each element's law
+(sigma = D_e gamma). A rigid mass M6 = diag(m I, J) at P tied by a distributing coupling
+(six motions q = G u) adds G^T (.) G of its rigid-body terms per unit W_ij: the load
+[m A (P - p); int r x A r dm], the softening blockdiag(m A, int [r]^T A [r] dm) and its
+own initial-stress stiffness blockdiag(0, tr(A S) I - sym(A S)), S = int r r^T dm about
+P (:func:`point_mass_prestress`; the second-order terms of its centrifugal potential).
+
 Matrices are assembled with scikit-fem (``skfem.asm`` in element chunks; speed matters
 less than for K and M), on every DOF of the space (n_dofs x n_dofs, CSR); the caller
 restricts them to the free DOFs.
@@ -61,7 +68,9 @@ from pipeline.fe.space import FESpace
 log = logging.getLogger(__name__)
 
 __all__ = ["TENSOR_ENTRIES", "TENSOR_NAMES", "entry_matrix", "tensor_weights",
-           "node_mass_matrix", "tensor_mass", "centrifugal_loads", "geometric_stiffness"]
+           "node_mass_matrix", "tensor_mass", "centrifugal_loads", "geometric_stiffness",
+           "point_mass_prestress", "rigid_mass_of", "rigid_centrifugal_load",
+           "rigid_geometric_stiffness"]
 
 def node_mass_matrix(space: FESpace, rho) -> sp.csr_matrix:
     """The scalar consistent mass m (n_nodes x n_nodes, kg): m_ab = int rho N_a N_b dV,
@@ -169,3 +178,71 @@ def geometric_stiffness(space: FESpace, material: "Material | ElementMaterials",
             scalar[col] = scalar[col] + initial_stress.assemble(basis, sig=sig).tocsr()
     eye = sp.identity(3, format="csr")
     return [sp.kron(g, eye, format="csr") for g in scalar]
+
+
+# --------------------------------------------------------------------------- point masses
+#: the Levi-Civita symbol eps_ijk
+_LEVI_CIVITA = np.zeros((3, 3, 3))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_i, _k, _j] = 1.0, -1.0
+
+
+def second_moment(M6: np.ndarray) -> np.ndarray:
+    """(3, 3) kg m^2: S = int r r^T dm about the point, of a rigid mass M6 = diag(m I, J)
+    (J = tr(S) I - S, so S = tr(J)/2 I - J)."""
+    J = M6[3:, 3:]
+    return 0.5 * np.trace(J) * np.eye(3) - J
+
+
+def rigid_mass_of(M6: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(6, 6) the mass of the 3 x 3 matrix A for a rigid body (the rigid-body form of
+    m (x) A): the field A (u_P + theta x r) summed over dm against v_P + delta x r,
+    blockdiag(m A, int [r]^T A [r] dm) about the centre of mass P ([r] v = r x v)."""
+    out = np.zeros((6, 6))
+    out[:3, :3] = M6[0, 0] * np.asarray(A, dtype=float)
+    out[3:, 3:] = np.einsum("cak,dbl,cd,kl->ab", _LEVI_CIVITA, _LEVI_CIVITA, A,
+                            second_moment(M6))
+    return out
+
+
+def rigid_centrifugal_load(M6: np.ndarray, offset: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(6,) [force N; moment N m about P] per unit W_ij of the density A (x - p) on a
+    rigid body at P (``offset`` = P - p, m): m A (P - p) and int r x (A r) dm."""
+    S = second_moment(M6)
+    return np.concatenate([M6[0, 0] * (A @ offset),
+                           np.einsum("ijk,kj->i", _LEVI_CIVITA, A @ S)])
+
+
+def rigid_geometric_stiffness(M6: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(6, 6) the rigid body's own initial-stress stiffness per unit W_ij: the second-order
+    part of its centrifugal potential -1/2 int (x - p)^T A (x - p) dm in a rotation theta,
+    beyond the softening theta^T (int [r]^T A [r] dm) theta:
+    blockdiag(0, tr(A S) I - sym(A S)). With it, a rotation about the spin axis (or any
+    rotation under A = I) leaves the potential unchanged, as it must."""
+    AS = np.asarray(A, dtype=float) @ second_moment(M6)
+    out = np.zeros((6, 6))
+    out[3:, 3:] = np.trace(AS) * np.eye(3) - 0.5 * (AS + AS.T)
+    return out
+
+
+def point_mass_prestress(point_masses, point, n_dofs: int
+                         ) -> tuple[np.ndarray, list[sp.csr_matrix], list[sp.csr_matrix]]:
+    """The centrifugal loads (n_dofs, 6), spin-softening masses and own geometric
+    stiffnesses (six n_dofs x n_dofs CSR each, per unit W_ij in TENSOR_ENTRIES order) of
+    rigid masses tied by distributing couplings: ``point_masses`` of (dofs, G, M6, P)
+    (:func:`pipeline.fe.added_mass.distributing_point_masses`), each term G^T (.) G."""
+    loads = np.zeros((n_dofs, len(TENSOR_ENTRIES)))
+    soft = [sp.csr_matrix((n_dofs, n_dofs)) for _ in TENSOR_ENTRIES]
+    geo = [sp.csr_matrix((n_dofs, n_dofs)) for _ in TENSOR_ENTRIES]
+    for dofs, G, M6, P in point_masses:
+        offset = np.asarray(P, dtype=float) - np.asarray(point, dtype=float)
+        rows, cols = np.meshgrid(dofs, dofs, indexing="ij")
+        for col, (i, j) in enumerate(TENSOR_ENTRIES):
+            A = entry_matrix(i, j)
+            loads[dofs, col] += G.T @ rigid_centrifugal_load(M6, offset, A)
+            for out, block in ((soft, rigid_mass_of(M6, A)),
+                               (geo, rigid_geometric_stiffness(M6, A))):
+                out[col] = out[col] + sp.csr_matrix(
+                    ((G.T @ block @ G).ravel(), (rows.ravel(), cols.ravel())),
+                    shape=(n_dofs, n_dofs))
+    return loads, soft, geo

@@ -50,8 +50,8 @@ from pipeline.errors import SolverError
 from pipeline.fe.assemble import restrict
 from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
-                                   geometric_stiffness, node_mass_matrix, tensor_mass,
-                                   tensor_weights)
+                                   geometric_stiffness, node_mass_matrix, point_mass_prestress,
+                                   rigid_mass_of, tensor_mass, tensor_weights)
 from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
 from pipeline.reduce.statics import static_shapes
 from pipeline.solve.eigen import solve_modes
@@ -75,6 +75,8 @@ class PrestressTerms:
     centrifugal_loads: (n_s, 6) the consistent centrifugal loads f_ij per unit W_ij.
     node_mass: (n_nodes x n_nodes) CSR the scalar consistent mass m (kg).
     node_offsets: (n_nodes, 3) x - point of every node (m).
+    point_masses: (dofs, G, M6, P - point) of each rigid mass tied by a distributing
+    coupling (:func:`pipeline.fe.added_mass.distributing_point_masses`).
     """
 
     centrifugal_shapes: np.ndarray
@@ -85,6 +87,7 @@ class PrestressTerms:
     centrifugal_loads: np.ndarray | None = None
     node_mass: sp.csr_matrix | None = None
     node_offsets: np.ndarray | None = None
+    point_masses: tuple = ()
 
     def spin_matrices(self, axis) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """(K_G1, M_perp) of a spin about the unit ``axis``: K(Omega) = K + Omega^2 (K_G1 -
@@ -108,20 +111,26 @@ def _weighted(matrices, weights) -> sp.csr_matrix:
 def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
                     F_inputs: np.ndarray | None = None, solve=None,
                     backend: str = "auto", constraint=None,
-                    extra_node_mass: sp.spmatrix | None = None) -> PrestressTerms:
+                    extra_node_mass: sp.spmatrix | None = None,
+                    point_masses=()) -> PrestressTerms:
     """The :class:`PrestressTerms` of the body of ``space`` (supported: ``free`` DOFs,
     ``K`` (n_s x n_s) its stiffness) spinning about ``point`` (3,) m, and preloaded by
     the input loads ``F_inputs`` (n_dofs x n_in, per unit input; None: none).
     ``material``: one isotropic Material or each element's
     (:class:`~pipeline.fe.materials.ElementMaterials`: its densities in the mass, its laws
     in the stress); ``extra_node_mass``: a scalar node mass (n_nodes x n_nodes, kg) added
-    to the body's (the area masses), or None.
+    to the body's (the area masses), or None; ``point_masses``: (dofs, G, M6, P) of the
+    rigid masses tied by distributing couplings (their load, softening and own geometric
+    stiffness: :func:`pipeline.fe.prestress.point_mass_prestress`).
     ``solve``: b -> K^-1 b when a factor of K is at hand; ``constraint``: T of an exact
     constraint u = T q (n_s x n_q, ``solve`` then that of T^T K T), or None."""
     node_mass = node_mass_matrix(space, _density(material))
     if extra_node_mass is not None:
         node_mass = (node_mass + extra_node_mass).tocsr()
     loads = centrifugal_loads(space, node_mass, point)  # (n_dofs, 6)
+    if point_masses:
+        pm_loads, pm_soft, pm_geo = point_mass_prestress(point_masses, point, space.n_dofs)
+        loads = loads + pm_loads
     n_in = 0 if F_inputs is None else F_inputs.shape[1]
     rhs = loads[free]
     if n_in:
@@ -133,12 +142,19 @@ def prestress_terms(space, material, free: np.ndarray, K: sp.spmatrix, point,
     U = np.zeros((space.n_dofs, shapes.shape[1]))
     U[free] = shapes
     geometric = [restrict(G, free) for G in geometric_stiffness(space, material, U)]
-    softening = tuple(restrict(tensor_mass(node_mass, entry_matrix(i, j)), free)
-                      for i, j in TENSOR_ENTRIES)
+    softening = [restrict(tensor_mass(node_mass, entry_matrix(i, j)), free)
+                 for i, j in TENSOR_ENTRIES]
     k = len(TENSOR_ENTRIES)
-    return PrestressTerms(shapes[:, :k], tuple(geometric[:k]), softening, shapes[:, k:],
-                          tuple(geometric[k:]), loads[free], node_mass,
-                          space.node_points - np.asarray(point, dtype=float))
+    if point_masses:
+        for col in range(k):
+            geometric[col] = geometric[col] + restrict(pm_geo[col], free)
+            softening[col] = softening[col] + restrict(pm_soft[col], free)
+    p = np.asarray(point, dtype=float)
+    return PrestressTerms(shapes[:, :k], tuple(geometric[:k]), tuple(softening),
+                          shapes[:, k:], tuple(geometric[k:]), loads[free], node_mass,
+                          space.node_points - p,
+                          tuple((d, G, M6, np.asarray(P, float) - p)
+                                for d, G, M6, P in point_masses))
 
 
 def _density(material):
@@ -157,6 +173,8 @@ def inertia_loads(terms: PrestressTerms, free: np.ndarray, V: np.ndarray
     an angular acceleration alpha is -sum_k alpha_k E_k;
     coriolis (3, n_b, n_b): C_k = V^T (m (x) [e_k x]) V (kg, skew), the Coriolis force
     is -2 sum_k omega_k C_k q' and the Euler force of the deflection -sum_k alpha_k C_k q.
+    A rigid mass tied by a distributing coupling adds the same terms of its six motions
+    G u: M6 [e_k x (P - p); e_k] and the rigid-body mass of [e_k x].
     """
     n_nodes = terms.node_mass.shape[0]
     full = np.zeros((3 * n_nodes, V.shape[1]))
@@ -170,6 +188,10 @@ def inertia_loads(terms: PrestressTerms, free: np.ndarray, V: np.ndarray
         turned = np.cross(e[None, :, None], nodal, axis=1)  # e_k x each column's vectors
         mass_turned = (terms.node_mass @ turned.reshape(n_nodes, -1)).reshape(3 * n_nodes, -1)
         coriolis[k] = full.T @ mass_turned
+        for dofs, G, M6, offset in terms.point_masses:  # rigid masses: G^T (.) G
+            q6 = G @ full[dofs]  # (6, n_b) the masses' six motions
+            euler[k] += q6.T @ (M6 @ np.concatenate([np.cross(e, offset), e]))
+            coriolis[k] += q6.T @ rigid_mass_of(M6, np.cross(e, np.eye(3)).T) @ q6
     return (V.T @ terms.centrifugal_loads).T, euler, coriolis
 
 
@@ -226,7 +248,7 @@ def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.
     force and moment input ports as preloads, eigensolver backend) and the modes stage's
     :class:`~pipeline.solve.modes.Modes` (its kept factor of ``K`` is used)."""
     from pipeline.config import Ports
-    from pipeline.fe.added_mass import area_node_mass
+    from pipeline.fe.added_mass import area_node_mass, distributing_point_masses
     from pipeline.fe.ports import port_matrices
 
     inputs = tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment"))
@@ -235,21 +257,23 @@ def rotation_model(cfg, space, regions, free: np.ndarray, K: sp.spmatrix, M: sp.
     return build_rotation(cfg.rotation, space, material, free, K, M, modes.shapes,
                           modes.omega2, F, tuple(p.name for p in inputs), modes.solve,
                           cfg.modes.solver, getattr(modes, "constraint", None),
-                          area_node_mass(space, regions, cfg.masses))
+                          area_node_mass(space, regions, cfg.masses),
+                          distributing_point_masses(space, regions, cfg.masses))
 
 
 def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.spmatrix,
                    M: sp.spmatrix, shapes: np.ndarray, omega2: np.ndarray,
                    F_inputs=None, input_names: tuple[str, ...] = (), solve=None,
                    backend: str = "auto", constraint=None,
-                   extra_node_mass: sp.spmatrix | None = None) -> RotationModel:
+                   extra_node_mass: sp.spmatrix | None = None,
+                   point_masses=()) -> RotationModel:
     """The :class:`RotationModel` of the config's ``rotation`` section for the supported
     body (``K``, ``M`` (n_s x n_s), its modes ``shapes`` (n_s x n_m, M-orthonormal) and
     ``omega2`` (n_m,) rad^2/s^2); ``F_inputs`` (n_dofs x n_in) the input-port loads;
     ``solve``: b -> K^-1 b when a factor of K is at hand (else one is made and freed);
     ``constraint``: T of an exact constraint u = T q (n_s x n_q; ``solve`` is then that
-    of T^T K T and the full sweep runs on the coordinates q), or None; ``material`` and
-    ``extra_node_mass`` as :func:`prestress_terms` takes them."""
+    of T^T K T and the full sweep runs on the coordinates q), or None; ``material``,
+    ``extra_node_mass`` and ``point_masses`` as :func:`prestress_terms` takes them."""
     _check_point(rotation.point, space.node_points)
     axis = unit(rotation.axis)
     _check_stress(rotation, axis, space.node_points, material)
@@ -260,7 +284,7 @@ def build_rotation(rotation: Rotation, space, material, free: np.ndarray, K: sp.
         solve = own.solve
     try:
         terms = prestress_terms(space, material, free, K, rotation.point, F_inputs, solve,
-                                backend, constraint, extra_node_mass)
+                                backend, constraint, extra_node_mass, point_masses)
         K_G1, M_perp = terms.spin_matrices(axis)
         static = terms.centrifugal_shape(axis)[:, None] if rotation.static_shape else None
         corrections = None
