@@ -87,3 +87,103 @@ def test_cli_refuses_in_one_line_and_writes_nothing(tmp_path, systems, axes, wor
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and words in lines[0], proc.stderr
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- cylindrical
+#: transversely isotropic about material axis 3 (the tube's axis in a cylindrical system:
+#: axes radial, hoop, axial): E_r = E_theta, nu_rz = nu_thetaz, G_rz = G_thetaz,
+#: G_rtheta = E_r / (2 (1 + nu_rtheta))
+FIBRE_AXIAL = {"name": "tube", "kind": "orthotropic", "E": [10e9, 10e9, 140e9],
+               "nu": [0.4, 0.3 / 14, 0.3 / 14], "G": [10e9 / 2.8, 5e9, 5e9], "rho": 1600.0,
+               "elements": "all"}
+#: an axis along x that passes outside the box (every centroid has a radial direction)
+AROUND_X = {"kind": "cylindrical", "axis": [2.0, 0.0, 0.0], "point": [0.0, -0.03, -0.04]}
+
+
+def _relative(a, b) -> float:
+    return abs(a - b).max() / abs(b).max()
+
+
+def test_cylindrical_frame_equals_the_rectangular_where_they_coincide(tmp_path):
+    """Fibres along the axis, isotropic across them: the law is the same in every frame
+    with axis 3 along x, so the cylindrical system (a frame per element) gives the K of
+    the rectangular frame {x: y, y: z} (axis 3 = x), to round-off (1e-14)."""
+    cyl = build_fe_model(config_from_dict(raw_config(
+        coordinate_systems={"wound": AROUND_X}, materials=[{**FIBRE_AXIAL, "axes": "wound"}])),
+        tmp_path / "c")
+    rect = build_fe_model(config_from_dict(raw_config(materials=[
+        {**FIBRE_AXIAL, "axes": {"x": [0, 1, 0], "y": [0, 0, 1]}}])), tmp_path / "r")
+    assert cyl.materials.D.shape[0] == 2 + cyl.space.body.n_tetrahedra
+    assert set(cyl.materials.names[1:]) == {"tube"}
+    assert _relative(cyl.K, rect.K) < 1e-14
+    assert (cyl.M != rect.M).nnz == 0
+
+
+def test_cylindrical_frame_leaves_an_isotropic_law_unchanged(tmp_path):
+    E, nu = 69e9, 0.33
+    G = E / (2 * (1 + nu))
+    iso = build_fe_model(config_from_dict(raw_config(material={"E": E, "nu": nu,
+                                                               "rho": 2700.0})), tmp_path / "i")
+    cyl = build_fe_model(config_from_dict(raw_config(
+        coordinate_systems={"wound": AROUND_X}, materials=[{
+            "name": "o", "kind": "orthotropic", "E": [E] * 3, "nu": [nu] * 3, "G": [G] * 3,
+            "rho": 2700.0, "axes": "wound", "elements": "all"}])), tmp_path / "c")
+    assert _relative(cyl.K, iso.K) < 1e-14
+
+
+def test_cylindrical_frame_differs_per_element(tmp_path):
+    """Fibres along the hoop direction (axis 2): elements at different angles about the
+    axis get different global laws, and the run through the file's /materials keeps
+    them (one law per element)."""
+    from pipeline.store.read import read_materials
+
+    raw = raw_config(coordinate_systems={"wound": AROUND_X}, materials=[
+        {**FIBRE_AXIAL, "E": [10e9, 140e9, 10e9], "nu": [0.3 / 14, 0.4, 0.3 / 14],
+         "G": [5e9, 10e9 / 2.8, 5e9], "axes": "wound"}])
+    fe = build_fe_model(config_from_dict(raw), tmp_path)
+    D = fe.materials.element_D(np.arange(fe.space.body.n_tetrahedra))
+    assert np.ptp(D[:, 1, 1]) > 1e9  # E_yy varies with the angle about x
+    assert np.allclose(D[:, 0, 0], D[0, 0, 0])  # E_xx (axial) does not
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "c.h5"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "-o", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    stored = read_materials(out)
+    np.testing.assert_array_equal(stored.stiffness[stored.element_material], D)
+
+
+def test_cylindrical_round_trip_and_refusals(tmp_path):
+    cfg = config_from_dict(raw_config(coordinate_systems={"wound": AROUND_X},
+                                      materials=[{**FIBRE_AXIAL, "axes": "wound"}]))
+    back = yaml.safe_load(config_to_yaml(cfg))
+    assert back["coordinate_systems"]["wound"] == {"kind": "cylindrical",
+                                                   "axis": [1.0, 0.0, 0.0],
+                                                   "point": AROUND_X["point"]}
+    assert config_from_dict(back) == cfg
+    for system, key in (({"kind": "cylindrical", "point": [0, 0, 0]},
+                         "coordinate_systems.s.axis"),
+                        ({"kind": "cylindrical", "axis": [0, 0, 0], "point": [0, 0, 0]},
+                         "coordinate_systems.s.axis"),
+                        ({"kind": "cylindrical", "axis": [1, 0, 0], "point": [0, 0, 0],
+                          "x": [1, 0, 0]}, "coordinate_systems.s.x"),
+                        ({"kind": "spherical", "x": [1, 0, 0], "y": [0, 1, 0]},
+                         "coordinate_systems.s.kind")):
+        with pytest.raises(ConfigError) as exc:
+            config_from_dict(raw_config(coordinate_systems={"s": system},
+                                        materials=[{**FIBRE_AXIAL, "axes": "s"}]))
+        assert exc.value.key == key, str(exc.value)
+
+
+def test_a_centroid_on_the_cylinder_axis_is_refused():
+    """No radial direction on the axis: refused naming the entry's axes key."""
+    from pipeline.errors import RegionError
+    from pipeline.fe.materials import cylindrical_frames
+
+    points = np.array([[0.0, 0.1, 0.0], [0.5, 0.0, 0.0]])
+    Q = cylindrical_frames(points[:1], (1.0, 0.0, 0.0), (0.0, 0.0, 0.0), "k")
+    np.testing.assert_allclose(Q[0], [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=1e-15)
+    with pytest.raises(RegionError) as exc:
+        cylindrical_frames(points, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0), "materials[0].axes")
+    assert "'materials[0].axes'" in str(exc.value) and "[0.5, 0.0, 0.0]" in str(exc.value)

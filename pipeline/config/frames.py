@@ -1,6 +1,13 @@
-"""Config records and parsing of the ``coordinate_systems:`` section: named rectangular
-frames that a ``materials`` entry may refer to by name (``axes: <name>``) instead of
-giving its material frame inline (``axes: {x, y}``).
+"""Config records and parsing of the ``coordinate_systems:`` section: named frames that a
+``materials`` entry may refer to by name (``axes: <name>``) instead of giving its
+material frame inline (``axes: {x, y}``).
+
+``kind: cylindrical`` with ``axis`` and ``point`` (m) is a frame that varies with the
+position: at a point x with r = (x - point) - ((x - point) . a) a (a = axis / |axis|),
+material axis 1 = r / |r| (radial), 2 = a x 1 (hoop), 3 = a (axial), the order of the
+cylindrical support frames (pipeline.config.supports). A material in it takes the frame
+at each element's centroid (:mod:`pipeline.fe.materials`); a centroid on the axis has no
+radial direction and is refused there.
 
 A system is ``{x: [..], y: [..], origin: [..]}`` in global coordinates (m for the
 origin): axis 1 = x / |x|, axis 2 = y / |y| (at right angles to x to 1e-9, not
@@ -13,6 +20,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, Mapping
+
+import numpy as np
 
 from pipeline._util import validate as v
 from pipeline.config.materials import frame_axes
@@ -28,6 +37,9 @@ class CoordinateSystem:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     x: tuple[float, float, float] = (1.0, 0.0, 0.0)  # as given (for the YAML copy)
     y: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    kind: str = "rectangular"  # or "cylindrical": axis (unit) and point (m) below
+    axis: tuple[float, float, float] | None = None
+    point: tuple[float, float, float] | None = None
 
 
 def parse_coordinate_systems(raw: Any) -> dict[str, CoordinateSystem]:
@@ -43,7 +55,17 @@ def parse_coordinate_systems(raw: Any) -> dict[str, CoordinateSystem]:
             raise v.fail("coordinate_systems", name, "system names of letters, digits, '_', "
                          "'-' or '.'")
         path = f"coordinate_systems.{name}"
-        item = v.mapping(item, path, ("x", "y", "origin"), ("x", "y"))
+        kind = v.choice(v.mapping(item, path, ("kind", "x", "y", "origin", "axis", "point")),
+                        "kind", path, ("rectangular", "cylindrical"), "rectangular")
+        if kind == "cylindrical":
+            item = v.mapping(item, path, ("kind", "axis", "point"), ("axis", "point"))
+            axis = np.array(v.vector(item, "axis", path, nonzero=True))
+            out[name] = CoordinateSystem(
+                name=name, axes=frame_axes(None, path), kind=kind,
+                axis=tuple(float(c) for c in axis / np.linalg.norm(axis)),
+                point=v.vector(item, "point", path))
+            continue
+        item = v.mapping(item, path, ("kind", "x", "y", "origin"), ("x", "y"))
         axes = frame_axes({"x": item["x"], "y": item["y"]}, path)
         out[name] = CoordinateSystem(
             name=name, axes=axes, origin=v.vector(item, "origin", path, (0.0, 0.0, 0.0)),
@@ -53,4 +75,6 @@ def parse_coordinate_systems(raw: Any) -> dict[str, CoordinateSystem]:
 
 def coordinate_system_dict(cs: CoordinateSystem) -> dict:
     """A system as its YAML keys (load of it gives back an equal system)."""
+    if cs.kind == "cylindrical":
+        return {"kind": "cylindrical", "axis": list(cs.axis), "point": list(cs.point)}
     return {"x": list(cs.x), "y": list(cs.y), "origin": list(cs.origin)}

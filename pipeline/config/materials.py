@@ -86,6 +86,7 @@ class MaterialEntry:
     axes: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
                                                     (0.0, 0.0, 1.0))
     frame: str = ""  # the coordinate system ``axes`` named ("": given inline)
+    cylinder: tuple[tuple[float, ...], tuple[float, ...]] | None = None  # cylindrical frame: (unit axis, point m)
 
 
 @dataclass(frozen=True)
@@ -197,15 +198,17 @@ def _selector(raw: Any, path: str) -> ElementSelector:
 _MATERIAL_KEYS = ("name", "kind", "E", "nu", "G", "rho", "axes", "stiffness", "elements")
 
 
-def _entry_axes(raw: Any, path: str, systems: Mapping) -> tuple[tuple, str]:
-    """(axes, name) of an entry's ``axes``: inline {x, y} (name "") or the name of a
-    ``coordinate_systems`` entry (its axes)."""
+def _entry_axes(raw: Any, path: str, systems: Mapping) -> tuple[tuple, str, tuple | None]:
+    """(axes, name, cylinder) of an entry's ``axes``: inline {x, y} (name "") or the name
+    of a ``coordinate_systems`` entry (its axes; cylinder: (axis, point) of a
+    cylindrical system, else None)."""
     if not isinstance(raw, str):
-        return frame_axes(raw, path), ""
+        return frame_axes(raw, path), "", None
     if raw not in systems:
         raise v.fail(path, raw, "{x: [..], y: [..]} or the name of a coordinate system: "
                      + (", ".join(sorted(systems)) or "(coordinate_systems defines none)"))
-    return systems[raw].axes, raw
+    cs = systems[raw]
+    return cs.axes, raw, ((cs.axis, cs.point) if cs.kind == "cylindrical" else None)
 
 
 def _material_entry(raw: Any, path: str, systems: Mapping = {}) -> MaterialEntry:
@@ -225,7 +228,7 @@ def _material_entry(raw: Any, path: str, systems: Mapping = {}) -> MaterialEntry
         return MaterialEntry(**common, E=v.number(raw, "E", path, lo=0.0, lo_open=True, hi=1e13),
                              nu=v.number(raw, "nu", path, lo=-1.0, hi=0.5, lo_open=True,
                                          hi_open=True))
-    axes, frame = _entry_axes(raw.get("axes"), f"{path}.axes", systems)
+    axes, frame, cylinder = _entry_axes(raw.get("axes"), f"{path}.axes", systems)
     if kind == "anisotropic":
         rows = raw.get("stiffness", v.MISSING)
         if rows is v.MISSING:
@@ -237,7 +240,8 @@ def _material_entry(raw: Any, path: str, systems: Mapping = {}) -> MaterialEntry
         D = tuple(_triple({"stiffness": r}, "stiffness", f"{path}.stiffness[{i}]", 6, lo=None)
                   for i, r in enumerate(rows))
         check_positive_definite(np.array(D), f"{path}.stiffness", "stiffness matrix")
-        return MaterialEntry(**common, stiffness=D, axes=axes, frame=frame)
+        return MaterialEntry(**common, stiffness=D, axes=axes, frame=frame,
+                             cylinder=cylinder)
     if kind == "orthotropic":
         moduli = _triple(raw, "E", path)
         poisson = _triple(raw, "nu", path, lo=-1e3, lo_open=False)
@@ -251,7 +255,7 @@ def _material_entry(raw: Any, path: str, systems: Mapping = {}) -> MaterialEntry
                             "compliance matrix of the engineering constants")
     common["kind"] = "orthotropic"  # transversely isotropic: stored as its expansion
     return MaterialEntry(**common, moduli=moduli, poisson=poisson,
-                         shear=shear, axes=axes, frame=frame)
+                         shear=shear, axes=axes, frame=frame, cylinder=cylinder)
 
 
 def parse_materials(raw: Any, systems: Mapping = {}) -> tuple[MaterialEntry, ...]:

@@ -8,7 +8,9 @@ A law given in a material frame Q (columns: material axes 1, 2, 3 in global coor
 is rotated as a fourth-order tensor, C'_ijkl = Q_ia Q_jb Q_kc Q_ld C_abcd.
 
 Element assignment: the first entry of ``materials`` whose selector claims an element
-gives its law (law index 1 + entry index); elements no entry claims take ``material``
+gives its law (law index 1 + entry index; an entry in a cylindrical coordinate system
+gets one law per element it claims, after the entries' laws, each rotated into the
+frame at the element's centroid, :func:`cylindrical_frames`); elements no entry claims take ``material``
 (law 0), which must then exist. An entry that claims no element (it selects nothing, or
 earlier entries claimed all it selects) is refused: it is a mistake in the config.
 Non-structural mass per volume (``masses`` of kind volume) adds its density to rho of the
@@ -70,8 +72,9 @@ def rotate_stiffness(D: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return tensor_to_voigt(C)
 
 
-def entry_stiffness(entry: MaterialEntry) -> np.ndarray:
-    """(6, 6) global-frame D (Pa) of one ``materials`` entry."""
+def entry_stiffness(entry: MaterialEntry, frame: bool = True) -> np.ndarray:
+    """(6, 6) global-frame D (Pa) of one ``materials`` entry (``frame`` False: in its
+    material frame)."""
     if entry.kind == "isotropic":
         return isotropic_stiffness(Material(E=entry.E, nu=entry.nu, rho=entry.rho))
     if entry.kind == "anisotropic":
@@ -80,7 +83,33 @@ def entry_stiffness(entry: MaterialEntry) -> np.ndarray:
     else:
         D = np.linalg.inv(orthotropic_compliance(entry.moduli, entry.poisson, entry.shear))
         D = 0.5 * (D + D.T)
-    return rotate_stiffness(D, material_frame(entry.axes))
+    return rotate_stiffness(D, material_frame(entry.axes)) if frame else D
+
+
+def cylindrical_frames(points: np.ndarray, axis, point, key: str) -> np.ndarray:
+    """(n, 3, 3) Q with columns the material axes radial, hoop, axial at ``points``
+    (n, 3) m of a cylindrical system (unit ``axis``, ``point`` m on it); RegionError
+    naming ``key`` for a point on the axis (no radial direction there)."""
+    a = np.asarray(axis, dtype=float)
+    d = points - np.asarray(point, dtype=float)
+    r = d - np.outer(d @ a, a)
+    norm = np.linalg.norm(r, axis=1)
+    size = max(float(np.ptp(points, axis=0).max()) if len(points) else 0.0,
+               float(np.abs(d).max()) if len(points) else 0.0, 1e-300)
+    if len(points) and norm.min() <= 1e-9 * size:
+        c = points[int(np.argmin(norm))]
+        raise RegionError(f"config key '{key}': an element's centroid {c.round(6).tolist()} "
+                          "m lies on the cylindrical system's axis (no radial direction); "
+                          "expected elements off the axis (a tube, not a rod)")
+    e_r = r / norm[:, None]
+    return np.stack([e_r, np.cross(a, e_r), np.broadcast_to(a, e_r.shape)], axis=2)
+
+
+def _rotate_many(D: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """(n, 6, 6) global D of one material-frame D (6, 6) in the frames Q (n, 3, 3)."""
+    C = np.einsum("nia,njb,nkc,nld,abcd->nijkl", Q, Q, Q, Q, voigt_to_tensor(D),
+                  optimize=True)
+    return tensor_to_voigt(C)
 
 
 @dataclass(frozen=True)
@@ -88,7 +117,8 @@ class ElementMaterials:
     """The material of every element.
 
     names: (n_laws,) law names, law 0 the default ``material`` ("material"; present even
-    when no element takes it). D: (n_laws, 6, 6) global-frame stiffness, Pa.
+    when no element takes it; an entry in a cylindrical frame repeats its name on its
+    per-element laws). D: (n_laws, 6, 6) global-frame stiffness, Pa.
     law_rho: (n_laws,) kg/m^3. index: (n_e,) int, the law of each element. rho: (n_e,)
     kg/m^3, each element's density with the non-structural mass per volume added.
     uniform: the one isotropic Material of every element (None when the elements differ or
@@ -167,6 +197,16 @@ def assign_materials(space: FESpace, default: Material | None,
     base = default if default is not None else Material()
     D = np.stack([isotropic_stiffness(base)] + [entry_stiffness(e) for e in entries])
     law_rho = np.array([base.rho] + [e.rho for e in entries])
+    names = ("material",) + tuple(e.name for e in entries)
+    for i, entry in enumerate(entries):  # a cylindrical frame: one law per element
+        if entry.cylinder is None:
+            continue
+        els = np.flatnonzero(index == i + 1)
+        Q = cylindrical_frames(centroids[els], *entry.cylinder, f"materials[{i}].axes")
+        index[els] = D.shape[0] + np.arange(els.size)
+        D = np.concatenate([D, _rotate_many(entry_stiffness(entry, frame=False), Q)])
+        law_rho = np.concatenate([law_rho, np.full(els.size, entry.rho)])
+        names += (entry.name,) * els.size
     rho = law_rho[index]
     for i, m in enumerate(masses):
         if m.kind == "volume":
@@ -181,10 +221,9 @@ def assign_materials(space: FESpace, default: Material | None,
         law = int(used[0])
         if law == 0:
             uniform = base
-        elif entries[law - 1].kind == "isotropic":
+        elif law <= len(entries) and entries[law - 1].kind == "isotropic":
             e = entries[law - 1]
             uniform = Material(E=e.E, nu=e.nu, rho=e.rho)
-    names = ("material",) + tuple(e.name for e in entries)
     return ElementMaterials(names, D, law_rho, index, rho, uniform)
 
 
