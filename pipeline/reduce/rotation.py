@@ -343,8 +343,8 @@ def _check_stress(rotation: Rotation, axis: np.ndarray, node_points: np.ndarray,
     top = float(np.max(np.abs(rotation.speeds_rad_s)))
     if isinstance(material, ElementMaterials):  # the densest law, the softest direction
         rho = float(np.max(material.rho))
-        E = float(min(1.0 / np.max(np.diag(np.linalg.inv(D))[:3]) for D in
-                      material.D[np.unique(material.index)]))
+        S = np.linalg.inv(material.D[np.unique(material.index)])  # compliances
+        E = float(1.0 / np.max(np.diagonal(S, axis1=1, axis2=2)[:, :3]))
     else:
         rho, E = material.rho, material.E
     stress = 0.5 * rho * top ** 2 * radius ** 2
