@@ -34,7 +34,7 @@ from pipeline.fe.model import FEModel
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
 from pipeline.fe.supports import rigid_freedoms
-from pipeline.solve.eigen import _rayleigh_ritz, default_shift
+from pipeline.solve.eigen import default_shift, rayleigh_ritz
 from pipeline.solve.labels import label_modes
 from pipeline.solve.modes import Modes
 from pipeline.solve.stage import full_shapes
@@ -213,7 +213,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     eps, ksp = stats.pop("eps"), stats.pop("ksp")
     shapes = K.gather(local)
     del local
-    omega2, shapes, residuals = _rayleigh_ritz(K, M, shapes, shift)
+    omega2, shapes, residuals = rayleigh_ritz(K, M, shapes, shift)
     # a free body's rigid-body modes: zero to round-off of the shift (as the serial path)
     rigid = np.zeros(omega2.size, dtype=bool) if supported else \
         np.abs(omega2) < 1e-6 * abs(shift)
