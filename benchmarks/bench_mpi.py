@@ -11,13 +11,15 @@ stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
 
 The memory model per rank, fitted to the cases at one size N0 (free DOFs):
 
-    m(P, N) = c + r N / N0 + d (N / N0)^(4/3) / P
+    m(P, N) = c + r N / N0 + (s N / N0 + (d - s) (N / N0)^(4/3)) / P
 
-c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space,
-regions, the gathered mode shapes and stress modes: linear in N); d: what is divided among
-the ranks (the rows of K and M, linear in N, and MUMPS' factor, which for a 3D mesh in
-nested-dissection order grows as N^(4/3), the exponent used for all of d: an upper
-bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
+c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space and
+regions: linear in N); d: what is divided among the ranks (its rows of K and M, its part
+of MUMPS' factor and its rows of the mode shapes: the shapes are no longer replicated).
+s: the shapes' part of d, counted, not fitted: the Rayleigh-Ritz step holds three blocks
+of its rows (Phi, K Phi, M Phi: 3 x 8 N m / P bytes), which grows as N; the rest of d
+(the factor, for a 3D mesh in nested-dissection order N^(4/3), the exponent used for all
+of it: an upper bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
 """
 
 from __future__ import annotations
@@ -83,25 +85,33 @@ def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
                        f"{proc.stderr.strip().splitlines()[-1:]}")
 
 
+#: mode shapes per case (the shipped config's modes.count plus SLEPc's one extra) and the
+#: blocks of them the Rayleigh-Ritz step holds (Phi, K Phi, M Phi)
+MODES, SHAPE_BLOCKS = 11, 3
+
+
 def memory_model(rows: list[dict]) -> dict:
-    """c, r, d (MB) of the module's model from the 1- and 2-rank cases."""
+    """c, r, d, s (MB) of the module's model from the 1- and 2-rank cases."""
     one = next(r for r in rows if r["ranks"] == 1)
     two = next(r for r in rows if r["ranks"] == 2)
     c = max(one["import_mb"])
     m1, m2 = max(one["peak_mb"]), max(two["peak_mb"])
     d = max(2.0 * (m1 - m2), 0.0)
-    return {"c": c, "r": max(m1 - c - d, 0.0), "d": d, "n0": one["n_free"]}
+    shapes = SHAPE_BLOCKS * 8.0 * one["n_free"] * MODES / 2**20
+    return {"c": c, "r": max(m1 - c - d, 0.0), "d": max(d, shapes), "s": shapes,
+            "n0": one["n_free"]}
 
 
 def extrapolate(model: dict, n: float) -> list[str]:
     """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed."""
     s = n / model["n0"]
     fixed = model["c"] + model["r"] * s
-    shared = model["d"] * s ** (4.0 / 3.0)
+    shared = model["s"] * s + (model["d"] - model["s"]) * s ** (4.0 / 3.0)
     usable = NODE_GB * 1024 * NODE_USABLE
     lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
              f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
-             f"+ {shared / 1024:.0f} GB / P divided among P ranks"]
+             f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it the mode shapes "
+             f"{model['s'] * s / 1024:.1f} GB / P)"]
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
@@ -144,7 +154,8 @@ def main(argv=None) -> int:
     if {1, 2} <= {r["ranks"] for r in rows}:
         model = memory_model(rows)
         print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
-              f"d = {model['d']:.0f} MB (divided) at {model['n0']} free DOFs")
+              f"d = {model['d']:.0f} MB (divided; the mode shapes {model['s']:.0f} MB of it) "
+              f"at {model['n0']} free DOFs")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
     if args.json:

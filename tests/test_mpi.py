@@ -5,7 +5,7 @@ Without MPI: each emulated rank's rows of K and M, stacked, equal the serial ass
 body's mass properties, and a missing PETSc is one line, exit code 5, nothing written.
 
 With ``make mpi-env`` (``.venv-mpi`` and ``mpiexec``): the cantilever on 2 ranks gives
-the single-process file, with MUMPS' factor and factor-free (CG on GAMG, a coarser mesh:
+the single-process file, each rank holding only its own rows of the mode shapes, with MUMPS' factor and factor-free (CG on GAMG, a coarser mesh:
 its 38 solves of 64 CG iterations take 10 s there). The reference is the PARDISO run in this interpreter. The
 frequencies must agree to 1e-8 relative (issue 38; measured 5e-12); every other stored
 float to 1e-8 of its largest entry, except where the quantity is a difference of
@@ -126,12 +126,20 @@ def test_a_failing_rank_stops_all_in_one_line_and_writes_nothing(tmp_path):
 @pytest.mark.parametrize("method, size", [("factor", 0.01), ("multigrid", 0.03)],
                          ids=["mumps", "factor-free"])
 def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
+    """The same file, and no rank holds the whole set of mode shapes: each rank's shapes
+    are its own rows (tests/mpi_ranks.py asserts it on every rank), the file's shapes
+    and stress modes are written from the ranks' rows block by block."""
     mpiexec = _mpiexec()
     args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", f"mesh.size={size}"]
     serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
     _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "--set",
-          f"modes.method={method}", "-o", str(dist)], tmp_path, timeout=600)
+    proc = _run([*mpiexec, str(MPI_PYTHON), str(ROOT / "tests" / "mpi_ranks.py"), str(dist),
+                 f"mesh.size={size}", f"modes.method={method}"], tmp_path, timeout=600)
+    held = sorted(line.split() for line in proc.stdout.splitlines()
+                  if line.startswith("rank "))
+    assert [h[1] for h in held] == ["0", "1"], proc.stdout[-2000:]
+    n_free = int(held[0][5])
+    assert sum(int(h[3]) for h in held) == n_free and all(int(h[3]) < n_free for h in held)
     with h5py.File(serial) as a, h5py.File(dist) as b:
         assert b["run"].attrs["solver"] == "slepc" and b["run"].attrs["ranks"] == 2
         fa, fb = a["modes/frequencies_hz"][()], b["modes/frequencies_hz"][()]

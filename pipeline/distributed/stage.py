@@ -5,14 +5,15 @@ with K and M as :class:`~pipeline.distributed.operators.RowMatrix` stand-ins, so
 
 Per rank, memory: the mesh and FE space (every rank meshes the same body: O(n_points),
 replicated), its rows of K and M (1/size of them, plus one element layer), its part of
-MUMPS' factor, and the replicated (n_free, n_modes) mode shapes the reduce stage and the
-writer use (8 n_free n_modes bytes: 160 MB for 1M free DOFs and 20 modes).
+MUMPS' factor, and its rows of the mode shapes (a :class:`RowBlock`, 8 n_free n_modes /
+size bytes); the reduce stage and the writer work from those rows
+(:mod:`pipeline.distributed.reduce`), rank 0 writing the shapes and stress modes one
+block of points at a time (:class:`~pipeline.distributed.blocks.PointBlocks`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -34,10 +35,13 @@ from pipeline.fe.model import FEModel
 from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
 from pipeline.fe.supports import rigid_freedoms
-from pipeline.solve.eigen import default_shift, rayleigh_ritz
-from pipeline.solve.labels import label_modes
+from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
+                                         label_rows, rayleigh_ritz_rows, shapes_blocks,
+                                         stress_blocks)
+from pipeline.solve.eigen import default_shift
 from pipeline.solve.modes import Modes
-from pipeline.solve.stage import full_shapes
+from pipeline.store.schema import stress_modes_datasets
 
 log = logging.getLogger(__name__)
 
@@ -116,8 +120,8 @@ def check_rank_memory(space, cfg: Config, comm) -> int:
     """Refuse, on every rank and before the assembly, a run whose ranks on one node would
     need more than the node has (ResourceError, one line). Per rank: the serial model of
     :mod:`pipeline._util.resources` for the whole problem (factor method), its K, M and
-    factor share divided by the rank count, plus what every rank holds (baseline, mesh,
-    the gathered mode shapes: three (n_dofs, n_modes) arrays). Returns the bytes per rank."""
+    factor share and its three (n_dofs, n_modes) arrays of mode shapes divided by the
+    rank count, plus what every rank holds (baseline, mesh). Returns the bytes per rank."""
     from mpi4py import MPI
 
     from pipeline._util import resources as res
@@ -127,8 +131,9 @@ def check_rank_memory(space, cfg: Config, comm) -> int:
     mesh = res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el
     whole = res.estimate_memory_bytes(n_nodes, n_el, space.order, count, "factor",
                                       solver="pardiso")
-    replicated = res.BASELINE_BYTES + mesh + 3 * 8.0 * space.n_dofs * count
-    per_rank = int(replicated + (whole - res.BASELINE_BYTES - mesh) / comm.size)
+    replicated = res.BASELINE_BYTES + mesh
+    shapes = 3 * 8.0 * space.n_dofs * count
+    per_rank = int(replicated + (whole - res.BASELINE_BYTES - mesh + shapes) / comm.size)
     node_ranks = comm.Split_type(MPI.COMM_TYPE_SHARED).size
     need = comm.allreduce(per_rank * node_ranks, op=MPI.MAX)
     have = comm.allreduce(res.available_memory_bytes(), op=MPI.MIN)
@@ -211,30 +216,44 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
                                        near_null, shift)
     eps, ksp = stats.pop("eps"), stats.pop("ksp")
-    shapes = K.gather(local)
+    comm = world()
+    K.petsc, M.petsc = Kp, Mp  # the products of the Rayleigh-Ritz step and the reduce stage
+    omega2, shapes, residuals = rayleigh_ritz_rows(K, M, RowBlock(comm, K.part, local), shift)
     del local
-    omega2, shapes, residuals = rayleigh_ritz(K, M, shapes, shift)
     # a free body's rigid-body modes: zero to round-off of the shift (as the serial path)
     rigid = np.zeros(omega2.size, dtype=bool) if supported else \
         np.abs(omega2) < 1e-6 * abs(shift)
     omega2 = np.maximum(np.where(rigid, 0.0, omega2), 0.0)
-    comm = world()
     stats.update(ranks=comm.size, tolerance=tolerance)
-    owned = [eps, Kp, Mp] + ([near_null] if near_null else [])
-    if supported:
-        # the spectral transformation's solver (shift 0: its operator is K) solves the
-        # static correction's K x = F; freed with the kept factor
-        factor: Any = KspSolve(ksp, K, keep=owned)
-    else:  # its operator is K - sigma M, not K
-        factor = None
-        for obj in owned:
-            obj.destroy()
-    modes = Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
-                  residuals=residuals, n_rigid=int(rigid.sum()), backend=BACKEND, shift=shift,
-                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor)
-    shapes_full = full_shapes(shapes, fe.free, fe.space.n_nodes)
-    labels = label_modes(fe.space.node_points, shapes_full, modes.n_rigid,
-                         node_volume_weights(fe.space))
-    for f, lab in zip(modes.frequencies_hz, labels):
+    # the spectral transformation's solver (shift 0: its operator is K) solves the
+    # static correction's K x = F; a free body's operator is K - sigma M, not K: no
+    # solver then. The PETSc objects (and K's and M's) are freed with it, when the
+    # pipeline drops K (every rank at the same point: PETSc's destroy is collective)
+    factor: Any = KspSolve(ksp if supported else None, K,
+                           keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
+    # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
+    # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
+    n_rigid = int(rigid.sum())
+    labels = label_rows(fe.space, fe.free, shapes, n_rigid, node_volume_weights(fe.space))
+    for f, lab in zip(np.sqrt(omega2) / (2 * np.pi), labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
-    return dataclasses.replace(modes, shapes_full=shapes_full, labels=tuple(labels))
+    return Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
+                 residuals=residuals, n_rigid=n_rigid, backend=BACKEND, shift=shift,
+                 seconds=time.perf_counter() - t0, stats=stats, factorization=factor,
+                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space, fe.free, shapes))
+
+
+def stress_modes_tree(cfg: Config, space, free, models) -> dict:
+    """The ``stress_modes`` group from the distributed basis (rank 0 writes it block by
+    block, :func:`pipeline.distributed.reduce.stress_blocks`)."""
+    stress, strain = stress_blocks(cfg, space, free, models.reduced)
+    return stress_modes_datasets(stress, strain, models.reduced, models.input_units)
+
+
+def drain_blocks(tree: dict) -> None:
+    """On the ranks that do not write: take part in writing every block-written dataset
+    of ``tree``, in the writer's (sorted) order."""
+    for name in sorted(tree):
+        data = tree[name].data
+        if isinstance(data, PointBlocks):
+            data.drain()
