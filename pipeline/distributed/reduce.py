@@ -31,7 +31,7 @@ from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.mpi import allreduce_sum
 from pipeline.errors import ConfigError, SolverError
-from pipeline.fe.materials import config_materials
+from pipeline.fe.materials import ElementMaterials, config_materials
 from pipeline.fe.ports import port_matrices
 from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
 from pipeline.reduce.build import _damping_spec, check_ports_act
@@ -186,10 +186,11 @@ def shapes_blocks(space, free, Phi: RowBlock) -> PointBlocks:
     return PointBlocks(Phi.comm, space.n_nodes, *Phi.on_points(free))
 
 
-def stress_blocks(cfg: Config, space, free, reduced: ReducedModel
+def stress_blocks(materials: ElementMaterials, space, free, reduced: ReducedModel
                   ) -> tuple[PointBlocks, PointBlocks]:
     """(stress, strain) datasets (n_points, 6, n_b + n_u) of the basis and the correction
-    shapes, each rank recovering its own rows' share (module)."""
+    shapes, each rank recovering its own rows' share (module); several laws: each
+    element's own stiffness, as :func:`pipeline.fe.strain.stress_fields`."""
     cols = [reduced.basis] + ([reduced.correction_shapes]
                               if reduced.correction_shapes is not None else [])
     block = cols[0].like(np.hstack([c.local for c in cols]))
@@ -204,7 +205,11 @@ def stress_blocks(cfg: Config, space, free, reduced: ReducedModel
     elements = np.flatnonzero(mine[en].any(axis=1))
     touched = np.unique(en[elements])
     strain = nodal_strains_at(space, U, touched, elements, node_row)
-    stress = stresses_from_strains(strain, cfg.material)
+    if materials.uniform is not None:
+        stress = stresses_from_strains(strain, materials.uniform)
+    else:
+        stress = nodal_strains_at(space, U, touched, elements, node_row,
+                                  element_D=materials.element_D)
     comm = block.comm
     return (PointBlocks(comm, space.n_nodes, touched, stress),
             PointBlocks(comm, space.n_nodes, touched, strain))

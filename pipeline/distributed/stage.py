@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 
 from pipeline.config import Config
 from pipeline.errors import ConfigError
@@ -29,10 +30,14 @@ from pipeline.distributed.mpi import petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
 from pipeline.distributed.partition import slab_partition
 from pipeline.fe.assemble import whole_nodes
-from pipeline.fe.body import body_properties, node_volume_weights
+from pipeline.fe.added_mass import added_mass_matrix
+from pipeline.fe.body import (body_properties, node_volume_weights,
+                              properties_from_rigid_mass, rigid_body_modes)
+from pipeline.fe.materials import config_materials
+from pipeline.fe.ports import check_gauges
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
-from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
 from pipeline.fe.supports import rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
@@ -71,8 +76,6 @@ def check_supported(cfg: Config) -> None:
                               key=f"masses[{i}].coupling", value="rigid",
                               expected="distributing")
     not_yet = [(key, what) for key, what, present in (
-        ("materials", "several materials", bool(cfg.materials)),
-        ("masses", "added masses", bool(cfg.masses)),
         ("rotation", "a rotating body", cfg.rotation is not None),
         ("supports", "elastic supports (spring, bushing)",
          any(s.spring is not None or s.bushing is not None for s in cfg.supports)))
@@ -80,8 +83,9 @@ def check_supported(cfg: Config) -> None:
     if not_yet:
         key, what = not_yet[0]
         raise ConfigError(f"{key} with modes.solver: slepc: the distributed path does not "
-                          f"handle {what} yet (each rank assembles one isotropic material, "
-                          "held or free); expected no such key, or another modes.solver",
+                          f"handle {what} yet (each rank assembles its elements' materials "
+                          "and masses, held or free); expected no such key, or another "
+                          "modes.solver",
                           key=key, value=what, expected=f"no {key} with modes.solver: slepc")
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
@@ -158,8 +162,12 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                                                  mesh_dir if comm.rank == 0 else None, cfg.name)
         space = build_space(body, cfg.mesh.order)
         regions = resolve_regions(space, cfg.regions)
+        check_region_uses(cfg, space, regions)
+        materials = config_materials(space, cfg)
+        added = added_mass_matrix(space, regions, cfg.masses)
         log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", body.n_tetrahedra,
                  space.cell_type, space.n_nodes, space.n_dofs, comm.size)
+    check_gauges(space, regions, cfg.ports, materials)
     check_rank_memory(space, cfg, comm)
     with stage("assemble"):
         fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
@@ -176,17 +184,28 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                     key="supports", value=f"{left.count} rigid motion(s) left",
                     expected="a fully held or a free body")
         part = slab_partition(space.node_points, free, comm.size)
-        rows = local_rows(space, cfg.material, free, part, comm.rank)
+        rows = local_rows(space, materials, free, part, comm.rank, added=added)
         log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries", comm.rank, rows.lo,
                  rows.hi, free.size, rows.n_elements, rows.K.nnz)
         props = body_properties(
-            SummedMatrix(comm, local_node_mass(space, cfg.material.rho, comm.rank, comm.size)),
+            SummedMatrix(comm, local_node_mass(space, materials, comm.rank, comm.size)),
             space.node_points)
+        if added is not None:  # point and area masses: in the rigid properties too
+            props = properties_from_rigid_mass(props.rigid_mass + added_rigid_mass(space, added))
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=RowMatrix(comm, rows.K, part), M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
-                   n_elements=body.n_tetrahedra, rigid=left)
+                   n_elements=body.n_tetrahedra, rigid=left, materials=materials)
+
+
+def added_rigid_mass(space, added) -> np.ndarray:
+    """(6, 6) R^T A R of the added masses A (n_dofs, n_dofs) about the origin, from the
+    rows of the points they touch only (R: the rigid-body modes of those points)."""
+    dofs = np.unique(sp.csr_matrix(added).nonzero()[0] // 3)
+    dofs = (3 * dofs[:, None] + np.arange(3)).ravel()
+    R = rigid_body_modes(space.node_points[dofs[::3] // 3])
+    return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
 
 
 def compute_modes(fe: FEModel, cfg: Config) -> Modes:
@@ -246,7 +265,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
 def stress_modes_tree(cfg: Config, space, free, models) -> dict:
     """The ``stress_modes`` group from the distributed basis (rank 0 writes it block by
     block, :func:`pipeline.distributed.reduce.stress_blocks`)."""
-    stress, strain = stress_blocks(cfg, space, free, models.reduced)
+    stress, strain = stress_blocks(config_materials(space, cfg), space, free, models.reduced)
     return stress_modes_datasets(stress, strain, models.reduced, models.input_units)
 
 
