@@ -28,7 +28,7 @@ from pipeline.distributed.assemble import local_node_mass, local_rows
 from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
 from pipeline.distributed.mpi import petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
-from pipeline.distributed.partition import slab_partition
+from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
 from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.added_mass import added_mass_matrix
 from pipeline.fe.body import (body_properties, node_volume_weights,
@@ -87,6 +87,12 @@ def check_supported(cfg: Config) -> None:
                           "and masses, held or free); expected no such key, or another "
                           "modes.solver",
                           key=key, value=what, expected=f"no {key} with modes.solver: slepc")
+    if cfg.reduction is not None and cfg.reduction.static_correction == "augment":
+        raise ConfigError("reduction.static_correction: augment with modes.solver: slepc: "
+                          "the Ritz basis of the static shapes is not distributed yet; "
+                          "expected none or residual, or another modes.solver",
+                          key="reduction.static_correction", value="augment",
+                          expected="none or residual")
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -183,10 +189,12 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                     "motion, no supports (a free body), or another modes.solver",
                     key="supports", value=f"{left.count} rigid motion(s) left",
                     expected="a fully held or a free body")
-        part = slab_partition(space.node_points, free, comm.size)
+        part = partition(space, free, comm)
         rows = local_rows(space, materials, free, part, comm.rank, added=added)
-        log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries", comm.rank, rows.lo,
-                 rows.hi, free.size, rows.n_elements, rows.K.nnz)
+        cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
+        log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries (%d cut, %d halo "
+                 "columns)", comm.rank, rows.lo, rows.hi, free.size, rows.n_elements,
+                 rows.K.nnz, cut, halo)
         props = body_properties(
             SummedMatrix(comm, local_node_mass(space, materials, comm.rank, comm.size)),
             space.node_points)
@@ -206,6 +214,21 @@ def added_rigid_mass(space, added) -> np.ndarray:
     dofs = (3 * dofs[:, None] + np.arange(3)).ravel()
     R = rigid_body_modes(space.node_points[dofs[::3] // 3])
     return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
+
+
+def partition(space, free, comm):
+    """The rows of each rank: PT-Scotch's graph partition of the points
+    (:func:`~pipeline.distributed.partition.graph_partition`), or slabs along the
+    longest extent on one rank or with the PETSc option ``-pipeline_partition slab``."""
+    PETSc, _ = petsc()
+    kind = PETSc.Options().getString("pipeline_partition", "graph")
+    if kind not in ("graph", "slab"):
+        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
+                          "slab", key="-pipeline_partition", value=kind,
+                          expected="graph or slab")
+    if comm.size == 1 or kind == "slab":
+        return slab_partition(space.node_points, free, comm.size)
+    return graph_partition(PETSc, comm, space.element_nodes, space.node_points, free)
 
 
 def compute_modes(fe: FEModel, cfg: Config) -> Modes:
