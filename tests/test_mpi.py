@@ -72,6 +72,67 @@ def test_rows_of_the_ranks_are_the_serial_matrices(tmp_path):
                                atol=1e-13 * np.abs(serial.rigid_mass).max())
 
 
+def test_stress_modes_of_the_ranks_rows_add_up_to_the_whole(tmp_path):
+    """Stress recovery is linear in the displacements: each emulated rank's share (its
+    own rows, recovered over the elements touching its points) summed over the ranks is
+    the serial recovery of the whole field, to round-off of K's summation order."""
+    from types import SimpleNamespace
+
+    from pipeline.distributed.blocks import RowBlock
+    from pipeline.distributed.reduce import stress_blocks
+    from pipeline.fe.materials import assign_materials
+    from pipeline.fe.strain import stress_fields
+
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    materials = assign_materials(space, ALUMINIUM)
+    U = np.zeros((space.n_dofs, 2))
+    U[free] = np.random.default_rng(0).standard_normal((free.size, 2))
+    whole = stress_fields(space, materials, U)
+    size = 3
+    part = slab_partition(space.node_points, free, size)
+    stress, strain = np.zeros_like(whole.stress), np.zeros_like(whole.strain)
+    for r in range(size):
+        rows = RowBlock(SimpleNamespace(rank=r), part, U[free][part.owned_free(r)])
+        s_r, e_r = stress_blocks(materials, space, free,
+                                 SimpleNamespace(basis=rows, correction_shapes=None))
+        assert s_r.points.size < space.n_nodes  # a share, not the whole mesh
+        stress[s_r.points] += s_r.values
+        strain[e_r.points] += e_r.values
+    np.testing.assert_allclose(stress, whole.stress, rtol=0,
+                               atol=1e-12 * np.abs(whole.stress).max())
+    np.testing.assert_allclose(strain, whole.strain, rtol=0,
+                               atol=1e-12 * np.abs(whole.strain).max())
+
+
+def test_a_dataset_written_in_blocks_is_the_same_file(tmp_path, monkeypatch):
+    """The writer stores a block source (the distributed path's shapes) block by block,
+    and the checksums read large datasets in blocks: the same digest as at once."""
+    from pipeline.store import h5file
+    from pipeline.store.h5file import content_digest, open_verified, write_file
+    from pipeline.store.tree import Dataset
+
+    data = np.random.default_rng(1).standard_normal((1000, 3, 4))
+
+    class Blocks:
+        shape, dtype = data.shape, data.dtype
+
+        def blocks(self):
+            for a in range(0, 1000, 300):
+                yield a, data[a:a + 300]
+
+    one, two = tmp_path / "one.h5", tmp_path / "blocks.h5"
+    write_file(one, {"modes/shapes": Dataset(data, "kg^-1/2")})
+    write_file(two, {"modes/shapes": Dataset(Blocks(), "kg^-1/2")})
+    with h5py.File(one) as a, h5py.File(two) as b:
+        assert np.array_equal(a["modes/shapes"][()], b["modes/shapes"][()])
+        whole = content_digest(b)
+        monkeypatch.setattr(h5file, "READ_BLOCK_BYTES", 1000)  # 10 rows at a time
+        assert content_digest(b) == whole == content_digest(a)
+    with open_verified(two):
+        pass
+
+
 def _has_petsc(python) -> bool:
     code = "from petsc4py import PETSc; from slepc4py import SLEPc"
     return subprocess.run([str(python), "-c", code], capture_output=True).returncode == 0
