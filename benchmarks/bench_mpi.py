@@ -11,13 +11,15 @@ stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
 
 The memory model per rank, fitted to the cases at one size N0 (free DOFs):
 
-    m(P, N) = c + r N / N0 + d (N / N0)^(4/3) / P
+    m(P, N) = c + r N / N0 + (s N / N0 + (d - s) (N / N0)^(4/3)) / P
 
-c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space,
-regions, the gathered mode shapes and stress modes: linear in N); d: what is divided among
-the ranks (the rows of K and M, linear in N, and MUMPS' factor, which for a 3D mesh in
-nested-dissection order grows as N^(4/3), the exponent used for all of d: an upper
-bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
+c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space and
+regions: linear in N); d: what is divided among the ranks (its rows of K and M, its part
+of MUMPS' factor and its rows of the mode shapes: the shapes are no longer replicated).
+s: the shapes' part of d, counted, not fitted: the Rayleigh-Ritz step holds three blocks
+of its rows (Phi, K Phi, M Phi: 3 x 8 N m / P bytes), which grows as N; the rest of d
+(the factor, for a 3D mesh in nested-dissection order N^(4/3), the exponent used for all
+of it: an upper bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
 """
 
 from __future__ import annotations
@@ -65,17 +67,52 @@ def worker(size: float, output: str, method: str) -> None:
             "f1_hz": float(result.frequencies_hz[0])}), flush=True)
 
 
-def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
+#: the partition comparison (``--cuts``): the slender cantilever and a compact cube
+CUT_CASES = {"cantilever": [], "cube": ["geometry={kind: box, length: 0.1, height: 0.1, "
+                                         "depth: 0.1}"]}
+
+
+def cut_worker(size: float, case: str) -> None:
+    """Mesh and partition ``case`` both ways (no solve); rank 0 prints a JSON line with
+    every rank's cut entries and halo columns of K (partition.cut_measures)."""
+    from pipeline.config import load_config
+    from pipeline.distributed.assemble import local_rows
+    from pipeline.distributed.mpi import petsc, world
+    from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
+    from pipeline.fe.materials import config_materials
+    from pipeline.fe.mesh import mesh_body
+    from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
+    from pipeline.fe.space import build_space
+
+    PETSc, _ = petsc()
+    comm = world()
+    cfg = load_config(CONFIG, [f"mesh.size={size}", *CUT_CASES[case]])
+    body, _, _ = mesh_body(cfg.geometry, cfg.mesh, None, cfg.name)
+    space = build_space(body, cfg.mesh.order)
+    regions = resolve_regions(space, cfg.regions)
+    free = free_dofs(space.n_dofs, fixed_dofs(space, regions, cfg.supports, False))
+    out = {"case": case, "ranks": comm.size, "n_free": int(free.size)}
+    for kind in ("slab", "graph"):
+        t0 = time.perf_counter()
+        part = slab_partition(space.node_points, free, comm.size) if kind == "slab" else \
+            graph_partition(PETSc, comm, space.element_nodes, space.node_points, free)
+        seconds = time.perf_counter() - t0
+        rows = local_rows(space, config_materials(space, cfg), free, part, comm.rank)
+        out[kind] = {"cut": comm.gather(cut_measures(rows.K, rows.lo, rows.hi), root=0),
+                     "rows": comm.gather(rows.hi - rows.lo, root=0), "seconds": seconds}
+    if comm.rank == 0:
+        print("BENCH " + json.dumps(out), flush=True)
+
+
+def _mpiexec(ranks: int, args: list[str], timeout: float) -> dict:
     mpiexec = shutil.which("mpiexec")
     root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
-    with tempfile.TemporaryDirectory() as tmp:
-        argv = [mpiexec, *root, "--oversubscribe", "-n", str(ranks), "-x", "PYTHONPATH",
-                sys.executable, str(Path(__file__).resolve()), "--worker", "--size", str(size),
-                "--method", method, "--output", str(Path(tmp) / "bench.h5")]
-        proc = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True,
-                              timeout=timeout)
+    argv = [mpiexec, *root, "--oversubscribe", "-n", str(ranks), "-x", "PYTHONPATH",
+            sys.executable, str(Path(__file__).resolve()), *args]
+    proc = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=timeout)
     for line in proc.stdout.splitlines():
         if line.startswith("BENCH "):
             return json.loads(line[6:])
@@ -83,25 +120,60 @@ def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
                        f"{proc.stderr.strip().splitlines()[-1:]}")
 
 
+def cut_table(size: float, ranks: list[int], timeout: float) -> list[str]:
+    """Lines: slab against graph partition, per case and rank count: the largest cut and
+    halo of any rank, and the rows' imbalance (max / mean - 1)."""
+    lines = [f"partitions (mesh.size {size} m): max over ranks of cut K entries / halo "
+             "columns, row imbalance",
+             f"{'case':>10} {'ranks':>5} {'free DOFs':>9} {'slab cut/halo':>16} "
+             f"{'graph cut/halo':>16} {'slab imb':>8} {'graph imb':>9}"]
+    for case in CUT_CASES:
+        for p in ranks:
+            r = _mpiexec(p, ["--cut-worker", "--case", case, "--size", str(size)], timeout)
+            cells = []
+            for kind in ("slab", "graph"):
+                cut = max(c[0] for c in r[kind]["cut"])
+                halo = max(c[1] for c in r[kind]["cut"])
+                cells.append(f"{cut}/{halo}")
+            imb = [max(r[k]["rows"]) / (sum(r[k]["rows"]) / p) - 1 for k in ("slab", "graph")]
+            lines.append(f"{case:>10} {p:>5} {r['n_free']:>9} {cells[0]:>16} {cells[1]:>16} "
+                         f"{imb[0]:>8.1%} {imb[1]:>9.1%}")
+    return lines
+
+
+def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        return _mpiexec(ranks, ["--worker", "--size", str(size), "--method", method,
+                                "--output", str(Path(tmp) / "bench.h5")], timeout)
+
+
+#: mode shapes per case (the shipped config's modes.count plus SLEPc's one extra) and the
+#: blocks of them the Rayleigh-Ritz step holds (Phi, K Phi, M Phi)
+MODES, SHAPE_BLOCKS = 11, 3
+
+
 def memory_model(rows: list[dict]) -> dict:
-    """c, r, d (MB) of the module's model from the 1- and 2-rank cases."""
+    """c, r, d, s (MB) of the module's model from the 1- and 2-rank cases."""
     one = next(r for r in rows if r["ranks"] == 1)
     two = next(r for r in rows if r["ranks"] == 2)
     c = max(one["import_mb"])
     m1, m2 = max(one["peak_mb"]), max(two["peak_mb"])
     d = max(2.0 * (m1 - m2), 0.0)
-    return {"c": c, "r": max(m1 - c - d, 0.0), "d": d, "n0": one["n_free"]}
+    shapes = SHAPE_BLOCKS * 8.0 * one["n_free"] * MODES / 2**20
+    return {"c": c, "r": max(m1 - c - d, 0.0), "d": max(d, shapes), "s": shapes,
+            "n0": one["n_free"]}
 
 
 def extrapolate(model: dict, n: float) -> list[str]:
     """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed."""
     s = n / model["n0"]
     fixed = model["c"] + model["r"] * s
-    shared = model["d"] * s ** (4.0 / 3.0)
+    shared = model["s"] * s + (model["d"] - model["s"]) * s ** (4.0 / 3.0)
     usable = NODE_GB * 1024 * NODE_USABLE
     lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
              f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
-             f"+ {shared / 1024:.0f} GB / P divided among P ranks"]
+             f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it the mode shapes "
+             f"{model['s'] * s / 1024:.1f} GB / P)"]
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
@@ -123,15 +195,28 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
+    ap.add_argument("--cuts", action="store_true",
+                    help="only compare the slab and graph partitions (no solve)")
+    ap.add_argument("--cut-size", type=float, default=0.01, help="mesh.size of --cuts, m")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--cut-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--case", default="cantilever", help=argparse.SUPPRESS)
     ap.add_argument("--output", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
         worker(args.size, args.output, args.method)
         return 0
+    if args.cut_worker:
+        cut_worker(args.size, args.case)
+        return 0
     if shutil.which("mpiexec") is None:
         print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
         return 1
+    cuts = cut_table(args.cut_size, [2, 4], args.timeout)
+    for line in cuts:
+        print(line)
+    if args.cuts:
+        return 0
     rows = [run_case(int(p), args.size, args.method, args.timeout)
             for p in args.ranks.split(",")]
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
@@ -144,7 +229,8 @@ def main(argv=None) -> int:
     if {1, 2} <= {r["ranks"] for r in rows}:
         model = memory_model(rows)
         print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
-              f"d = {model['d']:.0f} MB (divided) at {model['n0']} free DOFs")
+              f"d = {model['d']:.0f} MB (divided; the mode shapes {model['s']:.0f} MB of it) "
+              f"at {model['n0']} free DOFs")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
     if args.json:

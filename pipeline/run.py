@@ -198,10 +198,12 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
     with _stage("reduce", times):
         if cfg.reduction is not None or cfg.lumped is not None:
             models = build_models(cfg, space, regions, K, M, free, modes, props, labels,
-                                  solve=modes.solve)
+                                  solve=modes.solve, statespace=None if distributed is None
+                                  else distributed.build_statespace)
         del K, M
         if models is not None and models.reduced is not None:
-            tree.update(_stress_modes_tree(cfg, space, free, models))
+            tree.update((_stress_modes_tree if distributed is None
+                         else distributed.stress_modes_tree)(cfg, space, free, models))
         if full is not None:
             models = build_connection_models(cfg, space, regions, *full, modes, shapes, models)
         if models is not None:
@@ -228,6 +230,8 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
         if distributed is None or distributed.rank_and_size()[0] == 0:  # rank 0 writes
             write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
                                                    ROOT.config_yaml: config_to_yaml(cfg)})
+        else:  # the others send their rows of the block-written datasets
+            distributed.drain_blocks(tree)
         if distributed is not None:
             distributed.world().Barrier()  # the file exists when any rank returns
     extras: dict[str, Any] = {"summary": support_lines} if support_lines else {}

@@ -11,6 +11,10 @@ assembly needs; no rank holds another's rows.
 
 The body's node-level mass N (for the mass properties) is split by elements instead:
 rank r sums the elements ``e_starts[r]:e_starts[r + 1]``, so sum_r N_r = N exactly once.
+
+Several materials: each element takes its own law (C_e, rho_e) as in the serial
+assembly (:func:`pipeline.fe.kernels.element_factors_general`); point and area masses
+(the distributing kind) add their owned rows to M.
 """
 
 from __future__ import annotations
@@ -22,7 +26,9 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.distributed.partition import RowPartition
-from pipeline.fe.kernels import element_factors, inverse_jacobians, lame_parameters, reference_data
+from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
+                                 lame_parameters, reference_data)
+from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
 from pipeline.fe.space import FESpace
 
 
@@ -69,9 +75,23 @@ class _Sum:
         return out
 
 
-def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPartition,
-               rank: int, chunk_size: int = 512) -> LocalRows:
-    """Rank ``rank``'s rows of K (N/m) and M (kg) on the free DOFs (see the module)."""
+def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
+    """The one isotropic Material when every element has it (the fast path, bit for bit
+    the single-material assembly), else the per-element materials."""
+    if isinstance(material, ElementMaterials) and material.uniform is not None:
+        return material.uniform
+    return material
+
+
+def local_rows(space: FESpace, material: Material | ElementMaterials, free: np.ndarray,
+               part: RowPartition, rank: int, chunk_size: int = 512,
+               added: sp.spmatrix | None = None) -> LocalRows:
+    """Rank ``rank``'s rows of K (N/m) and M (kg) on the free DOFs (see the module).
+    ``material``: one isotropic Material or the per-element materials
+    (:func:`pipeline.fe.materials.config_materials`: several laws, anisotropic ones,
+    non-structural mass in each element's density); ``added``: (n_dofs, n_dofs) point
+    and area masses (kg, :func:`pipeline.fe.added_mass.added_mass_matrix`), whose owned
+    rows go into M."""
     lo, hi = part.rows(rank)
     n_free = int(part.order.size)
     petsc_row = petsc_numbering(space.n_dofs, free, part)
@@ -79,7 +99,11 @@ def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPa
     owned[np.asarray(free)[part.owned_free(rank)] // 3] = True
     en = space.element_nodes
     elements = np.flatnonzero(owned[en].any(axis=1))
-    lam, mu = lame_parameters(material)
+    material = _law(material)
+    if isinstance(material, Material):
+        lam, mu = lame_parameters(material)
+    else:
+        C_laws = voigt_to_tensor(material.D)
     R, mass_ref = reference_data(space.order)
     nb = en.shape[1]
     comp = np.arange(3)
@@ -87,7 +111,12 @@ def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPa
     shape = (hi - lo, n_free)
     for start in range(0, elements.size, chunk_size):
         chunk = elements[start:start + chunk_size]
-        F, vol = element_factors(space, lam, mu, chunk)
+        if isinstance(material, Material):
+            F, vol = element_factors(space, lam, mu, chunk)
+            rho = np.full(chunk.size, material.rho)
+        else:
+            F, vol = element_factors_general(space, C_laws[material.index[chunk]], chunk)
+            rho = material.rho[chunk]
         block = np.matmul(R, F).reshape(-1, nb, nb, 3, 3)  # [e, a, b, i, j]
         del F
         dof = 3 * en[chunk][:, :, None] + comp  # (m, nb, 3): DOF of (node a, component i)
@@ -97,12 +126,19 @@ def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPa
         keep = (rows_k >= lo) & (rows_k < hi) & (cols_k >= 0)
         k_sum.add(sp.csr_matrix((block[keep], (rows_k[keep] - lo, cols_k[keep])), shape=shape))
         del block, rows_k, cols_k, keep
-        mvals = material.rho * vol[:, None, None, None] * mass_ref[None, :, :, None]
+        mvals = (rho * vol)[:, None, None, None] * mass_ref[None, :, :, None]
         mvals = np.broadcast_to(mvals, (chunk.size, nb, nb, 3))
         rows_m = np.broadcast_to(rows[:, :, None, :], mvals.shape)
         cols_m = np.broadcast_to(rows[:, None, :, :], mvals.shape)
         keep = (rows_m >= lo) & (rows_m < hi) & (cols_m >= 0)
         m_sum.add(sp.csr_matrix((mvals[keep], (rows_m[keep] - lo, cols_m[keep])), shape=shape))
+    if added is not None:  # its owned rows, PETSc's row and column numbers
+        owned_dofs = np.asarray(free)[part.owned_free(rank)]
+        rows_a = sp.csr_matrix(added)[owned_dofs].tocoo()
+        cols = petsc_row[rows_a.col]
+        keep = cols >= 0
+        m_sum.add(sp.csr_matrix((rows_a.data[keep], (rows_a.row[keep], cols[keep])),
+                                shape=shape))
     K, M = k_sum.total(shape), m_sum.total(shape)
     for A in (K, M):
         A.indices = A.indices.astype(np.int32, copy=False)
@@ -110,7 +146,8 @@ def local_rows(space: FESpace, material: Material, free: np.ndarray, part: RowPa
     return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
 
 
-def local_node_mass(space: FESpace, rho: float, rank: int, size: int) -> sp.csr_matrix:
+def local_node_mass(space: FESpace, material: Material | ElementMaterials, rank: int,
+                    size: int) -> sp.csr_matrix:
     """(n_nodes, n_nodes) node-level mass (kg) of this rank's share of the elements; the
     sum over the ranks is the body's N (M = N (x) I_3)."""
     n_t = space.element_nodes.shape[0]
@@ -119,7 +156,9 @@ def local_node_mass(space: FESpace, rho: float, rank: int, size: int) -> sp.csr_
     _, vol = inverse_jacobians(space, chunk)
     en = space.element_nodes[chunk]
     nb = en.shape[1]
-    vals = rho * vol[:, None, None] * mass_ref[None]
+    material = _law(material)
+    rho = material.rho if isinstance(material, Material) else material.rho[chunk]
+    vals = (rho * vol)[:, None, None] * mass_ref[None]
     rows = np.broadcast_to(en[:, :, None], (chunk.size, nb, nb))
     cols = np.broadcast_to(en[:, None, :], (chunk.size, nb, nb))
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())),

@@ -53,11 +53,12 @@ def allgather_rows(comm, local: np.ndarray) -> np.ndarray:
     return out
 
 
-def allreduce_sum(comm, local: np.ndarray) -> np.ndarray:
-    """Elementwise sum of ``local`` over the ranks, on every rank (float64)."""
+def allreduce_sum(comm, local: np.ndarray, op: str = "SUM") -> np.ndarray:
+    """Elementwise sum (``op``: or ``MAX``, ``MIN``) of ``local`` over the ranks, on
+    every rank (float64)."""
     from mpi4py import MPI
 
     local = np.ascontiguousarray(local, dtype=np.float64)
     out = np.empty_like(local)
-    comm.Allreduce([local, MPI.DOUBLE], [out, MPI.DOUBLE], op=MPI.SUM)
+    comm.Allreduce([local, MPI.DOUBLE], [out, MPI.DOUBLE], op=getattr(MPI, op))
     return out

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.mpi import allgather_rows, allreduce_sum
 from pipeline.distributed.partition import RowPartition
 
@@ -28,6 +29,8 @@ class RowMatrix:
     ndim = 2
     dtype = np.dtype(np.float64)
     format = "distributed"
+    #: the PETSc matrix of these rows, once made (:func:`~pipeline.distributed.stage.compute_modes`)
+    petsc = None
 
     def __init__(self, comm, local: sp.csr_matrix, part: RowPartition):
         self.comm, self.local, self.part = comm, local, part
@@ -73,6 +76,21 @@ class RowMatrix:
             sums = wp[self.lo:self.hi] * (absA @ wp)
         return float(self.comm.allreduce(float(sums.max(initial=0.0)), op=MPI.MAX))
 
+    def apply(self, X: RowBlock) -> RowBlock:
+        """A X of a row block (its rows stay on their ranks): PETSc's distributed
+        product, a column at a time (it fetches the neighbours' rows it needs)."""
+        if self.petsc is None:
+            raise RuntimeError("RowMatrix.apply: no PETSc matrix attached")
+        x, y = self.petsc.createVecs()
+        out = np.empty_like(X.local)
+        for c in range(X.local.shape[1]):
+            x.getArray()[:] = X.local[:, c]
+            self.petsc.mult(x, y)
+            out[:, c] = y.getArray()
+        x.destroy()
+        y.destroy()
+        return X.like(out)
+
     def diagonal(self) -> np.ndarray:
         """(n_free,) the diagonal, free order."""
         return self.gather(self.local.diagonal(k=self.lo))
@@ -100,21 +118,25 @@ class KspSolve:
         self.ksp, self.matrix, self.keep = ksp, matrix, list(keep)
 
     def solve(self, B: np.ndarray) -> np.ndarray:
-        if self.ksp is None:
-            raise RuntimeError("the distributed factorisation was released")
         B = np.asarray(B, dtype=np.float64)
         cols = B.reshape(B.shape[0], -1)
         Bp = self.matrix.to_petsc_order(cols)[self.matrix.lo:self.matrix.hi]
+        return self.matrix.gather(self.solve_rows(Bp)).reshape(B.shape)
+
+    def solve_rows(self, Bp: np.ndarray) -> np.ndarray:
+        """This rank's rows of K^-1 B from its rows of B ((hi - lo, k), PETSc order)."""
+        if self.ksp is None:
+            raise RuntimeError("the distributed factorisation was released")
         A, _ = self.ksp.getOperators()
         x, b = A.createVecs()
         X = np.empty_like(Bp)
-        for c in range(cols.shape[1]):
+        for c in range(Bp.shape[1]):
             b.getArray()[:] = Bp[:, c]
             self.ksp.solve(b, x)
             X[:, c] = x.getArray()
         x.destroy()
         b.destroy()
-        return self.matrix.gather(X).reshape(B.shape)
+        return X
 
     def release(self) -> None:
         for obj in self.keep:

@@ -1,13 +1,14 @@
 """Row partition of the free DOFs over the ranks: contiguous slabs along the body's
-longest extent.
+longest extent, or the parts of a graph partitioner (PT-Scotch through PETSc's
+MatPartitioning, :func:`graph_partition`).
 
 The free DOFs are renumbered for PETSc: sorted by the coordinate of their mesh point
 along the longest extent (stable, so a point's three DOFs stay together and in order),
 then split into ``size`` ranges of (nearly) equal length. Rank r owns PETSc rows
 ``starts[r]:starts[r + 1]``; ``order[i]`` is the free-DOF index of PETSc row i. A slab
 touches at most two neighbours, so the off-rank columns of a rank's rows are the
-nodes of one element layer per neighbour (a graph partitioner such as ParMETIS would
-cut less for a compact body; not used yet).
+nodes of one element layer per neighbour; on a compact body the slab interfaces are
+whole cross-sections, where a graph partitioner cuts less (:func:`graph_partition`).
 
 >>> import numpy as np
 >>> points = np.array([[3.0, 0, 0], [0.0, 0, 0], [2.0, 0, 0], [1.0, 0, 0]])
@@ -59,3 +60,63 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
     starts = np.array([step * (((n // step) * r) // size) for r in range(size + 1)],
                       dtype=np.int64)
     return RowPartition(order=order, starts=starts)
+
+
+def graph_partition(PETSc, comm, element_nodes: np.ndarray, node_points: np.ndarray,
+                    free: np.ndarray, kind: str = "ptscotch") -> RowPartition:
+    """A partition of whole points by PETSc's MatPartitioning (``kind``: ``ptscotch``;
+    Debian's PETSc has no ParMETIS) of the point graph (two points adjacent when an
+    element holds both), collectively: each rank builds the graph rows of its slab's
+    points (the initial distribution), PETSc moves the points to ``size`` parts of
+    nearly equal count with few cut edges, and every rank learns every point's part
+    (one integer per point). Within a part the rows keep the slab order, a point's DOFs
+    together; rank r owns part r."""
+    import scipy.sparse as sp
+
+    free = np.asarray(free)
+    size, rank = comm.size, comm.rank
+    points = np.asarray(node_points, dtype=float)
+    axis = int(np.argmax(np.ptp(points, axis=0))) if points.shape[0] else 0
+    up = np.unique(free // 3)  # the points with a free DOF: the graph's vertices
+    vorder = up[np.argsort(points[up, axis], kind="stable")]  # vertex v is point vorder[v]
+    vertex = np.full(points.shape[0], -1, dtype=np.int64)
+    vertex[vorder] = np.arange(vorder.size)
+    vs = [(vorder.size * r) // size for r in range(size + 1)]
+    mine = vorder[vs[rank]:vs[rank + 1]]
+    n_el, nb = element_nodes.shape
+    E = sp.csr_matrix((np.ones(n_el * nb), element_nodes.ravel(),
+                       np.arange(0, n_el * nb + 1, nb)), shape=(n_el, points.shape[0]))
+    A = (E.T.tocsr()[mine] @ E).tocoo()  # (my points, all points): shared elements
+    cols = vertex[A.col]
+    keep = (cols >= 0) & (cols != vs[rank] + A.row)  # free points, no self loops
+    adj = sp.csr_matrix((np.ones(int(keep.sum())), (A.row[keep], cols[keep])),
+                        shape=(mine.size, vorder.size))
+    adj.sum_duplicates()
+    adj.sort_indices()
+    G = PETSc.Mat().createAIJ(size=((mine.size, vorder.size), (mine.size, vorder.size)),
+                              csr=(adj.indptr.astype(PETSc.IntType),
+                                   adj.indices.astype(PETSc.IntType), adj.data),
+                              comm=PETSc.COMM_WORLD)
+    G.assemble()
+    mp = PETSc.MatPartitioning().create(comm=PETSc.COMM_WORLD)
+    mp.setType(kind)
+    mp.setAdjacency(G)
+    mp.setFromOptions()  # -mat_partitioning_* options override
+    parts = PETSc.IS()
+    mp.apply(parts)
+    owner = np.concatenate(comm.allgather(np.asarray(parts.getIndices(), dtype=np.int64)))
+    for obj in (parts, mp, G):
+        obj.destroy()
+    v_of_dof = vertex[free // 3]
+    order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
+    counts = np.bincount(owner[v_of_dof], minlength=size)
+    return RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]))
+
+
+def cut_measures(local_K, lo: int, hi: int) -> tuple[int, int]:
+    """(cut entries, halo columns) of one rank's rows (CSR with global columns): the
+    stored entries whose column another rank owns (the edge cut, doubled over the two
+    sides) and the distinct such columns (the vector entries it receives per product)."""
+    cols = np.asarray(local_K.indices)
+    off = cols[(cols < lo) | (cols >= hi)]
+    return int(off.size), int(np.unique(off).size)

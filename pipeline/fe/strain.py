@@ -157,10 +157,13 @@ def _reference_node_gradients(space: FESpace) -> np.ndarray:
     return np.ascontiguousarray(dphi.transpose(2, 0, 1))
 
 
-def _element_nodal_chunks(space: FESpace, U: np.ndarray):
+def _element_nodal_chunks(space: FESpace, U: np.ndarray, elements: np.ndarray | None = None,
+                          node_row: np.ndarray | None = None):
     """Yield (elements (n_sel,), values (n_sel, n_local_nodes, 6, n_s)): the engineering
     strain of U (n_dofs, n_s) evaluated by each element at its own nodes (local order of
-    ``space.element_nodes``), a chunk of elements at a time.
+    ``space.element_nodes``), a chunk of elements at a time: of ``elements`` (default
+    all); with ``node_row`` (n_nodes,), U is (3 n_rows, n_s) and node p's displacement
+    is its row ``node_row[p]``.
 
     On straight-sided elements the physical gradients at the nodes are the reference
     ones times the element's constant J^-1: grad u (x_q) = sum_b u_b (x) (G^T dphi_b(q)),
@@ -170,14 +173,16 @@ def _element_nodal_chunks(space: FESpace, U: np.ndarray):
     en = space.element_nodes
     n_e, n_loc = en.shape
     n_s = U.shape[1]
+    elements = np.arange(n_e) if elements is None else np.asarray(elements, dtype=np.int64)
     dref = _reference_node_gradients(space).reshape(1, n_loc * n_loc, 3)  # (1, q b, k)
     chunk = max(1, CHUNK // n_loc)
-    for start in range(0, n_e, chunk):
-        sel = np.arange(start, min(start + chunk, n_e))
+    for start in range(0, elements.size, chunk):
+        sel = elements[start:start + chunk]
         e = sel.size
         D = np.matmul(dref, inverse_jacobians(space, sel)[0])  # (e, q b, i): d phi_b/d x_i
         D = D.reshape(e, n_loc, n_loc, 3).transpose(0, 1, 3, 2).reshape(e, 3 * n_loc, n_loc)
-        Ue = U.reshape(-1, 3, n_s)[en[sel]].reshape(e, n_loc, 3 * n_s)  # (e, b, c s)
+        rows = en[sel] if node_row is None else node_row[en[sel]]
+        Ue = U.reshape(-1, 3, n_s)[rows].reshape(e, n_loc, 3 * n_s)  # (e, b, c s)
         g = np.matmul(D, Ue).reshape(e, n_loc, 3, 3, n_s)  # (e, q, i derivative, c, s)
         out = np.empty((e, n_loc, 6, n_s))
         for k, (i, j) in enumerate(VOIGT_INDEX):
@@ -202,20 +207,33 @@ def nodal_strains(space: FESpace, U: np.ndarray, element_D=None) -> np.ndarray:
     a node on an interface gets the volume-weighted mean of both sides' stresses)."""
     U = np.asarray(U, dtype=float)
     U = U[:, None] if U.ndim == 1 else U
+    return nodal_strains_at(space, U, np.arange(space.n_nodes), element_D=element_D)
+
+
+def nodal_strains_at(space: FESpace, U: np.ndarray, nodes: np.ndarray,
+                     elements: np.ndarray | None = None, node_row: np.ndarray | None = None,
+                     element_D=None) -> np.ndarray:
+    """(p, 6, n_s): :func:`nodal_strains` at the sorted ``nodes`` (p,), summed over
+    ``elements`` only (default all; then exact at every node): V_e s_e(x_n) / sum V_e,
+    the denominator over all the elements around n. The sum is linear in U, so shares of
+    U (the distributed path: each rank's own DOFs, ``node_row`` as in
+    :func:`_element_nodal_chunks`, over the elements that touch them) add up to the whole."""
     en = space.element_nodes
     vol = element_volumes(space)
     weight = np.bincount(en.ravel(), weights=np.repeat(vol, en.shape[1]),
-                         minlength=space.n_nodes)
-    out = np.zeros((space.n_nodes, 6 * U.shape[1]))
-    for sel, values in _element_nodal_chunks(space, U):
+                         minlength=space.n_nodes)[nodes]
+    whole = nodes.size == space.n_nodes
+    out = np.zeros((nodes.size, 6 * U.shape[1]))
+    for sel, values in _element_nodal_chunks(space, U, elements, node_row):
         if element_D is not None:
             values = np.einsum("eij,eqjs->eqis", element_D(sel), values)
         values *= vol[sel, None, None, None]
+        at = en[sel].ravel() if whole else np.searchsorted(nodes, en[sel].ravel())
         # each (element, node) row added onto its node's row in place: a bincount per
         # column would pass over all n_nodes once per column
-        scatter_add(en[sel].ravel(), values.reshape(sel.size * en.shape[1], -1), out)
+        scatter_add(at, values.reshape(sel.size * en.shape[1], -1), out)
     out /= np.where(weight > 0, weight, 1.0)[:, None]
-    return out.reshape(space.n_nodes, 6, U.shape[1])
+    return out.reshape(nodes.size, 6, U.shape[1])
 
 
 @dataclass(frozen=True)

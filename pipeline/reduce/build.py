@@ -118,16 +118,18 @@ def _compliance_units(ports) -> str:
 
 
 def build_models(cfg: Config, space, regions, K, M, free, modes, props, labels=None,
-                 solve=None) -> Models:
+                 solve=None, statespace=None) -> Models:
     """All configured reduced models of ``cfg.reduction`` and ``cfg.lumped``.
 
-    ``solve``: b -> K^-1 b for this K, see :func:`build_statespace`."""
+    ``solve``: b -> K^-1 b for this K, see :func:`build_statespace`; ``statespace``: a
+    function with the signature of :func:`build_statespace` that makes the state space
+    instead (the distributed path's, on distributed mode shapes)."""
     fields: dict = {}
     summary: list[str] = []
     fe_deflection = None
     if cfg.reduction is not None:
-        ports, reduced, filtered = build_statespace(cfg, space, regions, K, M, free, modes,
-                                                     solve)
+        ports, reduced, filtered = (statespace or build_statespace)(
+            cfg, space, regions, K, M, free, modes, solve)
         fields.update(reduced=reduced, filtered=filtered,
                       input_units=tuple(ports.input_units),
                       output_units=tuple(ports.output_units),

@@ -56,28 +56,40 @@ def principal_frame(node_points: np.ndarray, weights: np.ndarray):
     return c, axes, names
 
 
+def _no_sum(a: np.ndarray) -> np.ndarray:
+    return a
+
+
 def effective_mass_shares(node_points: np.ndarray, shapes: np.ndarray,
-                          weights: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+                          weights: np.ndarray | None = None, nodes: np.ndarray | None = None,
+                          reduce_sum=_no_sum) -> tuple[np.ndarray, list[str]]:
     """Effective mass share (6, n_m) of every mode in the three translations and the
     three rotations along / about the principal axes (see the module docstring), and the
-    axis names (3,). shapes: (n_nodes, 3, n_m); weights: node masses or volumes (n,)."""
+    axis names (3,). shapes: (n_nodes, 3, n_m); weights: node masses or volumes (n,).
+
+    ``nodes`` (p,): ``shapes`` (p, 3, n_m) holds only these nodes (a share of the body's
+    DOFs, zero in the others), and ``reduce_sum`` adds such partial sums over the shares
+    (the distributed path's MPI_Allreduce); every sum over nodes is one of them."""
     x = np.asarray(node_points, dtype=float)
     w = np.ones(x.shape[0]) if weights is None else np.asarray(weights, dtype=float)
     c, axes, names = principal_frame(x, w)
+    sel = slice(None) if nodes is None else nodes
     rigid = [np.broadcast_to(axes[:, k], x.shape) for k in range(3)]
     rigid += [np.cross(axes[:, k], x - c) for k in range(3)]
-    phi2 = np.einsum("i,ijm,ijm->m", w, shapes, shapes)
+    phi2 = reduce_sum(np.einsum("i,ijm,ijm->m", w[sel], shapes, shapes))
     shares = np.empty((6, shapes.shape[2]))
     for d, r in enumerate(rigid):
-        gamma = np.einsum("i,ij,ijm->m", w, r, shapes)
+        gamma = reduce_sum(np.einsum("i,ij,ijm->m", w[sel], r[sel], shapes))
         r2 = float(np.einsum("i,ij,ij->", w, r, r))
         shares[d] = gamma ** 2 / np.where(r2 * phi2 > 0, r2 * phi2, 1.0)
     return shares, names
 
 
-def describe_modes(node_points, shapes, n_rigid: int = 0, weights=None) -> list[str]:
-    """Labels of a body that is not a beam (see the module docstring)."""
-    shares, names = effective_mass_shares(node_points, shapes, weights)
+def describe_modes(node_points, shapes, n_rigid: int = 0, weights=None, nodes=None,
+                   reduce_sum=_no_sum) -> list[str]:
+    """Labels of a body that is not a beam (see the module docstring; ``nodes``,
+    ``reduce_sum``: as :func:`effective_mass_shares`)."""
+    shares, names = effective_mass_shares(node_points, shapes, weights, nodes, reduce_sum)
     labels, counts = [], {}
     for k in range(shapes.shape[2]):
         if k < n_rigid:
@@ -97,7 +109,8 @@ def describe_modes(node_points, shapes, n_rigid: int = 0, weights=None) -> list[
 
 def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
                 node_weights: np.ndarray | None = None, n_slices: int = 24,
-                slender_ratio: float = 3.0) -> list[str]:
+                slender_ratio: float = 3.0, nodes: np.ndarray | None = None,
+                reduce_sum=_no_sum) -> list[str]:
     """A label per mode from its dominant motion: ``bending_<axis>_<k>`` (bending about
     that axis), ``torsion_<k>``, ``axial_<k>``, or ``rigid_<k>`` for the first n_rigid.
     A body whose longest dimension is less than ``slender_ratio`` times the next one is
@@ -106,6 +119,8 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     The body is cut into slices along its longest dimension (the beam axis a); in each
     slice the weighted mean displacement and the mean rotation about a are taken; the
     family with the largest kinetic-energy-like sum wins. shapes: (n_nodes, 3, n_m).
+    ``nodes`` (p,), ``reduce_sum``: shapes (p, 3, n_m) of these nodes only, one share of
+    the body's DOFs, as :func:`effective_mass_shares`.
     """
     x = np.asarray(node_points, dtype=float)
     w = np.ones(x.shape[0]) if node_weights is None else np.asarray(node_weights, dtype=float)
@@ -113,7 +128,7 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     a = int(np.argmax(extent))
     if extent[a] < slender_ratio * np.sort(extent)[1]:
         # not beam-like: bending/torsion/axial would be guesses; the rigid motion instead
-        return describe_modes(x, shapes, n_rigid, w)
+        return describe_modes(x, shapes, n_rigid, w, nodes, reduce_sum)
     others = [c for c in range(3) if c != a]
     edges = np.linspace(x[:, a].min(), x[:, a].max(), n_slices + 1)
     slice_of = np.clip(np.searchsorted(edges, x[:, a], side="right") - 1, 0, n_slices - 1)
@@ -128,8 +143,12 @@ def label_modes(node_points: np.ndarray, shapes: np.ndarray, n_rigid: int,
     r = x - c[row[slice_of]]  # position relative to the centroid of the node's slice
     r1, r2 = r[:, others[0]], r[:, others[1]]
     polar = P @ (r1**2 + r2**2)
-    ubar = np.stack([P @ shapes[:, j, :] for j in range(3)], axis=1) / ms[:, None, None]
-    moment = P @ (r1[:, None] * shapes[:, others[1], :] - r2[:, None] * shapes[:, others[0], :])
+    if nodes is not None:  # the shapes of these nodes only
+        P, r1, r2 = P[:, nodes], r1[nodes], r2[nodes]
+    ubar = reduce_sum(np.stack([P @ shapes[:, j, :] for j in range(3)], axis=1)) \
+        / ms[:, None, None]
+    moment = reduce_sum(P @ (r1[:, None] * shapes[:, others[1], :]
+                             - r2[:, None] * shapes[:, others[0], :]))
     theta = np.divide(moment, polar[:, None], out=np.zeros_like(moment),
                       where=polar[:, None] > 0)
     energies = np.stack([(ms[:, None] * ubar[:, a] ** 2).sum(0),

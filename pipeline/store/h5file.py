@@ -43,10 +43,28 @@ SCHEMA_VERSION = 2
 KNOWN_VERSIONS = (1, 2)
 
 
+#: bytes of a dataset read at once when the file is signed or verified: larger ones are
+#: read in blocks of rows (the same bytes in the same order: the same digest)
+READ_BLOCK_BYTES = 1 << 26
+
+
 def _write_dataset(h5, path: str, ds: Dataset) -> None:
+    if ds.written_in_blocks:  # too large for one process: written a block of rows at a time
+        dset = h5.create_dataset(path, shape=ds.data.shape, dtype=ds.data.dtype)
+        for start, rows in ds.data.blocks():
+            dset[start:start + rows.shape[0]] = rows
+    else:
+        dset = _create_from_array(h5, path, ds.as_array())
+    dset.attrs["units"] = ds.units
+    if ds.description:
+        dset.attrs["description"] = ds.description
+    for key, value in ds.attrs.items():
+        dset.attrs[key] = _attr_value(value)
+
+
+def _create_from_array(h5, path: str, arr: np.ndarray):
     import h5py
 
-    arr = ds.as_array()
     if arr.dtype == object:
         dset = h5.create_dataset(path, data=[str(s) for s in arr.ravel()],
                                  dtype=h5py.string_dtype("utf-8"))
@@ -54,11 +72,7 @@ def _write_dataset(h5, path: str, ds: Dataset) -> None:
         dset = h5.create_dataset(path, data=arr.astype(object), dtype=h5py.string_dtype("utf-8"))
     else:
         dset = h5.create_dataset(path, data=arr)
-    dset.attrs["units"] = ds.units
-    if ds.description:
-        dset.attrs["description"] = ds.description
-    for key, value in ds.attrs.items():
-        dset.attrs[key] = _attr_value(value)
+    return dset
 
 
 def _attr_value(value: Any) -> Any:
@@ -95,10 +109,15 @@ def _dataset_digests(h5, check=None) -> tuple[str, dict[str, str]]:
                 update(str(item).encode("utf-8", "surrogateescape") + b"\0")
         else:
             update(dset.dtype.str.encode())
-            data = np.ascontiguousarray(dset[()])
-            if check is not None:
-                check(name, data)
-            update(data.tobytes())
+            rows = max(1, READ_BLOCK_BYTES // max(dset.dtype.itemsize * dset.size
+                                                  // max(dset.shape[0], 1), 1)) \
+                if dset.shape else 0
+            for start in range(0, dset.shape[0], rows) if dset.shape and dset.size else [None]:
+                data = np.ascontiguousarray(dset[()] if start is None
+                                            else dset[start:start + rows])
+                if check is not None:
+                    check(name, data)
+                update(data.tobytes())
         each[name] = one.hexdigest()
     return digest.hexdigest(), each
 

@@ -29,6 +29,13 @@ class Dataset:
     description: str = ""
     attrs: Mapping[str, Any] = field(default_factory=dict)
 
+    @property
+    def written_in_blocks(self) -> bool:
+        """``data`` is too large for one process (the distributed path's mode shapes): an
+        object with ``shape``, ``dtype`` and ``blocks()``, which yields (first row, rows)
+        along the first axis for the writer to store one block at a time."""
+        return hasattr(self.data, "blocks")
+
     def as_array(self) -> np.ndarray:
         if isinstance(self.data, (list, tuple)) and (
             len(self.data) == 0 or isinstance(self.data[0], str)

@@ -1,0 +1,215 @@
+"""The modes' last step and the reduce stage on distributed mode shapes.
+
+Every tall quantity stays a :class:`~pipeline.distributed.blocks.RowBlock` (each rank
+its own rows); only small matrices are made collectively and are the same on every
+rank (n: free DOFs, m: modes, n_u inputs, n_y outputs):
+
+- Rayleigh-Ritz (:func:`rayleigh_ritz_rows`): K_r = Phi^T (K Phi), M_r = Phi^T (M Phi)
+  (m, m) by local products and MPI_Allreduce, K_r Q = M_r Q diag(omega^2), Phi <- Phi Q,
+  each column's largest-magnitude entry made positive (the serial convention);
+- the basis check (:func:`check_basis_rows`): |Phi^T M Phi - I| and
+  |Phi^T K Phi - Omega^2| / max omega^2, as :func:`pipeline.reduce.modal.check_modal_basis`;
+- the static shapes X = K^-1 F (n, n_u) by the kept MUMPS factor, each rank its rows of
+  F and X, refined until the normwise backward error |F - K X| / (|K| |X| + |F|) (inf
+  norms) is below :data:`pipeline.solve.refine.BACKWARD_ERROR_TOL`;
+- the plant: Sigma = Phi^T F (m, n_u), Theta = T Phi (n_y, m) and the static compliance
+  G = T X (n_y, n_u), summed over the ranks' rows; with ``residual`` the residual
+  flexibility G - Theta Omega^-2 Sigma and the correction shapes X - Phi Omega^-2 Sigma
+  (rows stay);
+- stress modes (:func:`stress_blocks`): the recovery to the mesh points is linear in the
+  displacements, so each rank recovers its own rows' share over the elements that
+  touch them and the shares are summed point block by point block as rank 0 writes.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.mpi import allreduce_sum
+from pipeline.errors import ConfigError, SolverError
+from pipeline.fe.materials import ElementMaterials, config_materials
+from pipeline.fe.ports import port_matrices
+from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
+from pipeline.reduce.build import _damping_spec, check_ports_act
+from pipeline.reduce.modal import (DampingSpec, ReducedModel, _keep_clusters_whole, _omega,
+                                   _ro, modal_statespace)
+from pipeline.solve.refine import BACKWARD_ERROR_TOL
+from pipeline.solve.thresholds import stiffness_scale
+
+log = logging.getLogger(__name__)
+
+#: refinement steps of the distributed static solve before it is refused
+MAX_REFINEMENTS = 4
+
+
+def rayleigh_ritz_rows(K, M, v: RowBlock, sigma: float):
+    """(omega2 (m,) ascending, Ritz vectors (RowBlock), residuals (m,)): the distributed
+    twin of :func:`pipeline.solve.eigen.rayleigh_ritz` (same convention and measure)."""
+    from scipy.linalg import eigh
+
+    Kv, Mv = K.apply(v), M.apply(v)
+    Kr, Mr = v.gram(Kv), v.gram(Mv)
+    Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
+    w, Q = eigh(Kr, Mr)
+    order = np.argsort(w)
+    w, Q = w[order], Q[:, order]
+    v = v.times(Q)
+    signs = v.signs_of_largest()
+    Q = Q * signs
+    v = v.like(v.local * signs)
+    Kv, Mv = Kv.times(Q), Mv.times(Q)
+    scale = np.maximum(Kv.column_norms(), abs(sigma) * Mv.column_norms())
+    residuals = Kv.like(Kv.local - Mv.local * w).column_norms() / np.where(scale > 0, scale,
+                                                                            1.0)
+    return w, v, residuals
+
+
+def check_basis_rows(K, M, Phi: RowBlock, omega2: np.ndarray, tol: float = 1e-6) -> None:
+    """Refuse (SolverError) a basis that is not M-orthonormal with Phi^T K Phi =
+    diag(omega2), measured as :func:`pipeline.reduce.modal.check_modal_basis` does."""
+    n = omega2.size
+    errM = float(np.abs(Phi.gram(M.apply(Phi)) - np.eye(n)).max(initial=0.0))
+    floor = 1e-6 * stiffness_scale(K, M)
+    scale = max(float(np.abs(omega2).max(initial=0.0)), floor) or 1.0
+    errK = float(np.abs(Phi.gram(K.apply(Phi)) - np.diag(omega2)).max(initial=0.0)) / scale
+    if errM > tol or errK > tol:
+        raise SolverError(f"distributed mode shapes fail the basis check: |Phi^T M Phi - I| "
+                          f"= {errM:.3g}, |Phi^T K Phi - Omega^2| / max omega^2 = {errK:.3g} "
+                          f"(tol {tol:g})")
+
+
+def static_rows(K, factor, F: RowBlock) -> RowBlock:
+    """X = K^-1 F (rows stay), refined to the backward-error tolerance (module)."""
+    X = F.like(factor.solve_rows(F.local))
+    norm_K = K.scaled_inf_norm()
+    for step in range(MAX_REFINEMENTS + 1):
+        R = F.like(F.local - K.apply(X).local)
+        inf = allreduce_sum(F.comm, np.array([np.abs(B.local).max(initial=0.0)
+                                              for B in (R, X, F)]), "MAX")
+        eta = inf[0] / max(norm_K * inf[1] + inf[2], 1e-300)
+        if eta <= BACKWARD_ERROR_TOL:
+            log.info("distributed static solve: backward error %.2g after %d refinement(s)",
+                     eta, step)
+            return X
+        X = X.like(X.local + factor.solve_rows(R.local))
+    raise SolverError(f"static correction: the distributed solve K X = F reached a backward "
+                      f"error of {eta:.2g} after {MAX_REFINEMENTS} refinements; expected "
+                      f"<= {BACKWARD_ERROR_TOL:g} (is the body held?)")
+
+
+def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
+    """The distributed twin of :func:`pipeline.reduce.build.build_statespace`: (ports,
+    reduced, filtered) with the reduced model's ``basis`` and ``correction_shapes`` as
+    :class:`RowBlock` (rows on their ranks)."""
+    from pipeline.reduce.filters import filtered_model
+
+    Phi: RowBlock = modes.shapes
+    ports = port_matrices(space, regions, cfg.ports, material=config_materials(space, cfg))
+    F_free = ports.F[free].tocsr()
+    T = ports.T[:, free].tocsr()
+    loaded = np.unique(F_free.nonzero()[0])  # the column maxima of the loaded rows only
+    check_ports_act(cfg, ports, F_free[loaded].toarray(), T)
+    F = Phi.like(F_free[Phi.free_rows()].toarray())
+    reduced = _reduce_rows(cfg, K, M, Phi, modes, F, T, ports)
+    filtered = None
+    if cfg.filter.kind != "none":
+        filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)
+    return ports, reduced, filtered
+
+
+def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
+                 ) -> ReducedModel:
+    """:func:`pipeline.reduce.modal.reduce_model` on row blocks (``none`` and
+    ``residual`` static corrections; ``augment`` is refused before any work)."""
+    spec: DampingSpec = _damping_spec(cfg)
+    correction = cfg.reduction.static_correction
+    omega2 = np.asarray(modes.omega2, dtype=float)
+    n_modes = int(cfg.reduction.modes)
+    if not 1 <= n_modes <= omega2.size:
+        raise ConfigError(f"reduction.modes: {n_modes}, expected 1 to {omega2.size} (the "
+                          "number of computed modes, modes.count)", key="reduction.modes",
+                          value=n_modes, expected=f"1 to {omega2.size}")
+    n_modes = _keep_clusters_whole(omega2, n_modes, spec)
+    basis, w2 = Phi.columns(slice(0, n_modes)), omega2[:n_modes]
+    check_basis_rows(K, M, basis, w2)
+    n_rigid = min(int(modes.n_rigid), n_modes)
+    X = G = None
+    if n_rigid:
+        if correction != "none":
+            raise ConfigError(f"reduction.static_correction: {correction}, expected none: the "
+                              f"body has {n_rigid} rigid-body mode(s) among the retained ones",
+                              key="reduction.static_correction", value=correction,
+                              expected="none")
+        log.warning("floating body (%d rigid-body modes): no static compliance computed",
+                    n_rigid)
+    else:
+        X = static_rows(K, modes.factorization, F)
+        G = X.sensor_product(T)
+    xi = spec.ratios_for(_omega(w2), n_listed=n_modes)
+    Sigma = basis.gram(F)
+    Theta = basis.sensor_product(T)
+    residual = shapes = None
+    if correction == "residual":
+        flex = Sigma / w2[:, None]
+        residual = G - Theta @ flex
+        shapes = X.like(X.local - basis.times(flex).local)
+    ss = modal_statespace(w2, xi, Sigma, Theta, residual=residual,
+                          input_names=list(ports.input_names),
+                          output_names=list(ports.output_names), n_retained=n_modes)
+    model = ReducedModel(ss, None if G is None else _ro(G), _ro(w2), int(w2.size), n_modes,
+                         correction, None if residual is None else _ro(residual), basis,
+                         shapes)
+    if G is not None:
+        rel = np.linalg.norm(model.dc_gain_position - G) / max(np.linalg.norm(G), 1e-300)
+        log.info("reduced model (distributed): %d states, static correction %s, DC gain "
+                 "error %.3g (relative to T K^-1 F)", ss.n_states, correction, rel)
+    return model
+
+
+def label_rows(space, free, Phi: RowBlock, n_rigid: int, weights: np.ndarray) -> list[str]:
+    """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
+    every sum over the mesh points is summed over the ranks."""
+    from pipeline.solve.labels import label_modes
+
+    points, values = Phi.on_points(free)
+    return label_modes(space.node_points, values, n_rigid, weights, nodes=points,
+                       reduce_sum=lambda a: allreduce_sum(Phi.comm, a))
+
+
+def shapes_blocks(space, free, Phi: RowBlock) -> PointBlocks:
+    """The ``/modes/shapes`` dataset (n_points, 3, m), written from the ranks' rows
+    (free: (n_free,) the DOF of each free row)."""
+    return PointBlocks(Phi.comm, space.n_nodes, *Phi.on_points(free))
+
+
+def stress_blocks(materials: ElementMaterials, space, free, reduced: ReducedModel
+                  ) -> tuple[PointBlocks, PointBlocks]:
+    """(stress, strain) datasets (n_points, 6, n_b + n_u) of the basis and the correction
+    shapes, each rank recovering its own rows' share (module); several laws: each
+    element's own stiffness, as :func:`pipeline.fe.strain.stress_fields`."""
+    cols = [reduced.basis] + ([reduced.correction_shapes]
+                              if reduced.correction_shapes is not None else [])
+    block = cols[0].like(np.hstack([c.local for c in cols]))
+    points, values = block.on_points(free)
+    node_row = np.full(space.n_nodes, points.size)  # others' points: the zero row below
+    node_row[points] = np.arange(points.size)
+    U = np.concatenate([values, np.zeros((1,) + values.shape[1:])]).reshape(-1,
+                                                                            values.shape[2])
+    en = space.element_nodes
+    mine = np.zeros(space.n_nodes, dtype=bool)
+    mine[points] = True
+    elements = np.flatnonzero(mine[en].any(axis=1))
+    touched = np.unique(en[elements])
+    strain = nodal_strains_at(space, U, touched, elements, node_row)
+    if materials.uniform is not None:
+        stress = stresses_from_strains(strain, materials.uniform)
+    else:
+        stress = nodal_strains_at(space, U, touched, elements, node_row,
+                                  element_D=materials.element_D)
+    comm = block.comm
+    return (PointBlocks(comm, space.n_nodes, touched, stress),
+            PointBlocks(comm, space.n_nodes, touched, strain))
