@@ -54,6 +54,17 @@ def estimate_memory_bytes(n_nodes: int, n_elements: int, order: int, n_modes: in
     return resources.estimate_memory_bytes(n_nodes, n_elements, order, n_modes)
 
 
+def estimate_box_mesh(length: float, height: float, depth: float, size: float,
+                      order: int) -> tuple[int, int]:
+    """(nodes, tetrahedra) gmsh will make for the box length x height x depth (m) at
+    ``size`` m with elements of ``order`` (:mod:`pipeline.fe.mesh.estimate`), for callers
+    above the FE layer (batch scheduling)."""
+    from pipeline.fe.mesh.estimate import BodyShape, estimate_mesh
+
+    est = estimate_mesh(BodyShape.box(length, height, depth), size, order)
+    return int(np.ceil(est.n_nodes)), int(np.ceil(est.n_tetrahedra))
+
+
 def available_memory_bytes() -> int:
     """Bytes this process may use: MemAvailable, capped by a cgroup limit if any."""
     return resources.available_memory_bytes()

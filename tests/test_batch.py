@@ -239,9 +239,10 @@ def test_local_batch_writes_outputs_and_rerun_computes_nothing(local_run):
         assert record["status"] == "ok" and record["n_dofs"] > 10000
         assert record["peak_memory_mb"] > 50 and record["times_s"]["modes"] > 0
         assert (out / "cases" / f"{o.case.key}.log").read_text().strip()
-        # the pre-mesh estimate is conservative but close
+        # the pre-mesh estimate is close: within the 20 % of pipeline.fe.mesh.estimate
+        # (these ~2k-tetrahedron meshes lose a few per cent of their DOFs to the support)
         nodes, _ = predict_mesh_size(o.case.config)
-        assert 1.0 <= 3 * nodes / record["n_dofs"] < 1.8
+        assert 0.8 <= 3 * nodes / record["n_dofs"] < 1.2
     assert not list((out / "cases").glob(".*.partial"))
 
     rows = list(csv.DictReader((out / "summary.csv").open()))

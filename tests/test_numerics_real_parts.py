@@ -206,7 +206,7 @@ def test_mesh_that_cannot_fit_is_refused_before_meshing_with_a_size_that_fits(tm
     estimate (re-checked here against the same available memory)."""
     import re
 
-    from pipeline.fe.mesh.estimate import check_mesh_fits
+    from pipeline.fe.mesh.estimate import BodyShape, check_mesh_fits
     from pipeline.config import MeshSpec
 
     proc = run_cli("run", f"configs/{config}", "--set", "mesh.size=0.0002", "-o",
@@ -220,11 +220,11 @@ def test_mesh_that_cannot_fit_is_refused_before_meshing_with_a_size_that_fits(tm
                            line).group(1))
     assert 0.0002 < fits < 0.5
     # the named size fits where the request did not (same estimate, 1 GB available)
-    box = (0.5 * 0.02 * 0.05, 0.02)
+    box = BodyShape.box(0.5, 0.02, 0.05)
     with pytest.raises(PipelineError) as err:
-        check_mesh_fits(*box, MeshSpec(size=0.0002), "box", available=2**30)
+        check_mesh_fits(box, MeshSpec(size=0.0002), "box", available=2**30)
     small = float(re.search(r"mesh\.size >= ([0-9.e+-]+) m", str(err.value)).group(1))
-    check_mesh_fits(*box, MeshSpec(size=small * 1.01), "box", available=2**30)
+    check_mesh_fits(box, MeshSpec(size=small * 1.01), "box", available=2**30)
 
 
 def test_lumped_chain_too_long_to_build_is_refused():

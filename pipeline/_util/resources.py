@@ -41,8 +41,12 @@ HEADROOM = 0.9  # use at most this fraction of the available memory
 # nodes of a P2 tetrahedral mesh per vertex (about 1.6 nodes per tetrahedron, 0.2 of them
 # vertices; measured 7.3 on the cantilever at 101k DOFs)
 VERTEX_FRACTION = 7.0
-# (n x width) double blocks held by the factor-free LOBPCG (see multigrid_bytes)
+# (n x width) double blocks held by the factor-free LOBPCG (see multigrid_terms; measured
+# 12.9 at 371k DOFs, width 25, peak minus the resident memory before LOBPCG)
 LOBPCG_BLOCKS = 13
+# bytes of the coarse P1 factor of the two-grid path per n_c^(4/3) (PARDISO; cantilever:
+# 0.14 GB at 52.8k coarse DOFs, 0.51 GB at 137k, 2.16 GB at 376k: 71, 70 and 80 B)
+COARSE_FACTOR_COEFF = 80.0
 # from this many free DOFs, modes.method auto tries the factor-free two-grid solver first
 # when the mesh is quadratic (crossover on the cantilever about 450k: see
 # pipeline.solve.eigen); a slowly converging trial falls back to a factor
@@ -211,19 +215,70 @@ def factor_bytes(n_dofs: int) -> float:
     return FACTOR_BYTES_COEFF * float(n_dofs) ** (4.0 / 3.0)
 
 
-def multigrid_bytes(n_nodes: int, n_modes: int) -> float:
-    """Bytes of the factor-free eigensolve (:mod:`pipeline.solve.multigrid`) beside K, M.
+def lobpcg_guard(n_modes: int) -> int:
+    """Guard columns of the factor-free LOBPCG beside ``n_modes`` wanted ones."""
+    return max(3, n_modes // 4)
 
-    The coarse factor: the P1 problem on the vertices (about n_nodes / VERTEX_FRACTION of
-    a P2 mesh's nodes), whose factor is FACTOR_BYTES_COEFF * n_c^(4/3) at most (the P1
-    pattern is sparser than the P2 one it was calibrated on); the LOBPCG blocks X, KX,
-    MX, W, KW, MW (W up to twice as wide) plus the preconditioner's four work blocks,
-    i.e. LOBPCG_BLOCKS blocks of (n x (n_modes + guard)) doubles; the prolongation.
+
+def lobpcg_layout(n_dofs: int, n_modes: int, guard: int, free_bytes: float) -> tuple[int, int]:
+    """(batch, guard): the modes per LOBPCG batch and the guard columns of each
+    (:mod:`pipeline.solve.batched`) whose blocks fit in ``free_bytes``.
+
+    One batch of all ``n_modes`` with ``guard`` columns when it fits (LOBPCG_BLOCKS
+    blocks of (n_dofs x (n_modes + guard)) doubles); else fewer guard columns (down to
+    1); else batches of b modes with max(2, min(guard, b // 2)) guard columns, which
+    also keep the modes found before (Y and M Y: 2 n_dofs (n_modes - b) doubles); the
+    largest b that fits, else the smallest layout."""
+    if guard < 1:  # the coarse space limits the block: no room to choose
+        return n_modes, guard
+
+    def need(b: int, g: int) -> float:
+        return 8.0 * n_dofs * (LOBPCG_BLOCKS * (b + g) + 2 * (n_modes - b))
+
+    for g in range(guard, 0, -1):
+        if need(n_modes, g) <= free_bytes:
+            return n_modes, g
+    for b in range(n_modes - 1, 0, -1):
+        g = max(2, min(guard, b // 2))
+        if need(b, g) <= free_bytes:
+            return b, g
+    return 1, 2
+
+
+def multigrid_terms(n_nodes: int, n_modes: int, free_bytes: float = float("inf")
+                    ) -> dict[str, float]:
+    """Bytes of the factor-free path (:mod:`pipeline.solve.multigrid`, quadratic mesh of
+    ``n_nodes`` nodes, n = 3 n_nodes DOFs) while LOBPCG runs, its peak, term by term:
+
+    - ``K``, ``M``: CSR with 32-bit indices, 12 B an entry: K 9 and M 3 entries (M
+      couples equal components only) per node block, BLOCKS_PER_NODE[2] blocks a node;
+    - ``float32 D^-1 K``: the smoother's copy (4 B an entry, indices shared with K) and
+      the diagonals D^-1 in double and float32;
+    - ``prolongation``: P, P^T and P^T D (about 1.9 entries a row, 12 B each);
+    - ``coarse factor``: the P1 problem on the vertices (n / VERTEX_FRACTION DOFs),
+      COARSE_FACTOR_COEFF * n_c^(4/3);
+    - ``LOBPCG``: LOBPCG_BLOCKS blocks of (n x (b + g)) doubles and the modes of earlier
+      batches (:func:`lobpcg_layout` for what is left of ``free_bytes``).
+    The mesh, the FE space and the interpreter are the caller's
+    (:func:`estimate_memory_bytes`); after LOBPCG the path needs less (the modes, and
+    PCG's PCG_BLOCKS blocks as wide as the load cases for the static correction).
     """
-    n = 3 * n_nodes
-    coarse = factor_bytes(3 * n_nodes / VERTEX_FRACTION)
-    width = n_modes + max(3, n_modes // 4)
-    return coarse + LOBPCG_BLOCKS * 8.0 * n * width + 24.0 * n
+    n = 3.0 * n_nodes
+    blocks = BLOCKS_PER_NODE[2] * n_nodes
+    terms = {"K": 12.0 * 9 * blocks, "M": 12.0 * 3 * blocks,
+             "float32 D^-1 K": 4.0 * 9 * blocks + 12.0 * n,
+             "prolongation": 3 * 12.0 * 1.9 * n,
+             "coarse factor": COARSE_FACTOR_COEFF * (n / VERTEX_FRACTION) ** (4.0 / 3.0)}
+    # what the caller adds (interpreter, mesh) is not free for LOBPCG either
+    left = free_bytes - sum(terms.values()) - BASELINE_BYTES - MESH_BYTES_PER_NODE * n_nodes
+    batch, guard = lobpcg_layout(int(n), n_modes, lobpcg_guard(n_modes), left)
+    terms["LOBPCG"] = 8.0 * n * (LOBPCG_BLOCKS * (batch + guard) + 2 * (n_modes - batch))
+    return terms
+
+
+def multigrid_bytes(n_nodes: int, n_modes: int, free_bytes: float = float("inf")) -> float:
+    """Peak bytes of the factor-free path, K and M included (:func:`multigrid_terms`)."""
+    return float(sum(multigrid_terms(n_nodes, n_modes, free_bytes).values()))
 
 
 def factor_path_bytes(n_dofs: int, n_modes: int, single: bool = False) -> float:
@@ -249,12 +304,11 @@ def eigensolve_bytes(n_nodes: int, order: int, n_modes: int, method: str = "auto
     """
     n = 3 * n_nodes
     matrices = BYTES_PER_BLOCK * BLOCKS_PER_NODE.get(order, 27.0) * n_nodes
-    shapes = 8.0 * n * n_modes * 4
     if solver == "cudss" and method != "multigrid":
         return matrices + factor_path_bytes(n, n_modes) - factor_bytes(n)
     usable = HEADROOM * (available_memory_bytes() if available is None else available)
     options = []
-    two_grid = matrices + multigrid_bytes(n_nodes, n_modes) + shapes
+    two_grid = multigrid_bytes(n_nodes, n_modes, usable)
     if method == "auto" and order == 2 and n >= MULTIGRID_AUTO_DOFS:
         options.append(two_grid)  # tried first (its fallback factor is checked exactly)
     if method in ("auto", "factor"):

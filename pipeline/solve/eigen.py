@@ -37,9 +37,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline._util import progress as watch_progress
-from pipeline._util.resources import HEADROOM, LOBPCG_BLOCKS, available_memory_bytes, retained_heap
+from pipeline._util.resources import (HEADROOM, LOBPCG_BLOCKS, available_memory_bytes,
+                                     lobpcg_guard, lobpcg_layout, retained_heap)
 from pipeline.errors import ConfigError, ResourceError, SolverError
 from pipeline.solve import lobpcg, mixed, multigrid, plan as planning
+from pipeline.solve.batched import batched_lobpcg
 from pipeline.solve.blas import is_csr, sparse_times_dense
 from pipeline.solve.factorization import (backend_capabilities, check_factorization, factorize,
                                           resolve_backend)
@@ -319,8 +321,7 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
     tg = multigrid.TwoGrid(A, P, plan.backend)
     try:
         Mc = multigrid.coarse_matrix(tg, M)
-        guard = max(3, count // 4)
-        width = min(count + guard, tg.coarse_n // 2)
+        width = min(count + lobpcg_guard(count), tg.coarse_n // 2)
         # start block: the coarse problem's own modes, through the coarse factor
         if tg.coarse.capabilities.half_solves:
             vc, _ = _lanczos_modes(tg.coarse, Mc, width, MULTIGRID_START_TOLERANCE,
@@ -329,8 +330,14 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
         else:
             vc, _ = _arpack_modes(tg.coarse, tg.PT @ A @ P, Mc, width, 0.0, 1e-8, None)
         del Mc
-        X0 = sparse_times_dense(tg.P, np.ascontiguousarray(vc))
-        del vc
+        # the modes per LOBPCG batch and its guard columns: what fits beside K, M and the
+        # preconditioner (all of them in one batch unless memory is short)
+        batch, guard = lobpcg_layout(K.shape[0], count, width - count,
+                                     HEADROOM * available_memory_bytes())
+
+        def start(first: int, stop: int) -> np.ndarray:
+            return sparse_times_dense(tg.P, np.ascontiguousarray(vc[:, first:stop]))
+
         t2 = time.perf_counter()
         target = tolerance if tolerance > 0 else MULTIGRID_TOLERANCE
         with watch_progress.stage("LOBPCG", total=lobpcg.EXPECTED_SWEEPS,
@@ -340,11 +347,12 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
                 if progress is not None:
                     progress(width)
             # the sweeps free and allocate (n x width) blocks: keep them in the heap
-            with retained_heap(LOBPCG_BLOCKS * 8.0 * K.shape[0] * width):
-                result = lobpcg.lobpcg(K, M, X0, tg.apply_single, count, sigma=sigma,
-                                       target=target, max_sweeps=MULTIGRID_MAX_SWEEPS,
-                                       on_sweep=on_sweep, budget=budget)
-        del X0
+            with retained_heap(LOBPCG_BLOCKS * 8.0 * K.shape[0] * (batch + guard)):
+                result = batched_lobpcg(K, M, start, tg.apply_single, count, batch, guard,
+                                        sigma=sigma, target=target,
+                                        max_sweeps=MULTIGRID_MAX_SWEEPS,
+                                        on_sweep=on_sweep, budget=budget)
+        del vc
         if budget is not None and not result.converged:
             projected = lobpcg.projected_sweeps(result.history, target)
             raise _SlowMultigrid(
@@ -370,12 +378,13 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
              "coarse_dofs": tg.coarse_n,
              "factor_bytes": tg.coarse.info.get("factor_bytes", 0),
              "setup_seconds": t2 - t1, "sweeps": result.sweeps,
-             "history": list(result.history), "tolerance": target, "block": width,
-             "solves": result.sweeps * width, "calls": result.sweeps,
+             "history": list(result.history), "tolerance": target, "block": batch + guard,
+             "batches": -(-count // batch), "solves": result.sweeps * (batch + guard),
+             "calls": result.sweeps,
              "lambda_max_dinv_k": tg.lambda_max,
              "eigensolver_seconds": time.perf_counter() - t1}
     log.info("multigrid LOBPCG: %d sweeps of %d vectors in %.1f s (set-up %.1f s, coarse "
-             "%d DOFs), preconditioned residual %.1e", result.sweeps, width,
+             "%d DOFs), preconditioned residual %.1e", result.sweeps, batch + guard,
              result.seconds, t2 - t1, tg.coarse_n, min(result.history))
     if plan.keep_factor:
         stats["kept"] = tg.factorization()

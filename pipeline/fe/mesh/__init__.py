@@ -31,7 +31,7 @@ from pipeline.fe.mesh.geo import mesh_geo
 from pipeline.fe.mesh.read import mesh_file, read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
-__all__ = ["SOURCES", "BodyMesh", "MeshSource", "mesh_body", "mesh_geometry", "generate_mesh",
+__all__ = ["SOURCES", "BodyMesh", "MeshSource", "body_shape", "mesh_body", "mesh_geometry", "generate_mesh",
            "read_mesh", "box_faces", "cad_volume", "check_dimensions", "mesh_box", "mesh_step",
            "mesh_geo", "mesh_file", "CAD_SUFFIXES", "MAX_EXTENT_M", "MAX_TETRAHEDRA",
            "MIN_EXTENT_M", "TET_TYPES"]
@@ -52,6 +52,32 @@ def mesh_geometry(geometry: Geometry, spec: MeshSpec, out_path: str | Path
         raise ConfigError(f"config key 'geometry.path': got '{geometry.path}', expected an "
                           "existing file")
     return source(geometry, spec, Path(out_path))
+
+
+def body_shape(geometry: Geometry):
+    """The :class:`~pipeline.fe.mesh.estimate.BodyShape` (volume, boundary area) of a box,
+    STEP or geo body, as its mesh source measures it before meshing (OpenCASCADE; the
+    bounding box for a geo script without OCC entities)."""
+    from pipeline.fe.mesh.cad import _import_cad
+    from pipeline.fe.mesh.common import boundary_area, extent, gmsh_session
+    from pipeline.fe.mesh.estimate import BodyShape
+
+    if geometry.kind == "box":
+        return BodyShape.box(geometry.length, geometry.height, geometry.depth)
+    if geometry.kind not in ("step", "geo"):
+        raise ConfigError.field("geometry.kind", geometry.kind, "box, step or geo")
+    with gmsh_session("shape") as gmsh:
+        if geometry.kind == "step":
+            vols, volume = _import_cad(gmsh, Path(geometry.path), geometry)
+            return BodyShape(volume, boundary_area(gmsh, vols))
+        gmsh.open(str(geometry.path))
+        vols = [tag for _, tag in gmsh.model.getEntities(3)]
+        s = geometry.scale
+        try:
+            volume = float(sum(gmsh.model.occ.getMass(3, v) for v in vols)) * s ** 3
+            return BodyShape(volume, boundary_area(gmsh, vols, s))
+        except Exception:  # built-in kernel entities: no OCC volume
+            return BodyShape.box(*extent(gmsh, s))
 
 
 def mesh_body(geometry: Geometry, spec: MeshSpec, mesh_dir: str | Path | None, name: str

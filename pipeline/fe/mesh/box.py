@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from pipeline.fe.mesh.estimate import check_mesh_fits
+from pipeline.fe.mesh.estimate import BodyShape, check_mesh_fits
 from pipeline._util.atomic import atomic_path
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import MeshError, OutputError
@@ -83,8 +83,8 @@ def _generate(gmsh, geometry: Geometry, spec: MeshSpec, path: Path) -> Path:
 
 def mesh_box(geometry: Geometry, spec: MeshSpec, out_path: Path) -> tuple[BodyMesh, Path]:
     """The ``box`` source: (mesh, its file ``out_path``)."""
-    dims = (geometry.length, geometry.height, geometry.depth)
-    check_mesh_fits(dims[0] * dims[1] * dims[2], min(dims), spec, "the box")  # before gmsh
+    shape = BodyShape.box(geometry.length, geometry.height, geometry.depth)
+    check_mesh_fits(shape, spec, "the box")  # before gmsh
     path = generate_mesh(geometry, spec, out_path)
     return read_mesh(path), path
 

@@ -19,9 +19,10 @@ from pathlib import Path
 
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError, MeshError
-from pipeline.fe.mesh.common import (CAD_SUFFIXES, BodyMesh, check_dimensions, check_size,
-                                     count_tets, extent, gmsh_error, gmsh_session, mesh_options,
+from pipeline.fe.mesh.common import (CAD_SUFFIXES, BodyMesh, boundary_area, check_dimensions,
+                                     check_size, count_tets, extent, gmsh_error, gmsh_session, mesh_options,
                                      mesh_volume, quiet_fd1, write_gmsh)
+from pipeline.fe.mesh.estimate import BodyShape
 from pipeline.fe.mesh.read import read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
@@ -78,7 +79,7 @@ def _mesh_step(geometry: Geometry, spec: MeshSpec, out_path: Path) -> BodyMesh:
     with gmsh_session("body") as gmsh:
         vols, volume = _import_cad(gmsh, path, geometry)
         check_dimensions(extent(gmsh), geometry, str(path))
-        check_size(volume, spec, str(path))
+        check_size(BodyShape(volume, boundary_area(gmsh, vols)), spec, str(path))
         gmsh.model.addPhysicalGroup(3, vols, name="body")
         mesh_options(gmsh, spec, 1.0, from_points=False)
         try:

@@ -111,8 +111,6 @@ MAX_EXTENT_M = 50.0
 MIN_EXTENT_M = 1e-4
 #: Refuse a mesh.size that would make more tetrahedra than this (estimate before meshing).
 MAX_TETRAHEDRA = 3_000_000
-#: gmsh makes about this many tetrahedra per size^3 of volume.
-TETS_PER_CUBE = 6.5
 
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs", ".brep")
 TET_TYPES = ("tetra", "tetra10")
@@ -156,17 +154,22 @@ def check_dimensions(extent, geometry: Geometry, what: str) -> None:
         f"{MAX_EXTENT_M:g} m{hint}")
 
 
-def check_size(volume_m3: float, spec: MeshSpec, what: str) -> None:
-    from pipeline.fe.mesh.estimate import check_mesh_fits  # memory, before gmsh meshes
+def check_size(shape, spec: MeshSpec, what: str) -> None:
+    """Refuse, before gmsh meshes, a mesh.size that would make more than MAX_TETRAHEDRA
+    tetrahedra or a run that would not fit in memory (:mod:`pipeline.fe.mesh.estimate`);
+    ``shape``: the body's :class:`~pipeline.fe.mesh.estimate.BodyShape`."""
+    from pipeline.fe.mesh.estimate import check_mesh_fits, estimate_mesh, smallest_size
 
-    estimate = TETS_PER_CUBE * volume_m3 / spec.size ** 3
+    estimate = estimate_mesh(shape, spec.size, spec.order).n_tetrahedra
     if estimate > MAX_TETRAHEDRA:
-        smallest = (TETS_PER_CUBE * volume_m3 / MAX_TETRAHEDRA) ** (1.0 / 3.0)
+        smallest = smallest_size(shape, spec.order, MAX_TETRAHEDRA, "n_tetrahedra",
+                                 start=spec.size)
         raise ConfigError(
             f"config key 'mesh.size': got {spec.size:g} m, which would make about "
-            f"{estimate:.2g} tetrahedra for the body in '{what}' (volume {volume_m3:.4g} m^3); "
-            f"expected at least {smallest:.3g} m (at most {MAX_TETRAHEDRA:.0e} tetrahedra)")
-    check_mesh_fits(volume_m3, spec.size, spec, f"the body in '{what}'")
+            f"{estimate:.2g} tetrahedra for the body in '{what}' (volume "
+            f"{shape.volume_m3:.4g} m^3); expected at least {smallest:.3g} m (at most "
+            f"{MAX_TETRAHEDRA:.0e} tetrahedra)")
+    check_mesh_fits(shape, spec, f"the body in '{what}'")
 
 
 # --------------------------------------------------------------------------- gmsh session
@@ -349,6 +352,14 @@ def mesh_volume(body: BodyMesh) -> float:
     a = v[t[:, 0]]
     return float(np.abs(np.einsum("ij,ij->i", np.cross(v[t[:, 1]] - a, v[t[:, 2]] - a),
                                   v[t[:, 3]] - a)).sum() / 6.0)
+
+
+def boundary_area(gmsh, volumes: list[int], unit: float = 1.0) -> float:
+    """Area (m^2) of the surfaces bounding the OCC ``volumes``, in model units times
+    ``unit``; a face two volumes share counts once (gmsh meshes it once)."""
+    faces = {abs(tag) for _, tag in gmsh.model.getBoundary([(3, v) for v in volumes],
+                                                           combined=False, oriented=False)}
+    return float(sum(gmsh.model.occ.getMass(2, f) for f in faces)) * unit ** 2
 
 
 def extent(gmsh, unit: float = 1.0) -> np.ndarray:

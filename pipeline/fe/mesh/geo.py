@@ -10,13 +10,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.config import Geometry, MeshSpec
 from pipeline.errors import ConfigError, MeshError
-from pipeline.fe.mesh.common import (BodyMesh, check_dimensions, check_size, count_tets, extent,
-                                     gmsh_error, gmsh_session, mesh_options, quiet_fd1,
-                                     write_gmsh)
+from pipeline.fe.mesh.common import (BodyMesh, boundary_area, check_dimensions, check_size,
+                                     count_tets, extent, gmsh_error, gmsh_session, mesh_options,
+                                     quiet_fd1, write_gmsh)
+from pipeline.fe.mesh.estimate import BodyShape
 from pipeline.fe.mesh.read import read_mesh
 from pipeline.fe.mesh.registry import SOURCES
 
@@ -51,9 +50,10 @@ def _mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> Path:
         else:
             try:
                 volume = float(sum(gmsh.model.occ.getMass(3, v) for v in vols)) * scale ** 3
-            except Exception:  # built-in kernel entities: no OCC volume to estimate with
-                volume = float(np.prod(extent(gmsh, scale)))
-            check_size(volume, spec, str(path))
+                shape = BodyShape(volume, boundary_area(gmsh, vols, scale))
+            except Exception:  # built-in kernel entities: no OCC volume: the bounding box
+                shape = BodyShape.box(*extent(gmsh, scale))
+            check_size(shape, spec, str(path))
             mesh_options(gmsh, spec, scale, from_points=True)
             try:
                 gmsh.model.mesh.generate(3)

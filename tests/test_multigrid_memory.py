@@ -1,0 +1,86 @@
+"""The memory of the factor-free path (pipeline._util.resources.multigrid_terms) against
+measured peaks, the LOBPCG layout chosen by memory, and LOBPCG in batches
+(pipeline.solve.batched) against the factor route."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import build_model, eigenvalue_rtol
+from pipeline._util import resources
+from pipeline.fe.coarse import p1_prolongation
+from pipeline.solve import eigen, plan
+from pipeline.solve.eigen import solve_modes
+
+COUNT = 8
+
+#: (P2 nodes, tetrahedra, ru_maxrss bytes) of `python -m pipeline run
+#: configs/cantilever.yaml --set modes.count=20 --set modes.method=multigrid` with
+#: mesh.size 0.003 and 0.00211 (benchmarks/memory_trace.py, 2026-11-26, LOBPCG the
+#: peak) and 0.00146 (make bench, 2026-11-23, docs/performance.md)
+MEASURED = ((124_400, 79_441, 2.02e9), (333_081, 222_655, 5.36e9),
+            (945_641, 655_268, 15.12e9))
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory):
+    return build_model(tmp_path_factory.mktemp("mgb"), length=0.3, height=0.02, depth=0.03,
+                       size=0.006)
+
+
+@pytest.mark.parametrize("n_nodes,n_tets,peak", MEASURED)
+def test_model_of_the_factor_free_path_matches_measured_peaks(n_nodes, n_tets, peak):
+    """Within 10 % (the model gave +4 %, 0 % and +2 %); plenty of memory: one batch."""
+    model = resources.estimate_memory_bytes(n_nodes, n_tets, 2, 20, "multigrid",
+                                            available=10**12)
+    assert model == pytest.approx(peak, rel=0.10)
+
+
+def test_layout_keeps_one_batch_when_it_fits_and_batches_when_not():
+    n = 5_000_000
+    one = 8.0 * n * resources.LOBPCG_BLOCKS * 25
+    assert resources.lobpcg_layout(n, 20, 5, one) == (20, 5)
+    assert resources.lobpcg_layout(n, 20, 5, one - 1) == (20, 4)
+    batch, guard = resources.lobpcg_layout(n, 20, 5, 0.5 * one)
+    assert batch < 20 and guard >= 2
+    need = 8.0 * n * (resources.LOBPCG_BLOCKS * (batch + guard) + 2 * (20 - batch))
+    assert need <= 0.5 * one
+    assert resources.lobpcg_layout(n, 20, 5, 0.0) == (1, 2)
+
+
+def test_the_6m_cantilever_runs_factor_free_within_22_gb():
+    """The cantilever at mesh.size 0.00116 (gmsh: 1,842,724 P2 nodes, 1,299,820
+    tetrahedra) on the 24 GB machine: no factor fits, auto plans the factor-free path
+    with no factor fallback, and the estimate of the whole run stays within the usable
+    memory (LOBPCG in batches)."""
+    available = 23.5e9
+    n_nodes, n_tets = 1_842_724, 1_299_820
+    need = resources.estimate_memory_bytes(n_nodes, n_tets, 2, 20, "auto",
+                                           available=int(available))
+    assert need <= resources.HEADROOM * available <= 22e9
+    problem = plan.EigenProblem(n=3 * n_nodes - 5_000, count=20, precision="auto",
+                                has_coarse=True)
+    machine = plan.Machine(usable_bytes=resources.HEADROOM * available, backend="pardiso",
+                           half_solves=True)
+    chosen = plan.plan_modes(problem, machine)
+    assert chosen.method == "multigrid" and chosen.fallback is None
+
+
+def test_batched_lobpcg_finds_the_modes_of_one_block(beam, monkeypatch):
+    """Three batches of 3, 3 and 2 modes (each deflated against the modes found before)
+    give the frequencies of the factor route, within the bound of
+    tests/test_multigrid.py (twice the squared tolerance over the relative gap, plus
+    the round-off of the pencil)."""
+    P = p1_prolongation(beam.space, beam.free)
+    ref = solve_modes(beam.K, beam.M, COUNT, method="factor")
+    monkeypatch.setattr(eigen, "lobpcg_layout", lambda n, count, guard, free: (3, 2))
+    mg = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P)
+    assert mg.stats["batches"] == 3 and mg.stats["block"] == 5
+    rel_gap = float(np.min(np.diff(ref.omega2) / ref.omega2[1:]))
+    bound = 2 * eigen.MULTIGRID_TOLERANCE ** 2 / rel_gap + 0.5 * eigenvalue_rtol(
+        beam.K, beam.M)
+    assert np.abs(mg.frequencies_hz / ref.frequencies_hz - 1).max() <= bound
+    # M-orthonormal across the batches, as the Rayleigh-Ritz step leaves them
+    G = mg.shapes.T @ (beam.M @ mg.shapes)
+    assert np.abs(G - np.eye(COUNT)).max() < 1e-10
