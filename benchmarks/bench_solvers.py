@@ -52,7 +52,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import ROOT, machine, run_watched, short_error  # noqa: E402
+from bench_pipeline import ROOT, SIZES, machine, run_watched, short_error  # noqa: E402
 
 # problem -> (config, overrides, volume m^3): mesh.size for a target DOF count from the
 # cantilever's measured 101k DOFs at 0.005 m (DOFs ~ volume / size^3)
@@ -85,6 +85,10 @@ STATIC_CASES = ("ours-pcg+two-grid", "ours-pcg+sa", "scipy-cg+two-grid", "scipy-
 
 
 def mesh_size(problem: str, label: str) -> float:
+    """mesh.size (m) for about TARGETS[label] DOFs: the cantilever's measured sizes
+    (bench_pipeline.SIZES), else scaled from its 100k by volume."""
+    if problem == "cantilever" and label in SIZES:
+        return SIZES[label]
     dofs, size, volume = CANTILEVER
     return size * (dofs * PROBLEMS[problem][2] / volume / TARGETS[label]) ** (1.0 / 3.0)
 
