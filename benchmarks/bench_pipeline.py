@@ -78,7 +78,11 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
         result = solve(*args, **kwargs)
         captured.update(result.stats or {})
         captured["M"], captured["shapes"] = args[1], result.shapes
-        captured["K"], captured["omega2"] = args[0], result.omega2
+        # measured here, while K is alive anyway (holding K past the modes stage would keep
+        # the factor tied to it alive too); its time is taken off the stage and the total
+        t_acc = time.perf_counter()
+        captured.update(mode_accuracy(args[0], args[1], result.shapes, result.omega2))
+        captured["accuracy_s"] = time.perf_counter() - t_acc
         return result
 
     modes_module.solve_modes = spy
@@ -92,7 +96,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     from pipeline.solve.blas import sparse_times_dense
 
     Phi = captured.pop("shapes")
-    accuracy = mode_accuracy(captured.pop("K"), captured["M"], Phi, captured.pop("omega2"))
+    accuracy = {key: captured.pop(key) for key in ("true_residual", "backward_error")}
     accuracy["dc_gain"] = stored_dc_gain(workdir / "out.hdf5")
     if shapes is not None:
         np.save(shapes, Phi)
@@ -100,6 +104,8 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
                          - np.eye(Phi.shape[1])).max())
     del Phi
     t = result.times
+    total -= captured["accuracy_s"]
+    t = dict(t, modes=t["modes"] - captured.pop("accuracy_s"))
     kind = ("pipeline" if precision == method == "auto"
             else f"pipeline ({method if method != 'auto' else precision})")
     return {"kind": kind, "n_dofs": result.n_dofs, "n_free": result.n_free,
