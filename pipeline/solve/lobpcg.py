@@ -41,10 +41,9 @@ with the factor path's at least as well as ours (1e-2 of ||K x_1||: subspace ang
 against ours' 2e-7, frequencies 1e-10 both) it still needs twice the sweeps, since that
 norm falls slowly on the mesh-scale components that the preconditioned residual here
 (the target's measure) weighs by 1 / lambda. On the 2 mm thin strip (207k DOFs) ours
-took 17 sweeps and 31 s, scipy's did not finish in 600 s (same run, load average 16).
-At 996k DOFs (the cantilever, load average 10-16) ours takes 7 sweeps, 85 s after a 40 s
-set-up, 5.2 GB peak
-with K and M (so about 4.8M DOFs would fit 24 GiB).
+took 17 sweeps and 146 s, scipy's did not finish in 600 s (same run, load average 16).
+At 996k DOFs (the cantilever, load average 10-16) ours takes 7 sweeps, 85 s after a
+40 s set-up, 5.2 GB peak with K and M (so about 4.8M DOFs would fit 24 GiB).
 """
 
 from __future__ import annotations
