@@ -43,7 +43,10 @@ norm falls slowly on the mesh-scale components that the preconditioned residual 
 (the target's measure) weighs by 1 / lambda. On the 2 mm thin strip (207k DOFs) ours
 took 17 sweeps and 146 s, scipy's did not finish in 600 s (same run, load average 16).
 At 996k DOFs (the cantilever, load average 10-16) ours takes 7 sweeps, 85 s after a
-40 s set-up, 5.2 GB peak with K and M (so about 4.8M DOFs would fit 24 GiB).
+40 s set-up, 5.2 GB peak with K and M (so about 4.8M DOFs would fit 24 GiB), scipy's 15
+sweeps, 221 s, 5.9 GB (2.6x). The bracket (103k): 10 sweeps, 14 s against 17, 22 s; the
+slender beam (127k): 10 sweeps, 15 s against 100 sweeps without converging, 92 s (load
+average 1-6).
 """
 
 from __future__ import annotations
