@@ -45,6 +45,7 @@ api: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)
+	$(PY) benchmarks/bench_solvers.py $(SOLVER_BENCH_ARGS)
 	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py; \
 	else echo "distributed section skipped: make mpi-env"; fi
 

@@ -59,8 +59,10 @@ def _peak_mb() -> float:
 
 
 def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "auto",
-                      method: str = "auto") -> dict:
-    """One pipeline run; returns stage times, peak memory and the frequencies."""
+                      method: str = "auto", shapes: Path | None = None) -> dict:
+    """One pipeline run; returns stage times, peak memory and the frequencies (and the
+    accuracy of its modes, :func:`mode_accuracy`); ``shapes``: save the mode shapes
+    there (.npy) for :func:`add_agreement`."""
     sys.path.insert(0, str(ROOT))
     from pipeline.cli import tune_process
 
@@ -76,7 +78,11 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
         result = solve(*args, **kwargs)
         captured.update(result.stats or {})
         captured["M"], captured["shapes"] = args[1], result.shapes
-        captured["max_residual"] = float(result.residuals.max())
+        # measured here, while K is alive anyway (holding K past the modes stage would keep
+        # the factor tied to it alive too); its time is taken off the stage and the total
+        t_acc = time.perf_counter()
+        captured.update(mode_accuracy(args[0], args[1], result.shapes, result.omega2))
+        captured["accuracy_s"] = time.perf_counter() - t_acc
         return result
 
     modes_module.solve_modes = spy
@@ -90,10 +96,16 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     from pipeline.solve.blas import sparse_times_dense
 
     Phi = captured.pop("shapes")
+    accuracy = {key: captured.pop(key) for key in ("true_residual", "backward_error")}
+    accuracy["dc_gain"] = stored_dc_gain(workdir / "out.hdf5")
+    if shapes is not None:
+        np.save(shapes, Phi)
     ortho = float(np.abs(Phi.T @ sparse_times_dense(captured.pop("M"), Phi)
                          - np.eye(Phi.shape[1])).max())
     del Phi
     t = result.times
+    total -= captured["accuracy_s"]
+    t = dict(t, modes=t["modes"] - captured.pop("accuracy_s"))
     kind = ("pipeline" if precision == method == "auto"
             else f"pipeline ({method if method != 'auto' else precision})")
     return {"kind": kind, "n_dofs": result.n_dofs, "n_free": result.n_free,
@@ -106,8 +118,32 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
             "lanczos_s": captured.get("eigensolver_seconds"),
             "factor_gb": (captured.get("factor_bytes") or 0) / 1e9,
             "solves": captured.get("solves"), "method": captured.get("method"),
-            "max_residual": captured.get("max_residual"), "m_orthonormality": ortho,
-            "file_mb": (workdir / "out.hdf5").stat().st_size / 1e6}
+            "m_orthonormality": ortho,
+            "file_mb": (workdir / "out.hdf5").stat().st_size / 1e6, **accuracy}
+
+
+def mode_accuracy(K, M, Phi, omega2) -> dict:
+    """The accuracy of the final modes Phi (n, m), omega2 (m,) from K and M themselves
+    (:mod:`pipeline.solve.accuracy`), not from the solver's own measure: the largest
+    true relative residual ||K x - w^2 M x|| / ||K x|| and the largest normwise backward
+    error."""
+    from pipeline.solve import accuracy
+
+    return {"true_residual": float(accuracy.relative_residuals(K, M, Phi, omega2).max()),
+            "backward_error": float(accuracy.backward_errors(K, M, Phi, omega2).max())}
+
+
+def stored_dc_gain(path: Path) -> list | None:
+    """G(0) = D - C A^-1 B of the plant in ``path`` (None: no plant, or A singular)."""
+    import numpy as np
+
+    from pipeline.store.read import load_model
+
+    try:
+        plant = load_model(path).plant
+        return None if plant is None else plant.dc_gain().tolist()
+    except (np.linalg.LinAlgError, ValueError):
+        return None
 
 
 def run_reference_case(size: float, count: int, workdir: Path) -> dict:
@@ -208,10 +244,10 @@ def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
         return Finished(proc.returncode, out.read(), err.read(), error, peak)
 
 
-def _run_child(kind: str, label: str, count: int, timeout: float, variant: str = "auto"
-               ) -> dict:
+def _run_child(kind: str, label: str, count: int, timeout: float, variant: str = "auto",
+               shapes: Path | None = None) -> dict:
     """One case in its own process; ``variant``: a modes.precision (auto, double, mixed)
-    or ``multigrid`` (modes.method)."""
+    or ``multigrid`` (modes.method); ``shapes``: where the child saves its mode shapes."""
     precision, method = (("auto", "multigrid") if variant == "multigrid"
                          else (variant, "auto"))
     with tempfile.TemporaryDirectory(prefix=f"bench_{label}_") as tmp:
@@ -219,6 +255,8 @@ def _run_child(kind: str, label: str, count: int, timeout: float, variant: str =
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", kind,
                "--size", str(SIZES[label]), "--count", str(count), "--result", str(out),
                "--precision", precision, "--method", method]
+        if shapes is not None and kind == "pipeline":
+            cmd += ["--shapes", str(shapes)]
         t0 = time.perf_counter()
         proc = run_watched(cmd, timeout)
         wall = time.perf_counter() - t0
@@ -340,7 +378,7 @@ def table(rows: list[dict]) -> str:
 def details(rows: list[dict]) -> str:
     """Eigensolve breakdown of the pipeline rows."""
     lines = ["| stack | DOFs | method | factorisation (multigrid: set-up) s | factor GB | "
-             "eigensolver s | vectors solved (LOBPCG sweeps) | max residual | "
+             "eigensolver s | vectors solved (LOBPCG sweeps) | true rel. residual | "
              "max abs(Phi^T M Phi - I) | HDF5 MB | process wall s |",
              "|" + " --- |" * 11]
     for r in rows:
@@ -351,10 +389,64 @@ def details(rows: list[dict]) -> str:
         lines.append(f"| {r['kind']} | {r['n_dofs']:,} | {r.get('method') or '-'} | "
                      f"{_fmt(r.get('factor_s'))} | "
                      f"{_fmt(r.get('factor_gb'))} | {_fmt(r.get('lanczos_s'))} | "
-                     f"{solved} | {_fmt(r.get('max_residual'), '.1e')} | "
+                     f"{solved} | {_fmt(r.get('true_residual'), '.1e')} | "
                      f"{_fmt(r.get('m_orthonormality'), '.1e')} | {_fmt(r.get('file_mb'), '.1f')} | "
                      f"{_fmt(r.get('process_s'))} |")
     return "\n".join(lines)
+
+
+def add_agreement(pairs: list[tuple[dict, Path]]) -> None:
+    """For the pipeline rows of one size (with the files their mode shapes were saved
+    to): the agreement of every row with the reference path, the first row that solved
+    with a factor, as ``row["agreement"]``: the reference's kind, the largest relative
+    frequency difference, the largest principal angle between the spans of the mode
+    shapes (Euclidean inner product, radians) and the largest DC gain difference relative
+    to the largest reference gain. Rows on another mesh (other DOFs) are not compared."""
+    import numpy as np
+
+    from pipeline.solve import accuracy
+
+    done = [(r, p) for r, p in pairs if r["kind"].startswith("pipeline") and "error" not in r]
+    ref = next(((r, p) for r, p in done if r.get("method") != "multigrid-lobpcg"), None)
+    if ref is None or not ref[1].exists():
+        return
+    ref_row, ref_shapes = ref[0], np.load(ref[1])
+    for row, path in done:
+        if row is ref_row or row["n_free"] != ref_row["n_free"] or not path.exists():
+            continue
+        agree = {"reference": ref_row["kind"],
+                 "freq_diff": accuracy.frequency_difference(row["frequencies"],
+                                                            ref_row["frequencies"]),
+                 "angle": accuracy.largest_subspace_angle(np.load(path), ref_shapes)}
+        if row.get("dc_gain") is not None and ref_row.get("dc_gain") is not None:
+            g, g_ref = np.asarray(row["dc_gain"]), np.asarray(ref_row["dc_gain"])
+            agree["dc_gain_diff"] = float(np.abs(g - g_ref).max() / np.abs(g_ref).max())
+        row["agreement"] = agree
+
+
+def accuracy_table(rows: list[dict]) -> str:
+    """The accuracy of every pipeline row's modes, computed from K and M
+    (:func:`mode_accuracy`), and its agreement with the reference path of the same size
+    where one ran (:func:`add_agreement`)."""
+    lines = ["| stack | DOFs | method | true rel. residual | "
+             "backward error | reference | max rel. frequency difference | "
+             "largest subspace angle (rad) | DC gain difference |", "|" + " --- |" * 9]
+    for r in rows:
+        if not r["kind"].startswith("pipeline") or "error" in r:
+            continue
+        a = r.get("agreement") or {}
+        lines.append(f"| {r['kind']} | {r['n_dofs']:,} | {r.get('method') or '-'} | "
+                     f"{_fmt(r.get('true_residual'), '.1e')} | "
+                     f"{_fmt(r.get('backward_error'), '.1e')} | {a.get('reference', '-')} | "
+                     f"{_fmt(a.get('freq_diff'), '.1e')} | {_fmt(a.get('angle'), '.1e')} | "
+                     f"{_fmt(a.get('dc_gain_diff'), '.1e')} |")
+    return ("Accuracy of the modes, from K and M: the true relative residual is "
+            "max_k norm(K x_k - w_k^2 M x_k) / norm(K x_k) (2-norms), the backward error "
+            "the smallest relative change of K and M that makes the pairs exact "
+            "(pipeline.solve.accuracy). The residual weighs an error component of "
+            "eigenvalue lambda by lambda / w^2: LOBPCG stops on the energy-norm residual, "
+            "so its modes show 1e-3 here while agreeing with the factor's to the angle "
+            "and frequency difference shown.\n\n" + "\n".join(lines))
 
 
 def time_to_accuracy(rows: list[dict], n_freq: int = 5, rel: float = 1e-3) -> str:
@@ -394,7 +486,8 @@ def report(rows: list[dict], meta: dict) -> str:
         f"{meta['load_after']:.1f} after (the machine is shared); {meta['count']} modes per "
         "case; times in seconds, wall clock; peak MB is the case's ru_maxrss.",
         _touch_line(meta.get("first_touch_s_per_gib")),
-        table(rows), details(rows), peer_comparison(rows), time_to_accuracy(rows)])
+        table(rows), details(rows), accuracy_table(rows), peer_comparison(rows),
+        time_to_accuracy(rows)])
 
 
 def _ngsolve_installed() -> bool:
@@ -492,13 +585,14 @@ def main(argv=None) -> int:
     ap.add_argument("--child", choices=["pipeline", "straightforward"], help=argparse.SUPPRESS)
     ap.add_argument("--size", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
+    ap.add_argument("--shapes", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
 
     if args.child:
         with tempfile.TemporaryDirectory(prefix="bench_case_") as tmp:
             if args.child == "pipeline":
                 row = run_pipeline_case(args.size, args.count, Path(tmp), args.precision,
-                                        args.method)
+                                        args.method, Path(args.shapes) if args.shapes else None)
             else:
                 row = run_reference_case(args.size, args.count, Path(tmp))
         Path(args.result).write_text(json.dumps(row))
@@ -520,6 +614,8 @@ def main(argv=None) -> int:
         ap.error(f"unknown size(s) {unknown}; expected some of {list(SIZES)}")
     ngsolve = args.ngsolve == "yes" or (args.ngsolve == "auto" and _ngsolve_installed())
     rows, raw = [], []
+    shapes_tmp = tempfile.TemporaryDirectory(prefix="bench_shapes_")
+    shapes_dir = Path(shapes_tmp.name)
     touch = first_touch_seconds_per_gb()
     load_before = os.getloadavg()
     for label in labels:
@@ -543,19 +639,24 @@ def main(argv=None) -> int:
                 if kind == "ngsolve":
                     one = _run_ngsolve(label, variant, args.count, args.timeout)
                 else:
-                    one = _run_child(kind, label, args.count, args.timeout, variant or "auto")
+                    one = _run_child(kind, label, args.count, args.timeout, variant or "auto",
+                                     shapes_dir / f"{label}-{variant}.npy")
                 runs[(kind, variant)].append(one)
                 if args.json:  # every run as it finishes: a long bench keeps what it did
                     raw.append(one)
                     Path(args.json).with_suffix(".runs.json").write_text(json.dumps(raw))
+        label_rows = []
         for job in jobs:
             row = median_row(runs[job])
             rows.append(row)
+            label_rows.append((row, shapes_dir / f"{label}-{job[1]}.npy"))
             if "error" in row:
                 print(f"  {row['error']}", flush=True)
             else:
                 print(f"  {row['n_dofs']:,} DOFs in {row['total']:.1f} s, peak "
                       f"{row['peak_mb']:,.0f} MB", flush=True)
+        add_agreement(label_rows)
+    shapes_tmp.cleanup()
     load_after = os.getloadavg()
     meta = {"machine": machine(), "load_before": load_before[0], "load_after": load_after[0],
             "count": args.count, "date": time.strftime("%Y-%m-%d %H:%M"),

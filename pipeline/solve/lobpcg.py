@@ -31,6 +31,22 @@ same linear combinations as W. Memory: X, K X, M X and W, K W, M W, i.e. about
 
 The eigenvalues and residuals are computed in double precision from K and M
 themselves: the preconditioner's quality sets the number of sweeps, not the accuracy.
+
+Kept over :func:`scipy.sparse.linalg.lobpcg` (``benchmarks/bench_solvers.py``, same
+matrices, start block and two-grid preconditioner, the cantilever at 100k DOFs, 20
+modes; 2-core Xeon, load average 10-14 from other jobs, ratios from the same run): 8
+sweeps and 17 s against scipy's 17 sweeps and 39 s (2.2x), peak 558 MB against 658 MB.
+scipy stops on ||r||_2 of each M-normalised x; at the loosest tolerance whose modes agree
+with the factor path's at least as well as ours (1e-2 of ||K x_1||: subspace angle 1e-9
+against ours' 2e-7, frequencies 1e-10 both) it still needs twice the sweeps, since that
+norm falls slowly on the mesh-scale components that the preconditioned residual here
+(the target's measure) weighs by 1 / lambda. On the 2 mm thin strip (207k DOFs) ours
+took 17 sweeps and 146 s, scipy's did not finish in 600 s (same run, load average 16).
+At 996k DOFs (the cantilever, load average 10-16) ours takes 7 sweeps, 85 s after a
+40 s set-up, 5.2 GB peak with K and M (so about 4.8M DOFs would fit 24 GiB), scipy's 15
+sweeps, 221 s, 5.9 GB (2.6x). The bracket (103k): 10 sweeps, 14 s against 17, 22 s; the
+slender beam (127k): 10 sweeps, 15 s against 100 sweeps without converging, 92 s (load
+average 1-6).
 """
 
 from __future__ import annotations
