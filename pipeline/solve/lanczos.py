@@ -77,14 +77,17 @@ def _orthogonalise(W: np.ndarray, basis: np.ndarray, H: np.ndarray, near: int, l
         H[near:hi, lo:hi] += C
         W -= C.T @ Qn
     Q = basis[:hi]
+    before = np.einsum("ij,ij->i", W, W)  # squared row norms
     for _ in range(2):
-        before = np.sqrt((W * W).sum(axis=1))
         C = Q @ W.T  # (hi, k)
         H[:hi, lo:hi] += C
         W -= C.T @ Q
-        after = np.sqrt((W * W).sum(axis=1))
-        if np.all(after >= REORTHOGONALISE_BELOW * before):
+        # Q has orthonormal rows: what is left of a row's squared norm is what it was
+        # less the squared coefficients removed (no further pass over W)
+        left = before - np.einsum("ij,ij->j", C, C)
+        if np.all(left >= REORTHOGONALISE_BELOW ** 2 * before):
             break
+        before = np.einsum("ij,ij->i", W, W)
 
 
 def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
