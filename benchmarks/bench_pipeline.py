@@ -63,6 +63,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     """One pipeline run; returns stage times, peak memory and the frequencies (and the
     accuracy of its modes, :func:`mode_accuracy`); ``shapes``: save the mode shapes
     there (.npy) for :func:`add_agreement`."""
+    t_imports = time.perf_counter()
     sys.path.insert(0, str(ROOT))
     from pipeline.cli import tune_process
 
@@ -91,6 +92,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     t0 = time.perf_counter()
     result = run_pipeline(cfg, workdir / "out.hdf5", mesh_dir=workdir)
     total = time.perf_counter() - t0
+    seconds = stage_seconds(result.times, captured, t0 - t_imports)
     import numpy as np
 
     from pipeline.solve.blas import sparse_times_dense
@@ -119,7 +121,8 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
             "factor_gb": (captured.get("factor_bytes") or 0) / 1e9,
             "solves": captured.get("solves"), "method": captured.get("method"),
             "m_orthonormality": ortho,
-            "file_mb": (workdir / "out.hdf5").stat().st_size / 1e6, **accuracy}
+            "file_mb": (workdir / "out.hdf5").stat().st_size / 1e6, "seconds": seconds,
+            **accuracy}
 
 
 def mode_accuracy(K, M, Phi, omega2) -> dict:
@@ -144,6 +147,20 @@ def stored_dc_gain(path: Path) -> list | None:
         return None if plant is None else plant.dc_gain().tolist()
     except (np.linalg.LinAlgError, ValueError):
         return None
+
+
+def stage_seconds(times: dict, stats: dict, imports_s: float) -> dict:
+    """Where one run's time went (s): the pipeline's stage times (``times``), the
+    eigensolver's own timers (every ``*_seconds`` of its statistics ``stats``) and the
+    imports before the run (``imports_s``), for :func:`breakdown`."""
+    seconds = {"imports": imports_s}
+    seconds.update({f"stage:{k}": float(v) for k, v in times.items()})
+    for key, value in stats.items():
+        if key.endswith("_seconds") and isinstance(value, (int, float)):
+            seconds[key[:-len("_seconds")]] = float(value)
+    if stats.get("analysis_ahead"):  # the ordering ran beside the assembly, off the path
+        seconds["analysis (beside the assembly)"] = seconds.pop("analysis", 0.0)
+    return seconds
 
 
 def run_reference_case(size: float, count: int, workdir: Path) -> dict:
@@ -449,6 +466,47 @@ def accuracy_table(rows: list[dict]) -> str:
             "and frequency difference shown.\n\n" + "\n".join(lines))
 
 
+#: the columns of :func:`breakdown`: (heading, keys of a row's "seconds" summed); the
+#: modes stage is split into its solver's own timers, the rest of it is "modes, other"
+BREAKDOWN = (("imports", ("imports",)), ("mesh (gmsh, space)", ("stage:mesh",)),
+             ("assembly", ("stage:assemble",)), ("ordering", ("analysis",)),
+             ("factorisation (multigrid: set-up)", ("numeric", "setup")),
+             ("passes over the factor", ("solve",)), ("mass products", ("mass",)),
+             ("orthogonalisation", ("orthogonalisation",)), ("refinement", ("refine",)),
+             ("Rayleigh-Ritz", ("rayleigh_ritz",)))
+MODES_PARTS = ("analysis", "numeric", "setup", "solve", "mass", "orthogonalisation",
+               "refine", "rayleigh_ritz")
+
+
+def breakdown(rows: list[dict]) -> str:
+    """Where the whole process's time goes, per pipeline case (s): imports, the stages,
+    the eigensolver's own timers (ordering, factorisation, passes over the factor, ...;
+    for multigrid the set-up, the rest is "modes, other": LOBPCG's sweeps), and what is
+    left of the process's wall time (interpreter start, the bench's own checks, exit)."""
+    heads = [h for h, _ in BREAKDOWN] + ["modes, other", "reduce", "write",
+                                         "start, checks, exit", "process"]
+    lines = ["| stack | DOFs | " + " | ".join(heads) + " |", "|" + " --- |" * (len(heads) + 2)]
+    for r in rows:
+        sec = r.get("seconds")
+        if not r["kind"].startswith("pipeline") or "error" in r or not sec:
+            continue
+        cells = [sum(sec.get(k, 0.0) for k in keys) if any(k in sec for k in keys)
+                 else None for _, keys in BREAKDOWN]
+        if sec.get("analysis (beside the assembly)") is not None:
+            cells[3] = None  # off the critical path
+        modes_other = sec.get("stage:modes", 0.0) - sum(sec.get(k, 0.0) for k in MODES_PARTS)
+        accounted = sec.get("imports", 0.0) + r["total"]
+        rest = r["process_s"] - accounted if r.get("process_s") is not None else None
+        cells += [modes_other, sec.get("stage:reduce"), sec.get("stage:write"), rest,
+                  r.get("process_s")]
+        ordering = _fmt(cells[3]) if sec.get("analysis (beside the assembly)") is None else (
+            f"({sec['analysis (beside the assembly)']:.2f} beside)")
+        text = [_fmt(c) for c in cells]
+        text[3] = ordering
+        lines.append(f"| {r['kind']} | {r['n_dofs']:,} | " + " | ".join(text) + " |")
+    return "\n".join(lines) if len(lines) > 2 else "breakdown: no pipeline case"
+
+
 def time_to_accuracy(rows: list[dict], n_freq: int = 5, rel: float = 1e-3) -> str:
     runs = sorted((r for r in rows if r["kind"] == "pipeline" and "error" not in r),
                   key=lambda r: r["n_dofs"])
@@ -486,7 +544,8 @@ def report(rows: list[dict], meta: dict) -> str:
         f"{meta['load_after']:.1f} after (the machine is shared); {meta['count']} modes per "
         "case; times in seconds, wall clock; peak MB is the case's ru_maxrss.",
         _touch_line(meta.get("first_touch_s_per_gib")),
-        table(rows), details(rows), accuracy_table(rows), peer_comparison(rows),
+        table(rows), details(rows), accuracy_table(rows),
+        "Where the time goes (s):\n\n" + breakdown(rows), peer_comparison(rows),
         time_to_accuracy(rows)])
 
 

@@ -1,0 +1,65 @@
+"""The bench's time breakdown (benchmarks/bench_pipeline.py): where a case's seconds go.
+
+Synthetic rows only (the bench itself runs the pipeline); the sums are exact, so the
+checks are equalities to round-off."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_pipeline.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_pipeline", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def _row(bench, stats: dict) -> dict:
+    times = {"mesh": 0.5, "assemble": 1.0, "modes": 3.0, "reduce": 0.25, "write": 0.125}
+    seconds = bench.stage_seconds(times, stats, imports_s=0.75)
+    return {"kind": "pipeline", "label": "100k", "n_dofs": 101_406, "total": sum(times.values()),
+            "process_s": 6.0, "seconds": seconds}
+
+
+def _cells(table: str) -> dict:
+    head, _, row = table.splitlines()
+    names = [c.strip() for c in head.strip("|").split("|")]
+    return dict(zip(names, [c.strip() for c in row.strip("|").split("|")]))
+
+
+def test_factor_path_splits_the_modes_stage(bench):
+    stats = {"analysis_seconds": 0.4, "analysis_ahead": True, "numeric_seconds": 1.0,
+             "solve_seconds": 1.25, "mass_seconds": 0.0625, "orthogonalisation_seconds": 0.25,
+             "rayleigh_ritz_seconds": 0.125, "eigensolver_seconds": 1.6, "steps": 16}
+    cells = _cells(bench.breakdown([_row(bench, stats)]))
+    assert cells["imports"] == "0.75"
+    assert cells["ordering"] == "(0.40 beside)"  # off the critical path: not subtracted
+    assert cells["factorisation (multigrid: set-up)"] == "1.00"
+    assert cells["passes over the factor"] == "1.25"
+    # 3.0 - (1.0 + 1.25 + 0.0625 + 0.25 + 0.125) = 0.3125
+    assert cells["modes, other"] == "0.31"
+    # 6.0 - 0.75 - 4.875
+    assert cells["start, checks, exit"] == "0.38"
+    assert cells["refinement"] == "-"
+
+
+def test_multigrid_path_has_its_set_up(bench):
+    stats = {"setup_seconds": 1.5, "eigensolver_seconds": 2.5, "rayleigh_ritz_seconds": 0.25}
+    cells = _cells(bench.breakdown([_row(bench, stats)]))
+    assert cells["factorisation (multigrid: set-up)"] == "1.50"
+    assert cells["passes over the factor"] == "-"
+    assert cells["modes, other"] == "1.25"  # LOBPCG's sweeps
+
+
+def test_rows_without_a_breakdown_are_left_out(bench):
+    assert "no pipeline case" in bench.breakdown([{"kind": "straightforward", "label": "20k"}])
