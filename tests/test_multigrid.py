@@ -80,6 +80,8 @@ def build_model_order1(beam):
     return build_space(beam.space.body, 1)
 
 
+# also covered by test_solver_comparison.py (PCG + two-grid vs a direct solve): make test-all
+@pytest.mark.slow
 def test_two_grid_pcg_matches_a_direct_solve(beam):
     """PCG with the two-grid cycle solves K x = b: its true relative residual is the
     recursive target PCG_RTOL plus the drift of the recurrence (O(eps cond(K))), and its
@@ -156,6 +158,9 @@ def test_float32_cycle_is_scale_invariant(beam):
         tg.release()
 
 
+# also covered by test_solver_comparison.py (LOBPCG + two-grid vs dense eigh) and
+# test_pipeline_under_multigrid_matches_the_factor_route: make test-all
+@pytest.mark.slow
 def test_multigrid_modes_match_the_factor_route(beam):
     """Frequencies and shapes of the factor-free solver against the shift-invert Lanczos
     route (module doc for the bounds)."""
