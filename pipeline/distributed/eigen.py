@@ -106,6 +106,8 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
         # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
         # the last frame says what went wrong
         reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+        if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
+            reason = reason.split(". ")[0][:240]
         raise SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
                           "solvable eigenproblem and options PETSc has (PETSC_OPTIONS: "
                           f"{os.environ.get('PETSC_OPTIONS', '')!r})", key="modes.solver",
