@@ -67,6 +67,22 @@ def test_the_6m_cantilever_runs_factor_free_within_22_gb():
     assert chosen.method == "multigrid" and chosen.fallback is None
 
 
+def test_solver_budget_keeps_the_whole_process_within_headroom(monkeypatch):
+    """The eigensolver may allocate HEADROOM of (held + available) less what the process
+    holds: after any allocation the process stays within HEADROOM of what it could hold,
+    and the budget falls as the process grows; none when it already holds more."""
+    for held, available in ((16.7e9, 7.5e9), (1e9, 23e9), (23e9, 0.5e9)):
+        monkeypatch.setattr(eigen, "resident_bytes", lambda: int(held))
+        monkeypatch.setattr(eigen, "available_memory_bytes", lambda: int(available))
+        budget = eigen._usable_bytes()
+        assert budget == pytest.approx(max(0.0, resources.HEADROOM * (held + available)
+                                           - held))
+        if budget > 0:
+            assert held + budget == pytest.approx(resources.HEADROOM * (held + available))
+            assert budget < resources.HEADROOM * available
+    assert budget == 0.0  # 23 GB held of 23.5: nothing more
+
+
 def test_batched_lobpcg_finds_the_modes_of_one_block(beam, monkeypatch):
     """Three batches of 3, 3 and 2 modes (each deflated against the modes found before)
     give the frequencies of the factor route, within the bound of
