@@ -239,7 +239,9 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         log.debug("sweep %d: worst rho %.1e, residuals %s", sweeps, worst,
                   " ".join(f"{r:.0e}" for r in res[:count]))
         if best is None or worst < best[0]:
-            best = (worst, X.copy(), w.copy(), res.copy())
+            # X, w and res are rebound to new arrays every sweep, never written in place:
+            # the best iterate is kept by reference (a copy of X cost 0.1 s a sweep at 1M)
+            best = (worst, X, w, res)
         if on_sweep is not None and sweeps:
             on_sweep(sweeps, worst)
         stalled = (len(history) > patience
