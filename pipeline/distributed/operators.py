@@ -95,6 +95,21 @@ class RowMatrix:
         return self.gather(self.local.diagonal(k=self.lo))
 
 
+def of_diagonals(fn, K: RowMatrix, M: RowMatrix):
+    """``fn(K_d, M_d)`` of the diagonals of the distributed K and M, for the functions
+    that read only them (:func:`pipeline.solve.thresholds.stiffness_scale`, a median of
+    K_ii / M_ii; :func:`pipeline.solve.eigen.default_shift`): rank 0 gathers every
+    rank's diagonal rows (in PETSc order: ``fn`` must not depend on the order) as sparse
+    diagonal matrices, evaluates ``fn`` and sends the result; the other ranks hold their
+    own rows only."""
+    parts = K.comm.gather([A.local.diagonal(k=A.lo) for A in (K, M)], root=0)
+    value = None
+    if K.comm.rank == 0:
+        value = fn(*(sp.diags(np.concatenate([p[i] for p in parts])).tocsr()
+                     for i in (0, 1)))
+    return K.comm.bcast(value, root=0)
+
+
 class KspSolve:
     """X = K^-1 B for replicated (n_free,) or (n_free, k) B with a PETSc KSP whose
     operator is K (rows distributed as ``matrix``); ``release`` frees the solver (and

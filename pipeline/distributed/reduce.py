@@ -30,6 +30,7 @@ import numpy as np
 from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.mpi import allreduce_sum
+from pipeline.distributed.operators import of_diagonals
 from pipeline.errors import ConfigError, SolverError
 from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
@@ -72,7 +73,7 @@ def check_basis_rows(K, M, Phi: RowBlock, omega2: np.ndarray, tol: float = 1e-6)
     diag(omega2), measured as :func:`pipeline.reduce.modal.check_modal_basis` does."""
     n = omega2.size
     errM = float(np.abs(Phi.gram(M.apply(Phi)) - np.eye(n)).max(initial=0.0))
-    floor = 1e-6 * stiffness_scale(K, M)
+    floor = 1e-6 * of_diagonals(stiffness_scale, K, M)
     scale = max(float(np.abs(omega2).max(initial=0.0)), floor) or 1.0
     errK = float(np.abs(Phi.gram(K.apply(Phi)) - np.diag(omega2)).max(initial=0.0)) / scale
     if errM > tol or errK > tol:

@@ -30,7 +30,7 @@ from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows
 from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
-from pipeline.distributed.operators import KspSolve, RowMatrix
+from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
 from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.added_mass import added_mass_matrix
@@ -334,7 +334,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
             PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
     supported = bool(cfg.supports)
-    shift = default_shift(K, M, supported)
+    shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
     omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
                                        near_null, shift)
     eps, ksp = stats.pop("eps"), stats.pop("ksp")
