@@ -11,15 +11,23 @@ stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
 
 The memory model per rank, fitted to the cases at one size N0 (free DOFs):
 
-    m(P, N) = c + r N / N0 + (s N / N0 + (d - s) (N / N0)^(4/3)) / P
+    m(P, N) = c + r N / N0 + [rank 0] w N / N0 + (s N / N0 + (d - s) (N / N0)^(4/3)) / P
 
-c: the imports (measured); r: what every rank holds whatever P is (the mesh, FE space and
-regions: linear in N); d: what is divided among the ranks (its rows of K and M, its part
-of MUMPS' factor and its rows of the mode shapes: the shapes are no longer replicated).
-s: the shapes' part of d, counted, not fitted: the Rayleigh-Ritz step holds three blocks
-of its rows (Phi, K Phi, M Phi: 3 x 8 N m / P bytes), which grows as N; the rest of d
-(the factor, for a 3D mesh in nested-dissection order N^(4/3), the exponent used for all
-of it: an upper bound). r and d come from the peaks at 1 and 2 ranks: m(1) - m(2) = d / 2.
+c: the imports (measured); r: what every rank holds whatever P is (linear in N: the
+free-DOF index and the row order, the labels' point coordinates for a moment, and
+transients of the run that do not fall with P); w: what rank 0 alone holds besides (it
+meshes the body with gmsh, builds the whole FE space to evaluate regions, ports and
+the partition, cuts out the parts and keeps the points and elements it writes); d:
+what is divided among the ranks (its part of the mesh and FE space, its rows of K and
+M, its part of MUMPS' factor and its rows of the mode shapes). s: the shapes' part of
+d, counted, not fitted: the Rayleigh-Ritz step holds three blocks of its rows (Phi,
+K Phi, M Phi: 3 x 8 N m / P bytes), which grows as N; the rest of d (the factor, for a
+3D mesh in nested-dissection order N^(4/3), the exponent used for all of it: an upper
+bound). From the peaks at 1 and 2 ranks: one rank c + r + w + d, on two rank 0
+c + r + w + d / 2 and rank 1 c + r + d / 2. Measured at N0 = 100,695 (docs/distributed.md,
+"Measured scaling"): r = 115 MB, w = 60 MB, d = 737 MB from 1 and 2 ranks (r = 92 MB,
+d = 784 MB from the ranks other than 0 at 2 and 4 ranks); before the ranks held only
+their part of the mesh r was 188 MB and there was no w.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from itertools import islice
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,6 +88,7 @@ def cut_worker(size: float, case: str) -> None:
     from pipeline.distributed.assemble import local_rows
     from pipeline.distributed.mpi import petsc, world
     from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
+    from pipeline.distributed.submesh import split_mesh
     from pipeline.fe.materials import config_materials
     from pipeline.fe.mesh import mesh_body
     from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
@@ -97,7 +107,9 @@ def cut_worker(size: float, case: str) -> None:
         part = slab_partition(space.node_points, free, comm.size) if kind == "slab" else \
             graph_partition(PETSc, comm, space.element_nodes, space.node_points, free)
         seconds = time.perf_counter() - t0
-        rows = local_rows(space, config_materials(space, cfg), free, part, comm.rank)
+        mesh = next(islice(split_mesh(space, config_materials(space, cfg), free, part,
+                                      comm.size), comm.rank, None))
+        rows = local_rows(mesh)
         out[kind] = {"cut": comm.gather(cut_measures(rows.K, rows.lo, rows.hi), root=0),
                      "rows": comm.gather(rows.hi - rows.lo, root=0), "seconds": seconds}
     if comm.rank == 0:
@@ -153,38 +165,44 @@ MODES, SHAPE_BLOCKS = 11, 3
 
 
 def memory_model(rows: list[dict]) -> dict:
-    """c, r, d, s (MB) of the module's model from the 1- and 2-rank cases."""
+    """c, r, w, d, s (MB) of the module's model from the 1- and 2-rank cases: on 2 ranks
+    rank 1 peaks at c + r + d / 2, rank 0 at c + r + w + d / 2, one rank at c + r + w + d."""
     one = next(r for r in rows if r["ranks"] == 1)
     two = next(r for r in rows if r["ranks"] == 2)
     c = max(one["import_mb"])
-    m1, m2 = max(one["peak_mb"]), max(two["peak_mb"])
-    d = max(2.0 * (m1 - m2), 0.0)
+    m1 = max(one["peak_mb"])
+    m20, m2o = two["peak_mb"][0], max(two["peak_mb"][1:])
+    d = max(2.0 * (m1 - m20), 0.0)
     shapes = SHAPE_BLOCKS * 8.0 * one["n_free"] * MODES / 2**20
-    return {"c": c, "r": max(m1 - c - d, 0.0), "d": max(d, shapes), "s": shapes,
-            "n0": one["n_free"]}
+    return {"c": c, "r": max(m2o - c - d / 2, 0.0), "w": max(m20 - m2o, 0.0),
+            "d": max(d, shapes), "s": shapes, "n0": one["n_free"]}
 
 
 def extrapolate(model: dict, n: float) -> list[str]:
-    """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed."""
+    """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed (the
+    node of rank 0, which holds the whole mesh besides, is the one that must fit)."""
     s = n / model["n0"]
     fixed = model["c"] + model["r"] * s
+    whole = model.get("w", 0.0) * s
     shared = model["s"] * s + (model["d"] - model["s"]) * s ** (4.0 / 3.0)
     usable = NODE_GB * 1024 * NODE_USABLE
     lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
              f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
              f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it the mode shapes "
-             f"{model['s'] * s / 1024:.1f} GB / P)"]
+             f"{model['s'] * s / 1024:.1f} GB / P), rank 0 {whole / 1024:.1f} GB more "
+             "(the whole mesh)"]
     for ranks_per_node in (1, 2, 4, 8):
-        if ranks_per_node * fixed >= usable:
+        if ranks_per_node * fixed + whole >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
                          "part alone does not fit")
             continue
         nodes = 1
-        while ranks_per_node * (fixed + shared / (nodes * ranks_per_node)) > usable:
+        while ranks_per_node * (fixed + shared / (nodes * ranks_per_node)) + whole > usable:
             nodes += 1
         lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: {nodes} nodes "
                      f"({nodes * ranks_per_node} ranks, "
-                     f"{fixed / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB per rank)")
+                     f"{fixed / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB per rank, "
+                     f"rank 0 {(fixed + whole) / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB)")
     return lines
 
 
@@ -229,7 +247,7 @@ def main(argv=None) -> int:
     if {1, 2} <= {r["ranks"] for r in rows}:
         model = memory_model(rows)
         print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
-              f"d = {model['d']:.0f} MB (divided; the mode shapes {model['s']:.0f} MB of it) "
+              f"w = {model['w']:.0f} MB (rank 0's whole mesh), d = {model['d']:.0f} MB (divided; the mode shapes {model['s']:.0f} MB of it) "
               f"at {model['n0']} free DOFs")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)

@@ -190,7 +190,7 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
     # K, M and full by deleting them), so the FEModel record is dropped here
     space, regions, fixed, free, props, mesh_path = (fe.space, fe.regions, fe.fixed,
                                                      fe.free, fe.props, fe.mesh_path)
-    mesh_sha256 = fe.mesh_sha256
+    mesh_sha256, materials = fe.mesh_sha256, fe.materials
     support_lines = support_summary(fe, modes) if cfg.supports else []
     body = space.body
     K, M = fe.K, fe.M
@@ -229,7 +229,8 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
     modes.release_factorization()  # idempotent: freed when K was dropped
     tree.update(core_datasets(space, regions, fixed, props, modes, shapes, labels))
     if cfg.materials or cfg.masses:
-        tree.update(materials_datasets(config_materials(space, cfg)))
+        tree.update(materials_datasets(materials if materials is not None
+                                       else config_materials(space, cfg)))
     multigrid = modes.stats and modes.stats.get("method") == "multigrid-lobpcg"
     group_attrs.update(core_group_attrs(
         space, cfg.mesh.order, free.size, "" if mesh_path is None else str(mesh_path),

@@ -29,8 +29,10 @@ import pytest
 from conftest import ALUMINIUM, ROOT, build_model
 from pipeline.distributed.assemble import local_node_mass, local_rows
 from pipeline.distributed.partition import slab_partition
+from pipeline.distributed.submesh import split_mesh
 from pipeline.fe.assemble import assemble_on_nodes
-from pipeline.fe.body import body_properties
+from pipeline.fe.body import body_properties, properties_from_rigid_mass
+from pipeline.fe.materials import assign_materials
 
 MPI_PYTHON = ROOT / ".venv-mpi" / "bin" / "python"
 FREQUENCY_TOL = 1e-8
@@ -38,17 +40,10 @@ DATASET_TOL = 1e-8
 SKIPPED = {"modes/residuals"}  # round-off measures (|K phi - w2 M phi| / |K phi| ~ 1e-13)
 
 
-class _Sum:
-    """SummedMatrix without MPI: the emulated ranks' shares added here."""
-
-    def __init__(self, parts):
-        self.parts, self.shape = parts, parts[0].shape
-
-    def __matmul__(self, X):
-        return sum(p @ X for p in self.parts)
-
-
 def test_rows_of_the_ranks_are_the_serial_matrices(tmp_path):
+    """Each emulated rank assembles from its part of the mesh only (the elements touching
+    its points, renumbered): its rows stacked are the serial K and M, every element's
+    node mass is summed by exactly one rank, and no part is the whole mesh."""
     model = build_model(tmp_path, size=0.02)
     space, free = model.space, model.free
     size = 3
@@ -57,17 +52,22 @@ def test_rows_of_the_ranks_are_the_serial_matrices(tmp_path):
     assert np.all(part.starts % 3 == 0)  # whole points per rank
     K = model.K[part.order][:, part.order].toarray()  # serial, PETSc order
     M = model.M[part.order][:, part.order].toarray()
-    rows = [local_rows(space, ALUMINIUM, free, part, r) for r in range(size)]
+    parts = list(split_mesh(space, assign_materials(space, ALUMINIUM), free, part, size))
+    rows = [local_rows(p) for p in parts]
     Kd = np.vstack([r.K.toarray() for r in rows])
     Md = np.vstack([r.M.toarray() for r in rows])
     # a different summation order of the same element values: round-off of K's scale
     assert np.abs(Kd - K).max() <= 1e-13 * np.abs(K).max()
     assert np.abs(Md - M).max() <= 1e-13 * np.abs(M).max()
-    assert sum(r.n_elements for r in rows) < 2 * space.element_nodes.shape[0]  # slabs
+    n_el = space.element_nodes.shape[0]
+    assert sum(r.n_elements for r in rows) < 2 * n_el  # slabs
+    assert all(p.points.size < space.n_nodes and p.space.element_nodes.shape[0] < n_el
+               for p in parts)
+    assert sum(p.mass_elements.size for p in parts) == n_el
     node_mass = assemble_on_nodes(space, ALUMINIUM).node_mass
     serial = body_properties(node_mass, space.node_points)
-    shared = body_properties(_Sum([local_node_mass(space, ALUMINIUM, r, size)
-                                   for r in range(size)]), space.node_points)
+    shared = properties_from_rigid_mass(sum(
+        body_properties(local_node_mass(p), p.space.node_points).rigid_mass for p in parts))
     assert shared.mass == pytest.approx(serial.mass, rel=1e-14)
     np.testing.assert_allclose(shared.rigid_mass, serial.rigid_mass, rtol=0,
                                atol=1e-13 * np.abs(serial.rigid_mass).max())
@@ -75,13 +75,13 @@ def test_rows_of_the_ranks_are_the_serial_matrices(tmp_path):
 
 def test_stress_modes_of_the_ranks_rows_add_up_to_the_whole(tmp_path):
     """Stress recovery is linear in the displacements: each emulated rank's share (its
-    own rows, recovered over the elements touching its points) summed over the ranks is
-    the serial recovery of the whole field, to round-off of K's summation order."""
+    own rows, recovered on its part of the mesh over the elements touching its points,
+    divided by the whole mesh's volume around each node) summed over the ranks is the
+    serial recovery of the whole field, to round-off of the summation order."""
     from types import SimpleNamespace
 
     from pipeline.distributed.blocks import RowBlock
     from pipeline.distributed.reduce import stress_blocks
-    from pipeline.fe.materials import assign_materials
     from pipeline.fe.strain import stress_fields
 
     model = build_model(tmp_path, size=0.02)
@@ -93,9 +93,9 @@ def test_stress_modes_of_the_ranks_rows_add_up_to_the_whole(tmp_path):
     size = 3
     part = slab_partition(space.node_points, free, size)
     stress, strain = np.zeros_like(whole.stress), np.zeros_like(whole.strain)
-    for r in range(size):
+    for r, mesh in enumerate(split_mesh(space, materials, free, part, size)):
         rows = RowBlock(SimpleNamespace(rank=r), part, U[free][part.owned_free(r)])
-        s_r, e_r = stress_blocks(materials, space, free,
+        s_r, e_r = stress_blocks(mesh, space.n_nodes, free,
                                  SimpleNamespace(basis=rows, correction_shapes=None))
         assert s_r.points.size < space.n_nodes  # a share, not the whole mesh
         stress[s_r.points] += s_r.values
@@ -196,7 +196,9 @@ def test_a_failing_rank_stops_all_in_one_line_and_writes_nothing(tmp_path):
 def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
     """The same file, and no rank holds the whole set of mode shapes: each rank's shapes
     are its own rows (tests/mpi_ranks.py asserts it on every rank), the file's shapes
-    and stress modes are written from the ranks' rows block by block."""
+    and stress modes are written from the ranks' rows block by block; only rank 0 runs
+    gmsh, and each rank holds a part of the mesh with fewer points and elements than
+    the whole."""
     mpiexec = _mpiexec()
     args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", f"mesh.size={size}"]
     serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
@@ -204,11 +206,15 @@ def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
     proc = _run([*mpiexec, str(MPI_PYTHON), str(ROOT / "tests" / "mpi_ranks.py"), str(dist),
                  f"mesh.size={size}", f"modes.method={method}"], tmp_path, timeout=600)
     # the ranks' lines may share one line of mpiexec's combined stdout
-    held = sorted(m.split() for m in re.findall(r"rank \d+ rows \d+ of \d+ points \d+ of \d+",
-                                                 proc.stdout))
+    held = sorted(m.split() for m in re.findall(
+        r"rank \d+ rows \d+ of \d+ points \d+ of \d+ gmsh \d+ part \d+ of \d+ "
+        r"elements \d+ of \d+", proc.stdout))
     assert [h[1] for h in held] == ["0", "1"], proc.stdout[-2000:]
     n_free = int(held[0][5])
     assert sum(int(h[3]) for h in held) == n_free and all(int(h[3]) < n_free for h in held)
+    # rank 0 alone meshed; each rank's part of the mesh is less than the whole
+    assert [int(h[11]) for h in held] == [1, 0], held
+    assert all(int(h[13]) < int(h[15]) and int(h[17]) < int(h[19]) for h in held), held
     _same_file(serial, dist)
 
 

@@ -1,13 +1,15 @@
 """One body on many MPI processes: PETSc distributed matrices and SLEPc's eigensolver
 (``modes.solver: slepc``).
 
-Every rank meshes the same body (gmsh meshes deterministically) and builds the same FE
-space; then the free DOFs are split into contiguous slabs along the body's longest
-extent (:mod:`~pipeline.distributed.partition`), each rank assembles only the rows of K
-and M it owns (:mod:`~pipeline.distributed.assemble`, from the elements that touch its
-nodes) and hands them to PETSc as an MPIAIJ matrix, and SLEPc's shift-invert
+Rank 0 meshes the body and evaluates what needs the whole mesh (regions, supports,
+ports, materials); the free DOFs are split into parts of whole points (PT-Scotch, or
+slabs along the body's longest extent: :mod:`~pipeline.distributed.partition`), rank 0
+sends each rank its part of the mesh (:mod:`~pipeline.distributed.submesh`), each
+rank assembles only the rows of K and M it owns (:mod:`~pipeline.distributed.assemble`,
+from the elements that touch its nodes) and hands them to PETSc as an MPIAIJ matrix, and SLEPc's shift-invert
 Krylov-Schur on MUMPS' distributed factor finds the modes
-(:mod:`~pipeline.distributed.eigen`). No rank holds the whole K, M or factor.
+(:mod:`~pipeline.distributed.eigen`). No rank holds the whole K, M or factor, and no
+rank but 0 the whole mesh.
 
 The small quantities the reduce stage and the writer need are made collectively:
 :class:`~pipeline.distributed.operators.RowMatrix` stands in for K and M (a product

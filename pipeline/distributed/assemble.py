@@ -1,6 +1,8 @@
 """A rank's rows of K and M, assembled from the elements that touch its nodes.
 
-Rank r owns the PETSc rows ``lo:hi`` of :class:`~pipeline.distributed.partition.RowPartition`.
+Rank r owns the PETSc rows ``lo:hi`` of :class:`~pipeline.distributed.partition.RowPartition`
+and holds only its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: the
+elements touching its points, local node numbers, the PETSc row of each local DOF).
 It computes the element matrices (the serial assembly's kernels,
 :mod:`pipeline.fe.kernels`: K_e[(a, i), (b, j)] = R[a nb + b, :] @ F_e[:, 3 i + j], M_e =
 rho |det J| M_ref[a, b] delta_ij) of every element with a node among its rows, keeps the
@@ -10,7 +12,8 @@ boundary layer are computed by both neighbours, which is all the communication t
 assembly needs; no rank holds another's rows.
 
 The body's node-level mass N (for the mass properties) is split by elements instead:
-rank r sums the elements ``e_starts[r]:e_starts[r + 1]``, so sum_r N_r = N exactly once.
+rank r sums the elements its part marks as its own (``mass_elements``), every element
+of the mesh on exactly one rank, so sum_r R_r^T N_r R_r = R^T N R.
 
 Several materials: each element takes its own law (C_e, rho_e) as in the serial
 assembly (:func:`pipeline.fe.kernels.element_factors_general`); point and area masses
@@ -25,11 +28,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Material
-from pipeline.distributed.partition import RowPartition
+from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
                                  lame_parameters, reference_data)
 from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
-from pipeline.fe.space import FESpace
 
 
 @dataclass(frozen=True)
@@ -42,15 +44,6 @@ class LocalRows:
     lo: int
     hi: int
     n_elements: int
-
-
-def petsc_numbering(n_dofs: int, free: np.ndarray, part: RowPartition) -> np.ndarray:
-    """(n_dofs,) PETSc row of every DOF, -1 for a fixed one."""
-    rows = np.full(n_dofs, -1, dtype=np.int64)
-    inverse = np.empty(part.order.size, dtype=np.int64)
-    inverse[part.order] = np.arange(part.order.size)
-    rows[np.asarray(free)] = inverse
-    return rows
 
 
 class _Sum:
@@ -83,23 +76,16 @@ def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
     return material
 
 
-def local_rows(space: FESpace, material: Material | ElementMaterials, free: np.ndarray,
-               part: RowPartition, rank: int, chunk_size: int = 512,
-               added: sp.spmatrix | None = None) -> LocalRows:
-    """Rank ``rank``'s rows of K (N/m) and M (kg) on the free DOFs (see the module).
-    ``material``: one isotropic Material or the per-element materials
-    (:func:`pipeline.fe.materials.config_materials`: several laws, anisotropic ones,
-    non-structural mass in each element's density); ``added``: (n_dofs, n_dofs) point
-    and area masses (kg, :func:`pipeline.fe.added_mass.added_mass_matrix`), whose owned
-    rows go into M."""
-    lo, hi = part.rows(rank)
-    n_free = int(part.order.size)
-    petsc_row = petsc_numbering(space.n_dofs, free, part)
-    owned = np.zeros(space.n_nodes, dtype=bool)
-    owned[np.asarray(free)[part.owned_free(rank)] // 3] = True
+def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
+    """This rank's rows of K (N/m) and M (kg) on the free DOFs (see the module), from
+    its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: its elements
+    in the whole mesh's order, their materials, the PETSc row of each local DOF, its rows
+    of the point and area masses, which go into M)."""
+    space, lo, hi = mesh.space, mesh.lo, mesh.hi
+    petsc_row = mesh.dof_rows
     en = space.element_nodes
-    elements = np.flatnonzero(owned[en].any(axis=1))
-    material = _law(material)
+    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
+    material = _law(mesh.materials)
     if isinstance(material, Material):
         lam, mu = lame_parameters(material)
     else:
@@ -108,7 +94,7 @@ def local_rows(space: FESpace, material: Material | ElementMaterials, free: np.n
     nb = en.shape[1]
     comp = np.arange(3)
     k_sum, m_sum = _Sum(), _Sum()
-    shape = (hi - lo, n_free)
+    shape = (hi - lo, mesh.n_free)
     for start in range(0, elements.size, chunk_size):
         chunk = elements[start:start + chunk_size]
         if isinstance(material, Material):
@@ -132,13 +118,8 @@ def local_rows(space: FESpace, material: Material | ElementMaterials, free: np.n
         cols_m = np.broadcast_to(rows[:, None, :, :], mvals.shape)
         keep = (rows_m >= lo) & (rows_m < hi) & (cols_m >= 0)
         m_sum.add(sp.csr_matrix((mvals[keep], (rows_m[keep] - lo, cols_m[keep])), shape=shape))
-    if added is not None:  # its owned rows, PETSc's row and column numbers
-        owned_dofs = np.asarray(free)[part.owned_free(rank)]
-        rows_a = sp.csr_matrix(added)[owned_dofs].tocoo()
-        cols = petsc_row[rows_a.col]
-        keep = cols >= 0
-        m_sum.add(sp.csr_matrix((rows_a.data[keep], (rows_a.row[keep], cols[keep])),
-                                shape=shape))
+    if mesh.added is not None:  # its owned rows, PETSc's row and column numbers
+        m_sum.add(mesh.added)
     K, M = k_sum.total(shape), m_sum.total(shape)
     for A in (K, M):
         A.indices = A.indices.astype(np.int32, copy=False)
@@ -146,17 +127,16 @@ def local_rows(space: FESpace, material: Material | ElementMaterials, free: np.n
     return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
 
 
-def local_node_mass(space: FESpace, material: Material | ElementMaterials, rank: int,
-                    size: int) -> sp.csr_matrix:
-    """(n_nodes, n_nodes) node-level mass (kg) of this rank's share of the elements; the
-    sum over the ranks is the body's N (M = N (x) I_3)."""
-    n_t = space.element_nodes.shape[0]
-    chunk = np.arange((n_t * rank) // size, (n_t * (rank + 1)) // size)
+def local_node_mass(mesh: RankMesh) -> sp.csr_matrix:
+    """(n_loc, n_loc) node-level mass (kg) of the elements whose mass this rank sums
+    (``mesh.mass_elements``, local node numbers); over the ranks every element once, so
+    the ranks' rigid masses R^T N R add up to the body's (M = N (x) I_3)."""
+    space, chunk = mesh.space, mesh.mass_elements
     _, mass_ref = reference_data(space.order)
     _, vol = inverse_jacobians(space, chunk)
     en = space.element_nodes[chunk]
     nb = en.shape[1]
-    material = _law(material)
+    material = _law(mesh.materials)
     rho = material.rho if isinstance(material, Material) else material.rho[chunk]
     vals = (rho * vol)[:, None, None] * mass_ref[None]
     rows = np.broadcast_to(en[:, :, None], (chunk.size, nb, nb))

@@ -4,8 +4,7 @@ The reduce stage runs on every rank with the same replicated small blocks (mode 
 port loads F, output rows T); it touches K and M only through products with such
 blocks, their diagonals and solves with K. :class:`RowMatrix` computes its own rows of
 A X and gathers the rest (MPI_Allgatherv): every rank gets the same (n_free, k) result.
-:class:`SummedMatrix` is a matrix split into a sum over ranks (the node-level mass for
-the body's mass properties). :class:`KspSolve` solves K X = B with the distributed
+:class:`KspSolve` solves K X = B with the distributed
 factor that SLEPc's spectral transformation made (shift 0: the operator is K itself).
 Every call is collective: all ranks make it, in the same order.
 """
@@ -16,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.distributed.blocks import RowBlock
-from pipeline.distributed.mpi import allgather_rows, allreduce_sum
+from pipeline.distributed.mpi import allgather_rows
 from pipeline.distributed.partition import RowPartition
 
 
@@ -96,17 +95,19 @@ class RowMatrix:
         return self.gather(self.local.diagonal(k=self.lo))
 
 
-class SummedMatrix:
-    """A matrix held as a sum of one term per rank: A X = sum_r A_r X (MPI_Allreduce)."""
-
-    ndim = 2
-    dtype = np.dtype(np.float64)
-
-    def __init__(self, comm, local: sp.spmatrix):
-        self.comm, self.local, self.shape = comm, local, local.shape
-
-    def __matmul__(self, X):
-        return allreduce_sum(self.comm, self.local @ np.asarray(X, dtype=np.float64))
+def of_diagonals(fn, K: RowMatrix, M: RowMatrix):
+    """``fn(K_d, M_d)`` of the diagonals of the distributed K and M, for the functions
+    that read only them (:func:`pipeline.solve.thresholds.stiffness_scale`, a median of
+    K_ii / M_ii; :func:`pipeline.solve.eigen.default_shift`): rank 0 gathers every
+    rank's diagonal rows (in PETSc order: ``fn`` must not depend on the order) as sparse
+    diagonal matrices, evaluates ``fn`` and sends the result; the other ranks hold their
+    own rows only."""
+    parts = K.comm.gather([A.local.diagonal(k=A.lo) for A in (K, M)], root=0)
+    value = None
+    if K.comm.rank == 0:
+        value = fn(*(sp.diags(np.concatenate([p[i] for p in parts])).tocsr()
+                     for i in (0, 1)))
+    return K.comm.bcast(value, root=0)
 
 
 class KspSolve:

@@ -62,40 +62,32 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
     return RowPartition(order=order, starts=starts)
 
 
-def graph_partition(PETSc, comm, element_nodes: np.ndarray, node_points: np.ndarray,
-                    free: np.ndarray, kind: str = "ptscotch") -> RowPartition:
+def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
+                    node_points: np.ndarray | None, free: np.ndarray | None,
+                    kind: str = "ptscotch") -> RowPartition:
     """A partition of whole points by PETSc's MatPartitioning (``kind``: ``ptscotch``;
     Debian's PETSc has no ParMETIS) of the point graph (two points adjacent when an
-    element holds both), collectively: each rank builds the graph rows of its slab's
-    points (the initial distribution), PETSc moves the points to ``size`` parts of
-    nearly equal count with few cut edges, and every rank learns every point's part
-    (one integer per point). Within a part the rows keep the slab order, a point's DOFs
-    together; rank r owns part r."""
-    import scipy.sparse as sp
-
-    free = np.asarray(free)
+    element holds both), collectively. Only rank 0 needs the mesh (the others may pass
+    None): it builds the graph rows of each rank's slab of points (the initial
+    distribution) and sends them, PETSc moves the points to ``size`` parts of nearly
+    equal count with few cut edges, rank 0 gathers each point's part and makes the
+    partition, which every rank receives (its ``order``: one integer per free DOF).
+    Within a part the rows keep the slab order, a point's DOFs together; rank r owns
+    part r."""
     size, rank = comm.size, comm.rank
-    points = np.asarray(node_points, dtype=float)
-    axis = int(np.argmax(np.ptp(points, axis=0))) if points.shape[0] else 0
-    up = np.unique(free // 3)  # the points with a free DOF: the graph's vertices
-    vorder = up[np.argsort(points[up, axis], kind="stable")]  # vertex v is point vorder[v]
-    vertex = np.full(points.shape[0], -1, dtype=np.int64)
-    vertex[vorder] = np.arange(vorder.size)
-    vs = [(vorder.size * r) // size for r in range(size + 1)]
-    mine = vorder[vs[rank]:vs[rank + 1]]
-    n_el, nb = element_nodes.shape
-    E = sp.csr_matrix((np.ones(n_el * nb), element_nodes.ravel(),
-                       np.arange(0, n_el * nb + 1, nb)), shape=(n_el, points.shape[0]))
-    A = (E.T.tocsr()[mine] @ E).tocoo()  # (my points, all points): shared elements
-    cols = vertex[A.col]
-    keep = (cols >= 0) & (cols != vs[rank] + A.row)  # free points, no self loops
-    adj = sp.csr_matrix((np.ones(int(keep.sum())), (A.row[keep], cols[keep])),
-                        shape=(mine.size, vorder.size))
-    adj.sum_duplicates()
-    adj.sort_indices()
-    G = PETSc.Mat().createAIJ(size=((mine.size, vorder.size), (mine.size, vorder.size)),
-                              csr=(adj.indptr.astype(PETSc.IntType),
-                                   adj.indices.astype(PETSc.IntType), adj.data),
+    if rank == 0:
+        vertex, vorder, rows = _slab_graph_rows(element_nodes, node_points, free, size)
+        for r, adj in enumerate(rows):
+            if r == 0:
+                mine = adj
+            else:
+                comm.send(adj, dest=r, tag=39)
+    else:
+        mine = comm.recv(source=0, tag=39)
+    n_v = mine.shape[1]
+    G = PETSc.Mat().createAIJ(size=((mine.shape[0], n_v), (mine.shape[0], n_v)),
+                              csr=(mine.indptr.astype(PETSc.IntType),
+                                   mine.indices.astype(PETSc.IntType), mine.data),
                               comm=PETSc.COMM_WORLD)
     G.assemble()
     mp = PETSc.MatPartitioning().create(comm=PETSc.COMM_WORLD)
@@ -104,13 +96,53 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray, node_points: np.ndar
     mp.setFromOptions()  # -mat_partitioning_* options override
     parts = PETSc.IS()
     mp.apply(parts)
-    owner = np.concatenate(comm.allgather(np.asarray(parts.getIndices(), dtype=np.int64)))
+    owner = comm.gather(np.asarray(parts.getIndices(), dtype=np.int64), root=0)
     for obj in (parts, mp, G):
         obj.destroy()
-    v_of_dof = vertex[free // 3]
-    order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
-    counts = np.bincount(owner[v_of_dof], minlength=size)
-    return RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]))
+    part = None
+    if rank == 0:
+        owner = np.concatenate(owner)
+        free = np.asarray(free)
+        v_of_dof = vertex[free // 3]
+        order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
+        counts = np.bincount(owner[v_of_dof], minlength=size)
+        part = RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]))
+    return comm.bcast(part, root=0)
+
+
+def _slab_graph_rows(element_nodes: np.ndarray, node_points: np.ndarray, free: np.ndarray,
+                     size: int):
+    """(vertex (n_points,): the graph vertex of each point, -1 without a free DOF;
+    vorder (n_v,): the point of each vertex, sorted along the longest extent; an iterator
+    of each rank's (its slab's vertices, n_v) CSR adjacency rows, no self loops)."""
+    import scipy.sparse as sp
+
+    free = np.asarray(free)
+    points = np.asarray(node_points, dtype=float)
+    axis = int(np.argmax(np.ptp(points, axis=0))) if points.shape[0] else 0
+    up = np.unique(free // 3)  # the points with a free DOF: the graph's vertices
+    vorder = up[np.argsort(points[up, axis], kind="stable")]  # vertex v is point vorder[v]
+    vertex = np.full(points.shape[0], -1, dtype=np.int64)
+    vertex[vorder] = np.arange(vorder.size)
+    vs = [(vorder.size * r) // size for r in range(size + 1)]
+    n_el, nb = element_nodes.shape
+    E = sp.csr_matrix((np.ones(n_el * nb), element_nodes.ravel(),
+                       np.arange(0, n_el * nb + 1, nb)), shape=(n_el, points.shape[0]))
+    ET = E.T.tocsr()
+
+    def rows():
+        for r in range(size):
+            mine = vorder[vs[r]:vs[r + 1]]
+            A = (ET[mine] @ E).tocoo()  # (its points, all points): shared elements
+            cols = vertex[A.col]
+            keep = (cols >= 0) & (cols != vs[r] + A.row)  # free points, no self loops
+            adj = sp.csr_matrix((np.ones(int(keep.sum())), (A.row[keep], cols[keep])),
+                                shape=(mine.size, vorder.size))
+            adj.sum_duplicates()
+            adj.sort_indices()
+            yield adj
+
+    return vertex, vorder, rows()
 
 
 def cut_measures(local_K, lo: int, hi: int) -> tuple[int, int]:

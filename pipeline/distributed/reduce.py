@@ -30,9 +30,9 @@ import numpy as np
 from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.mpi import allreduce_sum
+from pipeline.distributed.operators import of_diagonals
 from pipeline.errors import ConfigError, SolverError
-from pipeline.fe.materials import ElementMaterials, config_materials
-from pipeline.fe.ports import port_matrices
+from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
 from pipeline.reduce.build import _damping_spec, check_ports_act
 from pipeline.reduce.modal import (DampingSpec, ReducedModel, _keep_clusters_whole, _omega,
@@ -73,7 +73,7 @@ def check_basis_rows(K, M, Phi: RowBlock, omega2: np.ndarray, tol: float = 1e-6)
     diag(omega2), measured as :func:`pipeline.reduce.modal.check_modal_basis` does."""
     n = omega2.size
     errM = float(np.abs(Phi.gram(M.apply(Phi)) - np.eye(n)).max(initial=0.0))
-    floor = 1e-6 * stiffness_scale(K, M)
+    floor = 1e-6 * of_diagonals(stiffness_scale, K, M)
     scale = max(float(np.abs(omega2).max(initial=0.0)), floor) or 1.0
     errK = float(np.abs(Phi.gram(K.apply(Phi)) - np.diag(omega2)).max(initial=0.0)) / scale
     if errM > tol or errK > tol:
@@ -108,7 +108,7 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
     from pipeline.reduce.filters import filtered_model
 
     Phi: RowBlock = modes.shapes
-    ports = port_matrices(space, regions, cfg.ports, material=config_materials(space, cfg))
+    ports = space.ports  # rank 0's, from the whole mesh (pipeline.distributed.stage)
     F_free = ports.F[free].tocsr()
     T = ports.T[:, free].tocsr()
     loaded = np.unique(F_free.nonzero()[0])  # the column maxima of the loaded rows only
@@ -170,31 +170,38 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     return model
 
 
-def label_rows(space, free, Phi: RowBlock, n_rigid: int, weights: np.ndarray) -> list[str]:
+def label_rows(space, free, Phi: RowBlock, n_rigid: int) -> list[str]:
     """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
-    every sum over the mesh points is summed over the ranks."""
+    every sum over the mesh points is summed over the ranks. The slices along the body
+    need every point's position and volume weight: rank 0 sends them for this step only
+    (32 bytes a point; ``space``: a :class:`~pipeline.distributed.submesh.DistributedSpace`)."""
     from pipeline.solve.labels import label_modes
 
     points, values = Phi.on_points(free)
-    return label_modes(space.node_points, values, n_rigid, weights, nodes=points,
+    whole = (space.node_points, space.node_weights) if Phi.comm.rank == 0 else None
+    node_points, weights = Phi.comm.bcast(whole, root=0)
+    return label_modes(node_points, values, n_rigid, weights, nodes=points,
                        reduce_sum=lambda a: allreduce_sum(Phi.comm, a))
 
 
-def shapes_blocks(space, free, Phi: RowBlock) -> PointBlocks:
+def shapes_blocks(n_points: int, free, Phi: RowBlock) -> PointBlocks:
     """The ``/modes/shapes`` dataset (n_points, 3, m), written from the ranks' rows
     (free: (n_free,) the DOF of each free row)."""
-    return PointBlocks(Phi.comm, space.n_nodes, *Phi.on_points(free))
+    return PointBlocks(Phi.comm, n_points, *Phi.on_points(free))
 
 
-def stress_blocks(materials: ElementMaterials, space, free, reduced: ReducedModel
+def stress_blocks(mesh: RankMesh, n_points: int, free, reduced: ReducedModel
                   ) -> tuple[PointBlocks, PointBlocks]:
     """(stress, strain) datasets (n_points, 6, n_b + n_u) of the basis and the correction
-    shapes, each rank recovering its own rows' share (module); several laws: each
-    element's own stiffness, as :func:`pipeline.fe.strain.stress_fields`."""
+    shapes, each rank recovering its own rows' share (module) on its part of the mesh
+    (``mesh``; the whole mesh's element volume around each node as the denominator);
+    several laws: each element's own stiffness, as :func:`pipeline.fe.strain.stress_fields`."""
     cols = [reduced.basis] + ([reduced.correction_shapes]
                               if reduced.correction_shapes is not None else [])
     block = cols[0].like(np.hstack([c.local for c in cols]))
     points, values = block.on_points(free)
+    points = mesh.local_nodes(points)
+    space = mesh.space
     node_row = np.full(space.n_nodes, points.size)  # others' points: the zero row below
     node_row[points] = np.arange(points.size)
     U = np.concatenate([values, np.zeros((1,) + values.shape[1:])]).reshape(-1,
@@ -204,12 +211,14 @@ def stress_blocks(materials: ElementMaterials, space, free, reduced: ReducedMode
     mine[points] = True
     elements = np.flatnonzero(mine[en].any(axis=1))
     touched = np.unique(en[elements])
-    strain = nodal_strains_at(space, U, touched, elements, node_row)
+    weight = mesh.node_volume[touched]
+    strain = nodal_strains_at(space, U, touched, elements, node_row, node_weight=weight)
+    materials = mesh.materials
     if materials.uniform is not None:
         stress = stresses_from_strains(strain, materials.uniform)
     else:
         stress = nodal_strains_at(space, U, touched, elements, node_row,
-                                  element_D=materials.element_D)
+                                  element_D=materials.element_D, node_weight=weight)
     comm = block.comm
-    return (PointBlocks(comm, space.n_nodes, touched, stress),
-            PointBlocks(comm, space.n_nodes, touched, strain))
+    return (PointBlocks(comm, n_points, mesh.points[touched], stress),
+            PointBlocks(comm, n_points, mesh.points[touched], strain))

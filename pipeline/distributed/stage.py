@@ -3,8 +3,10 @@ the serial stages (:class:`~pipeline.fe.model.FEModel`, :class:`~pipeline.solve.
 with K and M as :class:`~pipeline.distributed.operators.RowMatrix` stand-ins, so that
 :func:`pipeline.run.run_pipeline` runs the reduce stage unchanged on every rank.
 
-Per rank, memory: the mesh and FE space (every rank meshes the same body: O(n_points),
-replicated), its rows of K and M (1/size of them, plus one element layer), its part of
+Per rank, memory: its part of the mesh and an FE space on it (rank 0 meshes the body
+and sends each rank the elements touching its points, :mod:`pipeline.distributed.submesh`;
+rank 0 alone keeps the whole mesh's points and elements, which it writes), its rows of
+K and M (1/size of them, plus one element layer), its part of
 MUMPS' factor, and its rows of the mode shapes (a :class:`RowBlock`, 8 n_free n_modes /
 size bytes); the reduce stage and the writer work from those rows
 (:mod:`pipeline.distributed.reduce`), rank 0 writing the shapes and stress modes one
@@ -16,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,21 +29,23 @@ from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows
 from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
-from pipeline.distributed.mpi import petsc, world
-from pipeline.distributed.operators import KspSolve, RowMatrix, SummedMatrix
+from pipeline.distributed.mpi import allreduce_sum, petsc, world
+from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
 from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.added_mass import added_mass_matrix
 from pipeline.fe.body import (body_properties, node_volume_weights,
                               properties_from_rigid_mass, rigid_body_modes)
 from pipeline.fe.materials import config_materials
-from pipeline.fe.ports import check_gauges
+from pipeline.fe.ports import check_gauges, port_matrices
 from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
 from pipeline.fe.supports import rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
+                                          split_mesh)
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
@@ -126,85 +131,152 @@ def abort_on_failure():
         raise
 
 
-def check_rank_memory(space, cfg: Config, comm) -> int:
+def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     """Refuse, on every rank and before the assembly, a run whose ranks on one node would
     need more than the node has (ResourceError, one line). Per rank: the serial model of
-    :mod:`pipeline._util.resources` for the whole problem (factor method), its K, M and
-    factor share and its three (n_dofs, n_modes) arrays of mode shapes divided by the
-    rank count, plus what every rank holds (baseline, mesh). Returns the bytes per rank."""
+    :mod:`pipeline._util.resources` for the whole problem (factor method; ``n_nodes``
+    mesh points, ``n_el`` elements), its K, M and factor share and its three (n_dofs,
+    n_modes) arrays of mode shapes divided by the rank count, plus what every rank holds
+    (baseline); each rank's part of the mesh is the whole mesh / ranks, and rank 0 holds
+    the whole mesh besides (it meshes and writes). Returns this rank's bytes."""
     from mpi4py import MPI
 
     from pipeline._util import resources as res
     from pipeline.errors import ResourceError
 
-    n_nodes, n_el, count = space.n_nodes, space.body.n_tetrahedra, cfg.modes.count
+    count, n_dofs = cfg.modes.count, 3 * n_nodes
     mesh = res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el
-    whole = res.estimate_memory_bytes(n_nodes, n_el, space.order, count, "factor",
+    whole = res.estimate_memory_bytes(n_nodes, n_el, cfg.mesh.order, count, "factor",
                                       solver="pardiso")
-    replicated = res.BASELINE_BYTES + mesh
-    shapes = 3 * 8.0 * space.n_dofs * count
-    per_rank = int(replicated + (whole - res.BASELINE_BYTES - mesh + shapes) / comm.size)
-    node_ranks = comm.Split_type(MPI.COMM_TYPE_SHARED).size
-    need = comm.allreduce(per_rank * node_ranks, op=MPI.MAX)
+    shapes = 3 * 8.0 * n_dofs * count
+    divided = (whole - res.BASELINE_BYTES + shapes) / comm.size
+    per_rank = int(res.BASELINE_BYTES + divided + (mesh if comm.rank == 0 else 0))
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    node_ranks = node.size
+    need = comm.allreduce(node.allreduce(per_rank), op=MPI.MAX)
+    top = comm.allreduce(per_rank, op=MPI.MAX)
+    node.Free()
     have = comm.allreduce(res.available_memory_bytes(), op=MPI.MIN)
     log.info("memory estimate %.2f GB per rank, %d ranks on this node, %.2f GB available",
              per_rank / 1e9, node_ranks, have / 1e9)
     if need > res.HEADROOM * have:
         raise ResourceError(
-            f"mesh with {space.n_dofs} DOFs on {comm.size} ranks needs about "
-            f"{per_rank / 1e9:.1f} GB per rank, {need / 1e9:.1f} GB for the {node_ranks} "
+            f"mesh with {n_dofs} DOFs on {comm.size} ranks needs about "
+            f"{top / 1e9:.1f} GB per rank, {need / 1e9:.1f} GB for the {node_ranks} "
             f"ranks of one node, but only {have / 1e9:.1f} GB is available; expected more "
             "nodes (fewer ranks per node) or a larger mesh.size")
     return per_rank
 
 
+@dataclass(frozen=True)
+class WholeMesh:
+    """What rank 0 evaluates on the whole mesh before the parts are sent (the others
+    receive the parts, the counts and the small results): the space, its regions, the
+    element materials, the added masses (or None), the held and the free DOFs, the rigid
+    motions the supports leave (None: a free body), the port matrices (None: no
+    reduction), the mesh file kept and its SHA-256."""
+
+    space: Any
+    regions: dict
+    materials: Any
+    added: Any
+    fixed: np.ndarray
+    free: np.ndarray
+    rigid: Any
+    ports: Any
+    mesh_path: Path | None
+    mesh_sha256: str
+
+
+def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
+    """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
+    and supports on the whole mesh; every misplaced region or gauge is refused here,
+    before any rank assembles."""
+    body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
+    space = build_space(body, cfg.mesh.order)
+    regions = resolve_regions(space, cfg.regions)
+    check_region_uses(cfg, space, regions)
+    materials = config_materials(space, cfg)
+    added = added_mass_matrix(space, regions, cfg.masses)
+    check_gauges(space, regions, cfg.ports, materials)
+    fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
+    free = free_dofs(space.n_dofs, fixed)
+    left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
+    if cfg.supports:  # partly held: its rigid modes need the serial path's handling
+        left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
+        if left.count:
+            raise ConfigError(
+                f"supports with modes.solver: slepc: the supports leave {left.count} "
+                f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
+                "body is not distributed yet; expected supports that hold every rigid "
+                "motion, no supports (a free body), or another modes.solver",
+                key="supports", value=f"{left.count} rigid motion(s) left",
+                expected="a fully held or a free body")
+    ports = None if cfg.reduction is None else \
+        port_matrices(space, regions, cfg.ports, material=materials)
+    return WholeMesh(space, regions, materials, added, fixed, free, left, ports, mesh_path,
+                     mesh_sha256)
+
+
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
-    """Mesh (every rank, the same mesh), regions, supports, this rank's rows of K and M
-    (PETSc's slab partition), the body's mass properties (summed over the ranks)."""
+    """Rank 0 meshes and evaluates the whole mesh once (:func:`mesh_whole`), partitions
+    the points and sends every rank its part (:mod:`pipeline.distributed.submesh`); each
+    rank assembles its rows of K and M from its part, and the body's mass properties are
+    summed over the ranks. Only rank 0 ever holds the whole mesh."""
     check_supported(cfg)
     comm = world()
+    whole = None
     with stage("mesh"):
-        body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh,
-                                                 mesh_dir if comm.rank == 0 else None, cfg.name)
-        space = build_space(body, cfg.mesh.order)
-        regions = resolve_regions(space, cfg.regions)
-        check_region_uses(cfg, space, regions)
-        materials = config_materials(space, cfg)
-        added = added_mass_matrix(space, regions, cfg.masses)
-        log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", body.n_tetrahedra,
-                 space.cell_type, space.n_nodes, space.n_dofs, comm.size)
-    check_gauges(space, regions, cfg.ports, materials)
-    check_rank_memory(space, cfg, comm)
+        if comm.rank == 0:
+            whole = mesh_whole(cfg, mesh_dir)
+            space = whole.space
+            log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", space.body.n_tetrahedra,
+                     space.cell_type, space.n_nodes, space.n_dofs, comm.size)
+            counts = (space.n_nodes, MeshCounts(space.body.n_tetrahedra, space.body.n_vertices))
+        n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
+    check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
     with stage("assemble"):
-        fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
-        free = free_dofs(space.n_dofs, fixed)
-        left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
-        if cfg.supports:  # partly held: its rigid modes need the serial path's handling
-            left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
-            if left.count:
-                raise ConfigError(
-                    f"supports with modes.solver: slepc: the supports leave {left.count} "
-                    f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
-                    "body is not distributed yet; expected supports that hold every rigid "
-                    "motion, no supports (a free body), or another modes.solver",
-                    key="supports", value=f"{left.count} rigid motion(s) left",
-                    expected="a fully held or a free body")
-        part = partition(space, free, comm)
-        rows = local_rows(space, materials, free, part, comm.rank, added=added)
+        free = None if whole is None else whole.free
+        part = partition(whole, comm)
+        parts = None if whole is None else split_mesh(whole.space, whole.materials, free,
+                                                      part, comm.size, whole.added)
+        mesh = scatter_parts(comm, parts)
+        del parts
+        small = None if whole is None else (
+            whole.free, whole.fixed, whole.rigid, whole.ports, whole.mesh_path,
+            whole.mesh_sha256,
+            None if whole.added is None else added_rigid_mass(whole.space, whole.added))
+        free, fixed, left, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small,
+                                                                                  root=0)
+        log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
+                 mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
+                 mesh_counts.n_tetrahedra)
+        rows = local_rows(mesh)
         cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
         log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries (%d cut, %d halo "
                  "columns)", comm.rank, rows.lo, rows.hi, free.size, rows.n_elements,
                  rows.K.nnz, cut, halo)
-        props = body_properties(
-            SummedMatrix(comm, local_node_mass(space, materials, comm.rank, comm.size)),
-            space.node_points)
-        if added is not None:  # point and area masses: in the rigid properties too
-            props = properties_from_rigid_mass(props.rigid_mass + added_rigid_mass(space, added))
+        rigid_mass = body_properties(local_node_mass(mesh), mesh.space.node_points).rigid_mass
+        rigid_mass = allreduce_sum(comm, rigid_mass)
+        if added_rigid is not None:  # point and area masses: in the rigid properties too
+            rigid_mass = rigid_mass + added_rigid
+        props = properties_from_rigid_mass(rigid_mass)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+        if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
+            space = DistributedSpace(
+                whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
+                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space))
+            regions, materials = whole.regions, whole.materials
+        else:
+            nb = mesh.space.element_nodes.shape[1]
+            space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
+                                     np.zeros((0, nb), np.int64), mesh, ports)
+            regions, materials = {}, mesh.materials
+        del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=RowMatrix(comm, rows.K, part), M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
-                   n_elements=body.n_tetrahedra, rigid=left, materials=materials)
+                   n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials)
 
 
 def added_rigid_mass(space, added) -> np.ndarray:
@@ -216,8 +288,9 @@ def added_rigid_mass(space, added) -> np.ndarray:
     return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
 
 
-def partition(space, free, comm):
-    """The rows of each rank: PT-Scotch's graph partition of the points
+def partition(whole: WholeMesh | None, comm):
+    """The rows of each rank (collective; ``whole`` on rank 0, None elsewhere): PT-Scotch's
+    graph partition of the points
     (:func:`~pipeline.distributed.partition.graph_partition`), or slabs along the
     longest extent on one rank or with the PETSc option ``-pipeline_partition slab``."""
     PETSc, _ = petsc()
@@ -227,8 +300,13 @@ def partition(space, free, comm):
                           "slab", key="-pipeline_partition", value=kind,
                           expected="graph or slab")
     if comm.size == 1 or kind == "slab":
-        return slab_partition(space.node_points, free, comm.size)
-    return graph_partition(PETSc, comm, space.element_nodes, space.node_points, free)
+        part = None if whole is None else \
+            slab_partition(whole.space.node_points, whole.free, comm.size)
+        return comm.bcast(part, root=0)
+    if whole is None:
+        return graph_partition(PETSc, comm, None, None, None)
+    return graph_partition(PETSc, comm, whole.space.element_nodes, whole.space.node_points,
+                           whole.free)
 
 
 def compute_modes(fe: FEModel, cfg: Config) -> Modes:
@@ -251,10 +329,12 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         # whole points on every rank (the partition keeps them): their coordinates give
         # GAMG the rigid-body modes; otherwise GAMG runs without (slower, still right)
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
-        near_null = rigid_near_null_space(PETSc, Kp, fe.space.node_points[rows[::3] // 3])
+        mesh = fe.space.local
+        near_null = rigid_near_null_space(
+            PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
     supported = bool(cfg.supports)
-    shift = default_shift(K, M, supported)
+    shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
     omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
                                        near_null, shift)
     eps, ksp = stats.pop("eps"), stats.pop("ksp")
@@ -276,19 +356,19 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
     n_rigid = int(rigid.sum())
-    labels = label_rows(fe.space, fe.free, shapes, n_rigid, node_volume_weights(fe.space))
+    labels = label_rows(fe.space, fe.free, shapes, n_rigid)
     for f, lab in zip(np.sqrt(omega2) / (2 * np.pi), labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
     return Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
                  residuals=residuals, n_rigid=n_rigid, backend=BACKEND, shift=shift,
                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor,
-                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space, fe.free, shapes))
+                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, fe.free, shapes))
 
 
 def stress_modes_tree(cfg: Config, space, free, models) -> dict:
     """The ``stress_modes`` group from the distributed basis (rank 0 writes it block by
     block, :func:`pipeline.distributed.reduce.stress_blocks`)."""
-    stress, strain = stress_blocks(config_materials(space, cfg), space, free, models.reduced)
+    stress, strain = stress_blocks(space.local, space.n_nodes, free, models.reduced)
     return stress_modes_datasets(stress, strain, models.reduced, models.input_units)
 
 

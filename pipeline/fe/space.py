@@ -87,6 +87,18 @@ def build_space(body: BodyMesh, order: int) -> FESpace:
     return FESpace(mesh, 2, nodes, element_nodes, edges, body)
 
 
+def sub_space(order: int, node_points: np.ndarray, element_nodes: np.ndarray,
+              n_vertices: int) -> FESpace:
+    """The space of a part of a mesh (one MPI rank's elements, :mod:`pipeline.distributed`).
+
+    node_points (n, 3) m: the part's nodes, its ``n_vertices`` vertices first, then (order
+    2) its edge midpoints; element_nodes (n_t, 4 | 10): local node indices, meshio order.
+    It holds what the element kernels and the nodal recovery read (the corner vertices,
+    the element nodes), no scikit-fem mesh and no edge table (nothing a region needs)."""
+    body = BodyMesh(node_points[:n_vertices], element_nodes[:, :4])
+    return FESpace(None, order, node_points, element_nodes, np.zeros((0, 2), np.int64), body)
+
+
 def edge_numbering(tetrahedra: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """skfem's edge numbering of a tetrahedral mesh, computed on integer keys.
 

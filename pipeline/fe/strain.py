@@ -212,16 +212,18 @@ def nodal_strains(space: FESpace, U: np.ndarray, element_D=None) -> np.ndarray:
 
 def nodal_strains_at(space: FESpace, U: np.ndarray, nodes: np.ndarray,
                      elements: np.ndarray | None = None, node_row: np.ndarray | None = None,
-                     element_D=None) -> np.ndarray:
+                     element_D=None, node_weight: np.ndarray | None = None) -> np.ndarray:
     """(p, 6, n_s): :func:`nodal_strains` at the sorted ``nodes`` (p,), summed over
     ``elements`` only (default all; then exact at every node): V_e s_e(x_n) / sum V_e,
     the denominator over all the elements around n. The sum is linear in U, so shares of
     U (the distributed path: each rank's own DOFs, ``node_row`` as in
-    :func:`_element_nodal_chunks`, over the elements that touch them) add up to the whole."""
+    :func:`_element_nodal_chunks`, over the elements that touch them) add up to the whole.
+    ``node_weight`` (p,) m^3, if given, is the denominator sum V_e at ``nodes`` (a part of
+    a mesh: the whole mesh's sums, which the part's own elements may not all reach)."""
     en = space.element_nodes
     vol = element_volumes(space)
     weight = np.bincount(en.ravel(), weights=np.repeat(vol, en.shape[1]),
-                         minlength=space.n_nodes)[nodes]
+                         minlength=space.n_nodes)[nodes] if node_weight is None else node_weight
     whole = nodes.size == space.n_nodes
     out = np.zeros((nodes.size, 6 * U.shape[1]))
     for sel, values in _element_nodal_chunks(space, U, elements, node_row):

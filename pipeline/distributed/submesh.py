@@ -1,0 +1,176 @@
+"""Each rank's part of the mesh: rank 0 meshes the body, every rank gets only its elements.
+
+Rank 0 holds the whole mesh (it writes it to the file) and evaluates once what needs
+the whole of it: regions, supports, ports, materials, added masses and the partition
+of the free DOFs into the ranks' rows (:class:`~pipeline.distributed.partition.RowPartition`).
+Then it cuts out the part of rank r (:func:`split_mesh`):
+
+    P_r = {points p : r owns the PETSc rows of p's free DOFs}
+    E_r = {elements e : e has a node in P_r, or r sums e's node mass (below)}
+    N_r = the nodes of E_r, ascending (vertices first: every global vertex number is
+          below every edge-midpoint number), local node i = global node N_r[i]
+
+and sends r its :class:`RankMesh`: the coordinates of N_r, the elements of E_r renumbered
+to local nodes, their materials, the PETSc row of every local DOF, the whole mesh's
+element volume around each local node (the nodal recovery's denominator), the elements
+whose node mass r sums (each element exactly once: owned by the lowest rank owning one
+of its points; elements with no free point by rank 0) and r's rows of the added mass.
+A rank assembles its rows of K and M from E_r with the serial kernels, in the element
+order of the whole mesh, so its rows are those of the whole-mesh assembly bit for bit.
+
+Memory per rank: O(|N_r| + |E_r|), its part plus one element layer, instead of the whole
+mesh. What stays O(n_points) on every rank is listed in docs/distributed.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.distributed.partition import RowPartition
+from pipeline.fe.materials import ElementMaterials
+from pipeline.fe.space import FESpace, sub_space
+from pipeline.fe.strain import element_volumes
+
+
+@dataclass(frozen=True)
+class RankMesh:
+    """One rank's part of the mesh (see the module).
+
+    space: the FE space of the part (local node numbers). points: (n_loc,) the global
+    node of each local node, ascending. dof_rows: (3 n_loc,) PETSc row of each local DOF
+    (3 i + c), -1 for a fixed one. lo, hi: the PETSc rows this rank owns; n_free: all
+    rows. node_volume: (n_loc,) m^3, the whole mesh's element volume around each local
+    node. mass_elements: local indices of the elements whose node mass this rank sums.
+    materials: the laws of the local elements. added: (hi - lo, n_free) CSR, kg, this
+    rank's rows of the point and area masses (PETSc's column numbers), or None.
+    """
+
+    space: FESpace
+    points: np.ndarray
+    dof_rows: np.ndarray
+    lo: int
+    hi: int
+    n_free: int
+    node_volume: np.ndarray
+    mass_elements: np.ndarray
+    materials: ElementMaterials
+    added: sp.csr_matrix | None = None
+
+    @property
+    def owned_nodes(self) -> np.ndarray:
+        """(n_loc,) bool: the local nodes with a DOF among this rank's rows."""
+        rows = self.dof_rows.reshape(-1, 3)
+        return ((rows >= self.lo) & (rows < self.hi)).any(axis=1)
+
+    def local_nodes(self, global_nodes: np.ndarray) -> np.ndarray:
+        """Local numbers of ``global_nodes`` (all of them in this part)."""
+        return np.searchsorted(self.points, global_nodes)
+
+
+@dataclass(frozen=True)
+class MeshCounts:
+    """The whole mesh's counts, on every rank."""
+
+    n_tetrahedra: int
+    n_vertices: int
+
+
+@dataclass(frozen=True)
+class DistributedSpace:
+    """The FE space as the stages after the FE stage see it on a rank of the distributed
+    path: the whole mesh's counts on every rank, its points and elements (the file's
+    ``/mesh``) on rank 0 only ((0, 3) and (0, nb) elsewhere), this rank's part
+    (``local``), the port matrices rank 0 made (None: no reduction) and (rank 0) the
+    nodal volume weights of the mode labels."""
+
+    order: int
+    n_nodes: int
+    body: MeshCounts
+    node_points: np.ndarray
+    element_nodes: np.ndarray
+    local: RankMesh
+    ports: Any = None
+    node_weights: np.ndarray | None = None
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * self.n_nodes
+
+    @property
+    def cell_type(self) -> str:
+        return self.local.space.cell_type  # the part's elements are the mesh's kind
+
+
+def petsc_numbering(n_dofs: int, free: np.ndarray, part: RowPartition) -> np.ndarray:
+    """(n_dofs,) PETSc row of every DOF, -1 for a fixed one."""
+    rows = np.full(n_dofs, -1, dtype=np.int64)
+    inverse = np.empty(part.order.size, dtype=np.int64)
+    inverse[part.order] = np.arange(part.order.size)
+    rows[np.asarray(free)] = inverse
+    return rows
+
+
+def point_ranks(n_nodes: int, free: np.ndarray, part: RowPartition, size: int) -> np.ndarray:
+    """(n_nodes,) the rank owning each point's free DOFs, ``size`` for a point without."""
+    owner = np.full(n_nodes, size, dtype=np.int64)
+    for r in range(size):
+        owner[np.asarray(free)[part.owned_free(r)] // 3] = r
+    return owner
+
+
+def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
+               part: RowPartition, size: int, added: sp.spmatrix | None = None
+               ) -> Iterator[RankMesh]:
+    """The :class:`RankMesh` of every rank in rank order (the module), from the whole
+    ``space`` with its element ``materials``, the sorted ``free`` DOFs, the partition and
+    the (n_dofs, n_dofs) added masses (kg) or None. One part is made at a time."""
+    free = np.asarray(free)
+    en = space.element_nodes
+    nb = en.shape[1]
+    owner = point_ranks(space.n_nodes, free, part, size)
+    element_rank = owner[en].min(axis=1)
+    element_rank[element_rank == size] = 0  # no free point: rank 0 sums its mass
+    node_volume = np.bincount(en.ravel(), weights=np.repeat(element_volumes(space), nb),
+                              minlength=space.n_nodes)
+    rows = petsc_numbering(space.n_dofs, free, part)
+    added = None if added is None else sp.csr_matrix(added)
+    for r in range(size):
+        elements = np.flatnonzero((owner[en] == r).any(axis=1) | (element_rank == r))
+        points, local = np.unique(en[elements], return_inverse=True)
+        local = local.reshape(elements.size, nb).astype(en.dtype, copy=False)
+        n_vertices = int(np.searchsorted(points, space.body.n_vertices))
+        lo, hi = part.rows(r)
+        mine = None
+        if added is not None:
+            A = added[free[part.owned_free(r)]].tocoo()
+            cols = rows[A.col]
+            keep = cols >= 0
+            mine = sp.csr_matrix((A.data[keep], (A.row[keep], cols[keep])),
+                                 shape=(hi - lo, free.size))
+        yield RankMesh(
+            space=sub_space(space.order, space.node_points[points], local, n_vertices),
+            points=points, dof_rows=rows.reshape(-1, 3)[points].ravel(), lo=lo, hi=hi,
+            n_free=int(free.size), node_volume=node_volume[points],
+            mass_elements=np.flatnonzero(element_rank[elements] == r),
+            materials=ElementMaterials(materials.names, materials.D, materials.law_rho,
+                                       materials.index[elements], materials.rho[elements],
+                                       materials.uniform),
+            added=mine)
+
+
+def scatter_parts(comm, parts: Iterator[RankMesh] | None) -> RankMesh:
+    """This rank's part: rank 0 sends part r to rank r as it makes it (``parts``: the
+    iterator of :func:`split_mesh` on rank 0, None elsewhere) and keeps part 0."""
+    if comm.rank != 0:
+        return comm.recv(source=0, tag=38)
+    mine = None
+    for r, part in enumerate(parts):
+        if r == 0:
+            mine = part
+        else:
+            comm.send(part, dest=r, tag=38)
+    return mine
