@@ -29,12 +29,24 @@ def _datasets(path) -> dict:
     return out, attrs
 
 
+#: datasets that measure round-off: the relative residuals ||K x - w^2 M x|| / ||K x||
+#: of converged modes (1e-11..1e-9 here) are sums of rounding errors, whose digits change
+#: with MKL's thread count and summation order (10 % between a CLI process and a loaded
+#: test worker); both files must hold converged modes: below the solver's tolerance
+#: (1e-10 for block Lanczos at these sizes, times the pencil's conditioning margin)
+ROUND_OFF = {"modes/residuals": 1e-8}
+
+
 def _same_file(a, b) -> None:
     (da, attrs_a), (db, attrs_b) = _datasets(a), _datasets(b)
     assert sorted(da) == sorted(db)
     for name in da:
         x, y = da[name], db[name]
-        if isinstance(x, np.ndarray) and x.dtype.kind == "f":
+        if name in ROUND_OFF:
+            assert np.shape(x) == np.shape(y), name
+            assert np.all(np.abs(x) <= ROUND_OFF[name]), (name, x)
+            assert np.all(np.abs(y) <= ROUND_OFF[name]), (name, y)
+        elif isinstance(x, np.ndarray) and x.dtype.kind == "f":
             scale = float(np.nanmax(np.abs(x))) if np.isfinite(x).any() else 0.0
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * scale, equal_nan=True,
                                        err_msg=name)
