@@ -301,6 +301,29 @@ def test_elastic_supports_on_two_ranks(tmp_path, supports):
     _same_file(serial, dist)
 
 
+@pytest.mark.mpi
+def test_springs_that_leave_rigid_motions_free_are_refused_on_every_rank(tmp_path):
+    """Springs along x only leave y, z and the rotation about x free: a partly held body,
+    which the distributed path does not solve; found after the assembly (the floor of
+    a spring's hold needs K's diagonal), every rank stops with the same line, exit code
+    2 (ConfigError), nothing written."""
+    out = tmp_path / "x.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    proc = subprocess.run([*_mpiexec(), str(MPI_PYTHON), "-m", "pipeline", "run",
+                           "configs/cantilever.yaml", "--set", "mesh.size=0.03", "--set",
+                           "supports=[{region: root, spring: {total: [1.0e9, 0, 0]}}]",
+                           "--set", "modes.solver=slepc", "-o", str(out)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = ["error on rank" + part for part in
+             re.split(r"error on rank", proc.stderr)[1:]]
+    lines = [part.splitlines()[0] for part in lines]
+    assert lines and all("supports with modes.solver: slepc" in line and "3 rigid-body"
+                         in line and "partly held" in line for line in lines), lines
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("overrides, key", [
     (["rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100]}"],
      "rotation"),
