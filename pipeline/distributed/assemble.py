@@ -120,11 +120,19 @@ def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
         m_sum.add(sp.csr_matrix((mvals[keep], (rows_m[keep] - lo, cols_m[keep])), shape=shape))
     if mesh.added is not None:  # its owned rows, PETSc's row and column numbers
         m_sum.add(mesh.added)
-    K, M = k_sum.total(shape), m_sum.total(shape)
-    for A in (K, M):
-        A.indices = A.indices.astype(np.int32, copy=False)
-        A.indptr = A.indptr.astype(np.int32, copy=False)
+    K, M = with_int32_indices(k_sum.total(shape)), with_int32_indices(m_sum.total(shape))
     return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
+
+
+def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:
+    """``A`` as CSR with sorted int32 indices (what
+    :func:`pipeline.distributed.eigen.petsc_matrix` takes)."""
+    A = sp.csr_matrix(A)
+    A.sum_duplicates()
+    A.sort_indices()
+    A.indices = A.indices.astype(np.int32, copy=False)
+    A.indptr = A.indptr.astype(np.int32, copy=False)
+    return A
 
 
 def local_node_mass(mesh: RankMesh) -> sp.csr_matrix:

@@ -27,7 +27,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Config
 from pipeline.errors import ConfigError
-from pipeline.distributed.assemble import local_node_mass, local_rows
+from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
 from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
@@ -42,7 +42,7 @@ from pipeline.fe.mesh import mesh_body
 from pipeline.fe.model import FEModel
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.space import build_space
-from pipeline.fe.supports import rigid_freedoms
+from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms, support_stiffness
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
@@ -81,9 +81,7 @@ def check_supported(cfg: Config) -> None:
                               key=f"masses[{i}].coupling", value="rigid",
                               expected="distributing")
     not_yet = [(key, what) for key, what, present in (
-        ("rotation", "a rotating body", cfg.rotation is not None),
-        ("supports", "elastic supports (spring, bushing)",
-         any(s.spring is not None or s.bushing is not None for s in cfg.supports)))
+        ("rotation", "a rotating body", cfg.rotation is not None),)
         if present]
     if not_yet:
         key, what = not_yet[0]
@@ -173,8 +171,9 @@ class WholeMesh:
     """What rank 0 evaluates on the whole mesh before the parts are sent (the others
     receive the parts, the counts and the small results): the space, its regions, the
     element materials, the added masses (or None), the held and the free DOFs, the rigid
-    motions the supports leave (None: a free body), the port matrices (None: no
-    reduction), the mesh file kept and its SHA-256."""
+    motions the supports leave (None: a free body or elastic supports, judged after
+    the assembly), the port matrices (None: no reduction), the mesh file kept, its
+    SHA-256 and the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m, or None)."""
 
     space: Any
     regions: dict
@@ -186,6 +185,7 @@ class WholeMesh:
     ports: Any
     mesh_path: Path | None
     mesh_sha256: str
+    springs: Any = None
 
 
 def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
@@ -199,23 +199,45 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     materials = config_materials(space, cfg)
     added = added_mass_matrix(space, regions, cfg.masses)
     check_gauges(space, regions, cfg.ports, materials)
+    springs = support_stiffness(space, regions, cfg.supports).springs
     fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
     free = free_dofs(space.n_dofs, fixed)
     left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
-    if cfg.supports:  # partly held: its rigid modes need the serial path's handling
+    if cfg.supports and springs is None:  # springs: judged after the assembly
         left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
-        if left.count:
-            raise ConfigError(
-                f"supports with modes.solver: slepc: the supports leave {left.count} "
-                f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
-                "body is not distributed yet; expected supports that hold every rigid "
-                "motion, no supports (a free body), or another modes.solver",
-                key="supports", value=f"{left.count} rigid motion(s) left",
-                expected="a fully held or a free body")
+        refuse_partly_held(left)
     ports = None if cfg.reduction is None else \
         port_matrices(space, regions, cfg.ports, material=materials)
     return WholeMesh(space, regions, materials, added, fixed, free, left, ports, mesh_path,
-                     mesh_sha256)
+                     mesh_sha256, springs)
+
+
+def refuse_partly_held(left) -> None:
+    """One line (ConfigError) for supports that leave rigid-body motions free."""
+    if left.count:
+        raise ConfigError(
+            f"supports with modes.solver: slepc: the supports leave {left.count} "
+            f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
+            "body is not distributed yet; expected supports that hold every rigid "
+            "motion, no supports (a free body), or another modes.solver",
+            key="supports", value=f"{left.count} rigid motion(s) left",
+            expected="a fully held or a free body")
+
+
+def spring_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMatrix,
+                          comm):
+    """The rigid motions that the held DOFs and the springs leave free, as the serial
+    FE stage judges them (:func:`pipeline.fe.supports.rigid_freedoms` with the body's
+    centre of mass, rigid mass and the floor SOFT_SUPPORT * median(K_ii / M_ii) of K
+    before the springs): evaluated on rank 0 (``whole``), the same on every rank."""
+    median = of_diagonals(lambda Kd, Md: float(np.median(
+        Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
+    left = None
+    if whole is not None:
+        left = rigid_freedoms(whole.space.node_points, props.center_of_mass, whole.fixed,
+                              whole.springs, None, props.rigid_mass,
+                              SOFT_SUPPORT * median if whole.free.size else 0.0)
+    return comm.bcast(left, root=0)
 
 
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
@@ -239,7 +261,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         free = None if whole is None else whole.free
         part = partition(whole, comm)
         parts = None if whole is None else split_mesh(whole.space, whole.materials, free,
-                                                      part, comm.size, whole.added)
+                                                      part, comm.size, whole.added,
+                                                      whole.springs)
         mesh = scatter_parts(comm, parts)
         del parts
         small = None if whole is None else (
@@ -261,6 +284,11 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         if added_rigid is not None:  # point and area masses: in the rigid properties too
             rigid_mass = rigid_mass + added_rigid
         props = properties_from_rigid_mass(rigid_mass)
+        K = RowMatrix(comm, rows.K, part)
+        if mesh.springs is not None:  # springs and bushings: its owned rows added to K
+            left = spring_rigid_freedoms(whole, props, K, RowMatrix(comm, rows.M, part), comm)
+            refuse_partly_held(left)
+            K = RowMatrix(comm, with_int32_indices(rows.K + mesh.springs), part)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
         if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
             space = DistributedSpace(
@@ -274,7 +302,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
-                   K=RowMatrix(comm, rows.K, part), M=RowMatrix(comm, rows.M, part),
+                   K=K, M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
                    n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials)
 

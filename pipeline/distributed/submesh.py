@@ -14,7 +14,8 @@ and sends r its :class:`RankMesh`: the coordinates of N_r, the elements of E_r r
 to local nodes, their materials, the PETSc row of every local DOF, the whole mesh's
 element volume around each local node (the nodal recovery's denominator), the elements
 whose node mass r sums (each element exactly once: owned by the lowest rank owning one
-of its points; elements with no free point by rank 0) and r's rows of the added mass.
+of its points; elements with no free point by rank 0), r's rows of the added mass and
+r's rows of the elastic supports' stiffness (springs, bushings).
 A rank assembles its rows of K and M from E_r with the serial kernels, in the element
 order of the whole mesh, so its rows are those of the whole-mesh assembly bit for bit.
 
@@ -47,6 +48,8 @@ class RankMesh:
     node. mass_elements: local indices of the elements whose node mass this rank sums.
     materials: the laws of the local elements. added: (hi - lo, n_free) CSR, kg, this
     rank's rows of the point and area masses (PETSc's column numbers), or None.
+    springs: (hi - lo, n_free) CSR, N/m, this rank's rows of the springs and bushings
+    (:func:`pipeline.fe.supports.support_stiffness`, PETSc's column numbers), or None.
     """
 
     space: FESpace
@@ -59,6 +62,7 @@ class RankMesh:
     mass_elements: np.ndarray
     materials: ElementMaterials
     added: sp.csr_matrix | None = None
+    springs: sp.csr_matrix | None = None
 
     @property
     def owned_nodes(self) -> np.ndarray:
@@ -123,11 +127,12 @@ def point_ranks(n_nodes: int, free: np.ndarray, part: RowPartition, size: int) -
 
 
 def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
-               part: RowPartition, size: int, added: sp.spmatrix | None = None
-               ) -> Iterator[RankMesh]:
+               part: RowPartition, size: int, added: sp.spmatrix | None = None,
+               springs: sp.spmatrix | None = None) -> Iterator[RankMesh]:
     """The :class:`RankMesh` of every rank in rank order (the module), from the whole
-    ``space`` with its element ``materials``, the sorted ``free`` DOFs, the partition and
-    the (n_dofs, n_dofs) added masses (kg) or None. One part is made at a time."""
+    ``space`` with its element ``materials``, the sorted ``free`` DOFs, the partition,
+    the (n_dofs, n_dofs) added masses (kg) or None and the (n_dofs, n_dofs) spring
+    stiffness (N/m) or None. One part is made at a time."""
     free = np.asarray(free)
     en = space.element_nodes
     nb = en.shape[1]
@@ -138,19 +143,14 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
                               minlength=space.n_nodes)
     rows = petsc_numbering(space.n_dofs, free, part)
     added = None if added is None else sp.csr_matrix(added)
+    springs = None if springs is None else sp.csr_matrix(springs)
     for r in range(size):
         elements = np.flatnonzero((owner[en] == r).any(axis=1) | (element_rank == r))
         points, local = np.unique(en[elements], return_inverse=True)
         local = local.reshape(elements.size, nb).astype(en.dtype, copy=False)
         n_vertices = int(np.searchsorted(points, space.body.n_vertices))
         lo, hi = part.rows(r)
-        mine = None
-        if added is not None:
-            A = added[free[part.owned_free(r)]].tocoo()
-            cols = rows[A.col]
-            keep = cols >= 0
-            mine = sp.csr_matrix((A.data[keep], (A.row[keep], cols[keep])),
-                                 shape=(hi - lo, free.size))
+        owned = free[part.owned_free(r)]
         yield RankMesh(
             space=sub_space(space.order, space.node_points[points], local, n_vertices),
             points=points, dof_rows=rows.reshape(-1, 3)[points].ravel(), lo=lo, hi=hi,
@@ -159,7 +159,20 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
             materials=ElementMaterials(materials.names, materials.D, materials.law_rho,
                                        materials.index[elements], materials.rho[elements],
                                        materials.uniform),
-            added=mine)
+            added=None if added is None else owned_rows(added, owned, rows, free.size),
+            springs=None if springs is None else owned_rows(springs, owned, rows, free.size))
+
+
+def owned_rows(A: sp.csr_matrix, owned: np.ndarray, rows: np.ndarray,
+               n_free: int) -> sp.csr_matrix:
+    """(len(owned), n_free) CSR: the rows ``owned`` (global DOFs, in PETSc row order)
+    of the (n_dofs, n_dofs) ``A``, its columns renumbered to PETSc's (``rows``: the
+    PETSc row of every DOF, -1 for a fixed one, whose columns are dropped)."""
+    B = A[owned].tocoo()
+    cols = rows[B.col]
+    keep = cols >= 0
+    return sp.csr_matrix((B.data[keep], (B.row[keep], cols[keep])),
+                         shape=(owned.size, n_free))
 
 
 def scatter_parts(comm, parts: Iterator[RankMesh] | None) -> RankMesh:
