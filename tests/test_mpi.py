@@ -218,6 +218,19 @@ def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
     _same_file(serial, dist)
 
 
+def _serial_and_two_ranks(tmp_path, config: str, *overrides: str):
+    """Run ``config`` with ``overrides`` in one process and on 2 ranks with
+    ``modes.solver: slepc``; the two result files (serial, distributed)."""
+    args = ["-m", "pipeline", "run", config]
+    for item in overrides:
+        args += ["--set", item]
+    serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
+    _run([sys.executable, *args, "-o", str(serial)], tmp_path)
+    _run([*_mpiexec(), str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o",
+          str(dist)], tmp_path, timeout=600)
+    return serial, dist
+
+
 def _same_file(serial, dist) -> None:
     """Every dataset of ``dist`` equals ``serial``'s (module docstring's tolerances)."""
     with h5py.File(serial) as a, h5py.File(dist) as b:
@@ -248,14 +261,8 @@ def test_materials_and_masses_on_two_ranks(tmp_path):
     """Several materials (steel, an orthotropic CFRP tip), a distributing point mass and
     a stress gauge output: each rank assembles its elements' own laws and its rows of
     the added mass; the file equals the single-process one (a coarse mesh: 10 s)."""
-    mpiexec = _mpiexec()
-    args = ["-m", "pipeline", "run", "configs/cantilever_materials.yaml", "--set",
-            "mesh.size=0.02"]
-    serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
-    _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o", str(dist)],
-         tmp_path, timeout=600)
-    _same_file(serial, dist)
+    _same_file(*_serial_and_two_ranks(tmp_path, "configs/cantilever_materials.yaml",
+                                      "mesh.size=0.02"))
 
 
 @pytest.mark.mpi
@@ -264,14 +271,9 @@ def test_free_body_on_two_ranks(tmp_path):
     modes (frequency 0, labelled rigid) and the same elastic modes. The rigid shapes span
     the same subspace but are any basis of it (either path), so only the elastic shapes
     are compared."""
-    mpiexec = _mpiexec()
-    args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", "mesh.size=0.03",
-            "--set", "supports=[]", "--set", "reduction.static_correction=none",
-            "--set", "lumped=null"]
-    serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
-    _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o", str(dist)],
-         tmp_path, timeout=600)
+    serial, dist = _serial_and_two_ranks(
+        tmp_path, "configs/cantilever.yaml", "mesh.size=0.03", "supports=[]",
+        "reduction.static_correction=none", "lumped=null")
     with h5py.File(serial) as a, h5py.File(dist) as b:
         assert a["modes"].attrs["n_rigid"] == b["modes"].attrs["n_rigid"] == 6
         np.testing.assert_allclose(b["modes/frequencies_hz"][()], a["modes/frequencies_hz"][()],
@@ -291,14 +293,8 @@ def test_elastic_supports_on_two_ranks(tmp_path, supports):
     rank its rows, which it adds to its rows of K (the serial path adds the same entries
     to the same K entries); the held motions are judged on rank 0 as the serial path
     does. The file equals the single-process one (a coarse mesh: a few seconds)."""
-    mpiexec = _mpiexec()
-    args = ["-m", "pipeline", "run", "configs/cantilever.yaml", "--set", "mesh.size=0.02",
-            "--set", f"supports={supports}"]
-    serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
-    _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    _run([*mpiexec, str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o", str(dist)],
-         tmp_path, timeout=600)
-    _same_file(serial, dist)
+    _same_file(*_serial_and_two_ranks(tmp_path, "configs/cantilever.yaml", "mesh.size=0.02",
+                                      f"supports={supports}"))
 
 
 @pytest.mark.mpi
