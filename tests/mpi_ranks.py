@@ -23,10 +23,11 @@ def main(argv: list[str]) -> None:
     from pipeline.config import load_config
     from pipeline.distributed import stage
     from pipeline.distributed.blocks import PointBlocks, RowBlock
+    from pipeline.fe import model
 
     cfg = load_config(ROOT / "configs" / "cantilever.yaml", ["modes.solver=slepc", *argv[1:]])
     seen = {"gmsh": 0}
-    compute, mesh_body = stage.compute_modes, stage.mesh_body
+    compute, mesh_body = stage.compute_modes, model.mesh_body
 
     def spy(fe, config):
         modes = compute(fe, config)
@@ -40,7 +41,7 @@ def main(argv: list[str]) -> None:
         seen["gmsh"] += 1
         return mesh_body(*args, **kwargs)
 
-    stage.compute_modes, stage.mesh_body = spy, meshing
+    stage.compute_modes, model.mesh_body = spy, meshing  # mesh_config's gmsh call
     run.run_pipeline(cfg, argv[0])
     comm = stage.world()
     modes, n_free, n_points = seen["modes"], seen["n_free"], seen["n_points"]

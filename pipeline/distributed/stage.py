@@ -33,16 +33,12 @@ from pipeline.distributed.mpi import allreduce_sum, petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
 from pipeline.fe.assemble import whole_nodes
-from pipeline.fe.added_mass import added_mass_matrix
 from pipeline.fe.body import (body_properties, node_volume_weights,
                               properties_from_rigid_mass, rigid_body_modes)
-from pipeline.fe.materials import config_materials
 from pipeline.fe.ports import check_gauges, port_matrices
-from pipeline.fe.mesh import mesh_body
-from pipeline.fe.model import FEModel
-from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
-from pipeline.fe.space import build_space
-from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms, support_stiffness
+from pipeline.fe.model import FEModel, mesh_config
+from pipeline.fe.regions import fixed_dofs, free_dofs
+from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
@@ -192,14 +188,12 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
     and supports on the whole mesh; every misplaced region or gauge is refused here,
     before any rank assembles."""
-    body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
-    space = build_space(body, cfg.mesh.order)
-    regions = resolve_regions(space, cfg.regions)
-    check_region_uses(cfg, space, regions)
-    materials = config_materials(space, cfg)
-    added = added_mass_matrix(space, regions, cfg.masses)
+    meshed = mesh_config(cfg, mesh_dir)
+    space, regions, materials = meshed.space, meshed.regions, meshed.materials
+    added, springs = meshed.added, meshed.supports.springs
+    mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
+    del meshed
     check_gauges(space, regions, cfg.ports, materials)
-    springs = support_stiffness(space, regions, cfg.supports).springs
     fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
     free = free_dofs(space.n_dofs, fixed)
     left = None  # a free body: six rigid-body modes (FEModel.n_rigid)

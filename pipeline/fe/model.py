@@ -102,6 +102,38 @@ def _untimed(name: str) -> ContextManager[Any]:
     return contextlib.nullcontext()
 
 
+@dataclass(frozen=True)
+class MeshedConfig:
+    """A config's body on its mesh, before any assembly: the tetrahedra count, the mesh
+    file (path or None, SHA-256), the FE space, the named regions (node indices), the
+    element materials, the added masses ((n_dofs, n_dofs) kg, or None) and the
+    supports' stiffness (springs, bushings, local-frame holds)."""
+
+    n_tetrahedra: int
+    mesh_path: Path | None
+    mesh_sha256: str
+    space: FESpace
+    regions: Mapping[str, np.ndarray]
+    materials: ElementMaterials
+    added: sp.spmatrix | None
+    supports: SupportStiffness
+
+
+def mesh_config(cfg: Config, mesh_dir: str | Path | None = None) -> MeshedConfig:
+    """Mesh ``cfg``'s body (gmsh, or its mesh file) into ``mesh_dir``, build the space,
+    resolve the regions (a region used where it cannot be is refused here, before any
+    assembly), the materials, the added masses and the supports' stiffness. The serial
+    FE stage and rank 0 of the distributed one both start here."""
+    body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
+    space = build_space(body, cfg.mesh.order)
+    regions = resolve_regions(space, cfg.regions)
+    check_region_uses(cfg, space, regions)
+    return MeshedConfig(body.n_tetrahedra, mesh_path, mesh_sha256, space, regions,
+                        config_materials(space, cfg),
+                        added_mass_matrix(space, regions, cfg.masses),
+                        support_stiffness(space, regions, cfg.supports))
+
+
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                    progress: ProgressFactory | None = None,
                    stage: StageTimer | None = None, on_stiffness_pattern=None) -> FEModel:
@@ -117,14 +149,12 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     progress = progress or _no_progress
     stage = stage or _untimed
     with stage("mesh"):
-        body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
-        space = build_space(body, cfg.mesh.order)
-        regions = resolve_regions(space, cfg.regions)
-        check_region_uses(cfg, space, regions)
-        materials = config_materials(space, cfg)
-        added = added_mass_matrix(space, regions, cfg.masses)
-        extra = support_stiffness(space, regions, cfg.supports)
-        log.info("%d elements (%s), %d nodes, %d DOFs", body.n_tetrahedra, space.cell_type,
+        meshed = mesh_config(cfg, mesh_dir)
+        space, regions, materials = meshed.space, meshed.regions, meshed.materials
+        added, extra, n_tetrahedra = meshed.added, meshed.supports, meshed.n_tetrahedra
+        mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
+        del meshed
+        log.info("%d elements (%s), %d nodes, %d DOFs", n_tetrahedra, space.cell_type,
                  space.n_nodes, space.n_dofs)
     check_gauges(space, regions, cfg.ports, materials)  # a misplaced gauge: before assembly
     check_memory(space, cfg.modes.count, method=cfg.modes.method, solver=cfg.modes.solver)
@@ -147,7 +177,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                 space.node_points, space.node_points.mean(axis=0), fixed).count:
             on_stiffness_pattern = None
         pattern = block_pattern(space)
-        with progress("assemble", body.n_tetrahedra, "elem") as update:
+        with progress("assemble", n_tetrahedra, "elem") as update:
             assembled = assemble_on_nodes(
                 space, materials, nodes, pattern=pattern, progress=update,
                 on_layout=on_stiffness_pattern if nodes is not None and not grounded
@@ -180,7 +210,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                  "free%s", props.mass, fixed.size, free.size, rigid.count,
                  f" ({', '.join(rigid.names)})" if 0 < rigid.count < 6 else "")
     return FEModel(space=space, regions=regions, fixed=fixed, free=free, K=K, M=M,
-                   props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=body.n_tetrahedra,
+                   props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256, n_elements=n_tetrahedra,
                    K_full=full[0], M_full=full[1], rigid=rigid, support_stiffness=extra,
                    materials=materials, constraint=constraint)
 
