@@ -35,6 +35,12 @@ def _datasets(path) -> dict:
 #: test worker); both files must hold converged modes: below the solver's tolerance
 #: (1e-10 for block Lanczos at these sizes, times the pencil's conditioning margin)
 ROUND_OFF = {"modes/residuals": 1e-8}
+#: the residual flexibility K^-1 F - Phi Lambda^-1 Phi^T F is a difference of nearly
+#: equal terms (1e-8 m/N of a 1.8e-5 m/N compliance here), so round-off of the
+#: compliance's size moves it by 1e-7 of itself between two processes whose MKL sums in
+#: another order; it (and the feedthrough D built from it) is compared to 1e-9 of the
+#: static compliance, as tests/test_mpi.py does
+DIFFERENCES = ("residual_flexibility", "/D")
 
 
 def _same_file(a, b) -> None:
@@ -48,7 +54,11 @@ def _same_file(a, b) -> None:
             assert np.all(np.abs(y) <= ROUND_OFF[name]), (name, y)
         elif isinstance(x, np.ndarray) and x.dtype.kind == "f":
             scale = float(np.nanmax(np.abs(x))) if np.isfinite(x).any() else 0.0
-            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * scale, equal_nan=True,
+            atol = 1e-12 * scale
+            if (name.startswith("statespace") and name.endswith(DIFFERENCES)
+                    and "statespace/static_compliance" in da):
+                atol = 1e-9 * float(np.abs(da["statespace/static_compliance"]).max())
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=atol, equal_nan=True,
                                        err_msg=name)
         else:
             assert np.array_equal(x, y), name
