@@ -65,12 +65,52 @@ def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
     return PETSc.NullSpace().createRigidBody(coords)
 
 
+#: PETSc option of MUMPS' workspace margin (ICNTL(14), percent above its analysis'
+#: estimate) for the shift-invert factor, and the margins tried after a factorisation
+#: that ran out of workspace (INFOG(1) = -9 or -8: cantilever_materials at mesh.size
+#: 0.02 on 3 ranks needs more than MUMPS' default)
+MUMPS_WORKSPACE_OPTION = "st_mat_mumps_icntl_14"
+MUMPS_WORKSPACE_RETRIES = (100, 300)
+
+
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
                 near_null=None, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
     (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
     below zero for a free body, whose K is singular). ``method``: ``factor`` or
-    ``multigrid`` (see the module); ``near_null``: PETSc NullSpace for GAMG."""
+    ``multigrid`` (see the module); ``near_null``: PETSc NullSpace for GAMG.
+
+    A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
+    every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
+    unless the user set that option."""
+    options = PETSc.Options()
+    user_set = options.hasName(MUMPS_WORKSPACE_OPTION)
+    margins = [None] + ([] if user_set or method != "factor" else
+                        list(MUMPS_WORKSPACE_RETRIES))
+    for attempt, margin in enumerate(margins):
+        if margin is not None:
+            log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) = "
+                        "%d %%", margin)
+            options.setValue(MUMPS_WORKSPACE_OPTION, margin)
+        try:
+            return _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
+                                     near_null, shift, last=attempt == len(margins) - 1)
+        except _WorkspaceShort:
+            continue
+        finally:
+            if margin is not None:
+                options.delValue(MUMPS_WORKSPACE_OPTION)
+    raise AssertionError("unreachable: the last attempt raises")  # pragma: no cover
+
+
+class _WorkspaceShort(Exception):
+    """MUMPS ran out of workspace (INFOG(1) = -9 or -8): worth another try."""
+
+
+def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
+                      near_null, shift: float, last: bool):
+    """One attempt of :func:`solve_eigen`; ``last``: a workspace shortage raises the
+    SolverError instead of _WorkspaceShort."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
     eps.setOperators(K, M)
     eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
@@ -106,6 +146,9 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
         # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
         # the last frame says what went wrong
         reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+        if not last and re.search(r"INFOG\(1\)\s*=\s*-(9|8)\b", reason):
+            eps.destroy()
+            raise _WorkspaceShort(reason) from None
         if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
             reason = reason.split(". ")[0][:240]
         raise SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
