@@ -331,16 +331,28 @@ def test_springs_that_leave_rigid_motions_free_are_refused_on_every_rank(tmp_pat
     assert not out.exists()
 
 
+@pytest.mark.mpi
+def test_augmented_basis_on_two_ranks(tmp_path):
+    """``static_correction: augment`` on 2 ranks: the Ritz basis of [Phi, K^-1 F] made
+    from the ranks' rows (Gram-Schmidt and the projected pencil by local products and
+    sums) gives the serial file: the extra Ritz frequencies, the basis and the state
+    space to the module's tolerances."""
+    serial, dist = _serial_and_two_ranks(tmp_path, "configs/cantilever.yaml", "mesh.size=0.02",
+                                         "reduction.static_correction=augment")
+    _same_file(serial, dist)
+    with h5py.File(dist) as b:  # the basis holds the static shape, not only the modes
+        assert b["statespace"].attrs["static_correction"] == "augment"
+        assert b["statespace"].attrs["n_basis"] == b["statespace"].attrs["n_modes"] + 1
+
+
 @pytest.mark.parametrize("overrides, key", [
     (["rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100]}"],
      "rotation"),
     (["supports=[{region: root, fix: [normal]}]"],
      r"supports\[0\]\.fix"),
-    (["reduction.static_correction=augment"], "reduction.static_correction"),
 ])
 def test_what_the_distributed_path_does_not_handle_is_refused_before_work(overrides, key):
-    """What the distributed path does not do (local-frame supports, rotation, an augmented basis)
-    stops it in one line naming the key, before any meshing."""
+    """What the distributed path does not do (local-frame supports, rotation) stops it in one line naming the key, before any meshing."""
     from pipeline.config import load_config
     from pipeline.distributed.stage import check_supported
     from pipeline.errors import ConfigError

@@ -293,6 +293,9 @@ def test_augment_keeps_the_retained_frequencies_and_adds_high_ones(beam):
     assert np.allclose(V.T @ (beam.M @ V), np.eye(n + 2), atol=1e-12)
     assert np.allclose(V.T @ (beam.K @ V), np.diag(m.omega2), atol=1e-10 * m.omega2.max())
     assert m.statespace.n_retained == n
+    # a retained basis column is its mode with the mode's own sign (eigh's sign is
+    # arbitrary; the basis fixes it by the largest coefficient): Phi_j^T M psi_j ~ +1
+    assert np.all(np.diag(beam.Phi[:, :n].T @ (beam.M @ V[:, :n])) > 1 - 1e-6)
     # per-mode damping: the extra modes take the last listed ratio
     m2 = beam.reduce(2, "augment", xi=DampingSpec("per_mode", ratios=(0.01, 0.03)))
     assert np.array_equal(m2.statespace.damping_ratios, [0.01, 0.03, 0.03, 0.03])

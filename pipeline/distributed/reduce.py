@@ -15,7 +15,8 @@ rank (n: free DOFs, m: modes, n_u inputs, n_y outputs):
 - the plant: Sigma = Phi^T F (m, n_u), Theta = T Phi (n_y, m) and the static compliance
   G = T X (n_y, n_u), summed over the ranks' rows; with ``residual`` the residual
   flexibility G - Theta Omega^-2 Sigma and the correction shapes X - Phi Omega^-2 Sigma
-  (rows stay);
+  (rows stay); with ``augment`` the Ritz basis of [Phi, X] (:mod:`pipeline.reduce.augment`,
+  its Gram-Schmidt and projected pencil from the same local products and sums);
 - stress modes (:func:`stress_blocks`): the recovery to the mesh points is linear in the
   displacements, so each rank recovers its own rows' share over the elements that
   touch them and the shares are summed point block by point block as rank 0 writes.
@@ -34,6 +35,7 @@ from pipeline.distributed.operators import of_diagonals
 from pipeline.errors import ConfigError, SolverError
 from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
+from pipeline.reduce.augment import augment
 from pipeline.reduce.build import _damping_spec, check_ports_act
 from pipeline.reduce.modal import (DampingSpec, ReducedModel, _keep_clusters_whole, _omega,
                                    _ro, modal_statespace)
@@ -123,8 +125,8 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
 
 def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
                  ) -> ReducedModel:
-    """:func:`pipeline.reduce.modal.reduce_model` on row blocks (``none`` and
-    ``residual`` static corrections; ``augment`` is refused before any work)."""
+    """:func:`pipeline.reduce.modal.reduce_model` on row blocks (every static correction:
+    ``augment``'s Ritz basis by :func:`pipeline.reduce.augment.augment` on the blocks)."""
     spec: DampingSpec = _damping_spec(cfg)
     correction = cfg.reduction.static_correction
     omega2 = np.asarray(modes.omega2, dtype=float)
@@ -149,6 +151,8 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     else:
         X = static_rows(K, modes.factorization, F)
         G = X.sensor_product(T)
+    if correction == "augment":  # the Ritz basis of [Phi, X], rows on their ranks
+        w2, basis = augment(K.apply, M.apply, basis, X, list(ports.input_names), w2)
     xi = spec.ratios_for(_omega(w2), n_listed=n_modes)
     Sigma = basis.gram(F)
     Theta = basis.sensor_product(T)

@@ -86,12 +86,6 @@ def check_supported(cfg: Config) -> None:
                           "and masses, held or free); expected no such key, or another "
                           "modes.solver",
                           key=key, value=what, expected=f"no {key} with modes.solver: slepc")
-    if cfg.reduction is not None and cfg.reduction.static_correction == "augment":
-        raise ConfigError("reduction.static_correction: augment with modes.solver: slepc: "
-                          "the Ritz basis of the static shapes is not distributed yet; "
-                          "expected none or residual, or another modes.solver",
-                          key="reduction.static_correction", value="augment",
-                          expected="none or residual")
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",

@@ -36,10 +36,10 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-import scipy.linalg as sla
 
 from pipeline._util import validate
 from pipeline.errors import SolverError
+from pipeline.reduce.augment import AUGMENT_DROP_TOL, Columns, augment  # noqa: F401
 from pipeline.reduce.statespace import StateSpace
 from pipeline.solve.blas import sparse_times_dense
 from pipeline.reduce.statics import relief_shapes, Solve, dense_array, static_shapes
@@ -70,9 +70,6 @@ STATIC_CORRECTIONS = ("none", "residual", "augment")
 #: physically distinct pair is normally percent apart). A reduction keeps them together.
 CLUSTER_REL_GAP = 1e-3
 
-#: A static shape whose M-norm falls below this fraction of its initial M-norm after
-#: M-orthogonalisation against the basis is numerically dependent and dropped.
-AUGMENT_DROP_TOL = 1e-8
 
 # --------------------------------------------------------------------------- damping
 # Raw values from library callers go through the one field checker
@@ -372,42 +369,14 @@ class ReducedModel:
         return ss.dc_gain()[ss.output_rows("position")]
 
 
-def _augment_basis(K, M, Phi, X, input_names) -> tuple[np.ndarray, np.ndarray, int]:
-    """Ritz basis of span[Phi, X]: (omega2 (n_b,), Psi (n_s x n_b) M-orthonormal, n kept).
-
-    Each static shape is M-orthogonalised against Phi and the shapes kept before it
-    (classical Gram-Schmidt, applied twice for round-off); a shape left with less than
-    AUGMENT_DROP_TOL of its M-norm is dependent and dropped with a warning.
-    """
-    kept: list[np.ndarray] = []
-    for j in range(X.shape[1]):
-        x = X[:, j].copy()
-        norm0 = math.sqrt(max(float(x @ (M @ x)), 0.0))
-        if norm0 == 0.0:
-            log.warning("static correction augment: input %r produces no static deflection; "
-                        "its static shape is not added", input_names[j])
-            continue
-        for _ in range(2):
-            x -= Phi @ (Phi.T @ (M @ x))
-            for q in kept:
-                x -= q * float(q @ (M @ x))
-        norm = math.sqrt(max(float(x @ (M @ x)), 0.0))
-        if norm <= AUGMENT_DROP_TOL * norm0:
-            log.warning("static correction augment: the static shape of input %r is "
-                        "numerically dependent on the basis (%.2e of its M-norm left); "
-                        "dropped", input_names[j], norm / norm0)
-            continue
-        kept.append(x / norm)
-    V = np.column_stack([Phi] + kept) if kept else Phi
-    Kr = V.T @ (K @ V)
-    Mr = V.T @ (M @ V)
-    Kr = 0.5 * (Kr + Kr.T)
-    Mr = 0.5 * (Mr + Mr.T)
-    try:
-        w2, Z = sla.eigh(Kr, Mr)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        raise SolverError(f"projected eigenproblem of the augmented basis failed: {exc}") from exc
-    return w2, V @ Z, len(kept)
+def _augment_basis(K, M, Phi, X, input_names, omega2_retained
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Ritz basis of span[Phi, X]: (omega2 (n_b,), Psi (n_s x n_b) M-orthonormal)
+    (:func:`pipeline.reduce.augment.augment` on whole arrays)."""
+    w2, Psi = augment(lambda B: B.like(sparse_times_dense(K, B.local)),
+                      lambda B: B.like(sparse_times_dense(M, B.local)),
+                      Columns(Phi), Columns(X), input_names, omega2_retained)
+    return w2, Psi.local
 
 
 def cluster_end(omega2: np.ndarray, n: int, rel_gap: float = CLUSTER_REL_GAP) -> int:
@@ -553,14 +522,7 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
 
     residual = None
     if static_correction == "augment":
-        w2, basis, n_kept = _augment_basis(K, M, Phi_r, X, input_names)
-        if np.any(np.abs(w2[:n_modes] - w2_r) > 1e-6 * np.abs(w2_r)):
-            log.warning("augmented basis moved a retained frequency by more than 1e-6 "
-                        "relative (max %.3g); are the modes converged?",
-                        float(np.max(np.abs(w2[:n_modes] / w2_r - 1))))
-        log.info("augmented basis: %d modes + %d static shapes; extra Ritz frequencies %s Hz",
-                 n_modes, n_kept, np.array2string(_omega(w2[n_modes:]) / (2 * math.pi),
-                                                  precision=1))
+        w2, basis = _augment_basis(K, M, Phi_r, X, input_names, w2_r)
     else:
         w2, basis = w2_r, Phi_r
     xi_all = spec.ratios_for(_omega(w2), n_listed=n_modes)
