@@ -348,6 +348,19 @@ def test_springs_that_leave_rigid_motions_free_are_refused_on_every_rank(tmp_pat
 
 
 @pytest.mark.mpi
+def test_only_rank_zero_logs(tmp_path):
+    """With -v on 2 ranks each stage's line and each mode's label is logged once (rank
+    0's); the other ranks log errors only."""
+    out = tmp_path / "mpi.h5"
+    proc = _run([*_mpiexec(), str(MPI_PYTHON), "-m", "pipeline", "-v", "run",
+                 "configs/cantilever.yaml", "--set", "mesh.size=0.03", "--set",
+                 "modes.solver=slepc", "-o", str(out)], tmp_path, timeout=300)
+    assert out.exists()
+    assert proc.stderr.count("pipeline.run: modes done") == 1, proc.stderr[-3000:]
+    assert proc.stderr.count("mode bending_z_1") == 1, proc.stderr[-3000:]
+
+
+@pytest.mark.mpi
 def test_augmented_basis_on_two_ranks(tmp_path):
     """``static_correction: augment`` on 2 ranks: the Ritz basis of [Phi, K^-1 F] made
     from the ranks' rows (Gram-Schmidt and the projected pencil by local products and

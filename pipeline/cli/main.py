@@ -26,9 +26,13 @@ STAGE_LOGGERS = ("pipeline.progress", "pipeline.run")
 
 def _setup_logging(verbosity: int) -> None:
     """-q: warnings only; default: warnings, plus the stage lines when stderr is not a
-    terminal (a terminal shows bars instead); -v: INFO of every logger; -vv: DEBUG."""
+    terminal (a terminal shows bars instead); -v: INFO of every logger; -vv: DEBUG.
+    Under mpiexec only rank 0 logs below ERROR: the ranks run the same stages and log
+    the same lines, N times over otherwise (a rank's failure is its own error line)."""
     level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 \
         else logging.DEBUG
+    if _mpi_rank() > 0:
+        level, verbosity = logging.ERROR, -1
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s",
                                            "%H:%M:%S"))
@@ -41,10 +45,11 @@ def _setup_logging(verbosity: int) -> None:
 
 
 def _progress_reporter(verbosity: int):
-    """Bars on a terminal, stage log lines otherwise, nothing with -q."""
+    """Bars on a terminal, stage log lines otherwise, nothing with -q (nor on MPI ranks
+    other than 0)."""
     from pipeline._util import progress
 
-    if verbosity < 0:
+    if verbosity < 0 or _mpi_rank() > 0:
         return None
     if sys.stderr.isatty():
         return progress.BarReporter(sys.stderr)
