@@ -174,3 +174,30 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
     if method == "multigrid":
         stats["inner_iterations"] = int(ksp.getIterationNumber())
     return values, rows, {**stats, "eps": eps, "ksp": ksp}
+
+
+def shifted_cholesky(PETSc, K, M, shift: float):
+    """(KSP, A): a PETSc solver of A x = b, A = K - shift M (``shift`` rad^2/s^2 below
+    zero: A is positive definite where K is only semi-definite), by MUMPS' distributed
+    Cholesky factor, factorised now; the caller destroys both. A MUMPS or PETSc failure
+    is one line (SolverError)."""
+    A = K.copy()
+    A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    ksp = PETSc.KSP().create(comm=A.getComm())
+    ksp.setOperators(A)
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc = ksp.getPC()
+    pc.setType(PETSc.PC.Type.CHOLESKY)
+    pc.setFactorSolverType("mumps")
+    try:
+        ksp.setUp()
+    except PETSc.Error as exc:
+        ksp.destroy()
+        A.destroy()
+        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+        raise SolverError(f"modes.solver: slepc: the factorisation of K - sigma M (sigma "
+                          f"{shift:.3g} rad^2/s^2) failed ({reason[:240]})",
+                          key="modes.solver", value="slepc",
+                          expected="a factorisable K - sigma M") from None
+    return ksp, A
