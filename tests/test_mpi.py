@@ -220,16 +220,19 @@ def test_two_ranks_give_the_single_process_file(tmp_path, method, size):
     _same_file(serial, dist)
 
 
-def _serial_and_two_ranks(tmp_path, config: str, *overrides: str, ranks: int = 2):
+def _serial_and_two_ranks(tmp_path, config: str, *overrides: str, ranks: int = 2,
+                          distributed: tuple[str, ...] = ()):
     """Run ``config`` with ``overrides`` in one process and on ``ranks`` ranks with
-    ``modes.solver: slepc``; the two result files (serial, distributed)."""
+    ``modes.solver: slepc`` (and the ``distributed`` overrides); the two result files
+    (serial, distributed)."""
     args = ["-m", "pipeline", "run", config]
     for item in overrides:
         args += ["--set", item]
     serial, dist = tmp_path / "serial.h5", tmp_path / "mpi.h5"
     _run([sys.executable, *args, "-o", str(serial)], tmp_path)
-    _run([*_mpiexec(ranks), str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", "-o",
-          str(dist)], tmp_path, timeout=600)
+    extra = [a for item in distributed for a in ("--set", item)]
+    _run([*_mpiexec(ranks), str(MPI_PYTHON), *args, "--set", "modes.solver=slepc", *extra,
+          "-o", str(dist)], tmp_path, timeout=600)
     return serial, dist
 
 
@@ -312,11 +315,14 @@ def test_elastic_supports_on_two_ranks(tmp_path, supports):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("size, supports", [
-    ("0.02", "[{region: root, fix: [x]}]"),
-    ("0.03", "[{region: root, spring: {total: [1.0e9, 0, 0]}}]")],
-    ids=["held-x", "springs-x"])
-def test_partly_held_body_on_two_ranks(tmp_path, size, supports):
+@pytest.mark.parametrize("size, supports, method", [
+    ("0.02", "[{region: root, fix: [x]}]", "factor"),
+    ("0.03", "[{region: root, spring: {total: [1.0e9, 0, 0]}}]", "factor"),
+    # the factor-free eigen solve (CG on GAMG at the negative shift): 15 s on 2 cores
+    pytest.param("0.03", "[{region: root, fix: [x]}]", "multigrid",
+                 marks=pytest.mark.slow)],
+    ids=["held-x", "springs-x", "held-x-factor-free"])
+def test_partly_held_body_on_two_ranks(tmp_path, size, supports, method):
     """The root held along x only, by its DOFs or by springs: translation along y and z
     and rotation about x stay free. SLEPc solves at the serial path's negative shift,
     the first three modes are those motions (evaluated on each rank's own points,
@@ -324,7 +330,8 @@ def test_partly_held_body_on_two_ranks(tmp_path, size, supports):
     the residual correction is the inertia relief's (a floating model: no static
     compliance). The file equals the single-process one (a few seconds each)."""
     serial, dist = _serial_and_two_ranks(tmp_path, "configs/cantilever.yaml",
-                                         f"mesh.size={size}", f"supports={supports}")
+                                         f"mesh.size={size}", f"supports={supports}",
+                                         distributed=(f"modes.method={method}",))
     with h5py.File(serial) as a:
         assert a["modes"].attrs["n_rigid"] == 3
         assert [x.decode() for x in a["modes/labels"][:3]] == [

@@ -89,8 +89,9 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
                         list(MUMPS_WORKSPACE_RETRIES))
     for attempt, margin in enumerate(margins):
         if margin is not None:
-            log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) = "
-                        "%d %%", margin)
+            if PETSc.COMM_WORLD.getRank() == 0:  # the same shortage on every rank: say it once
+                log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) "
+                            "= %d %%", margin)
             options.setValue(MUMPS_WORKSPACE_OPTION, margin)
         try:
             return _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
