@@ -391,3 +391,48 @@ def test_what_the_distributed_path_does_not_handle_is_refused_before_work(overri
                       ["modes.solver=slepc", "mesh.size=0.02"] + overrides)
     with pytest.raises(ConfigError, match=rf"^{key}(: [\w ]+)? with modes.solver: slepc"):
         check_supported(cfg)
+
+
+def test_a_factorisation_short_of_workspace_is_retried_with_larger_margins():
+    """The retry loop of both MUMPS factorisations (the eigen solve's and the inertia
+    relief's), on a stand-in for PETSc's options: a shortage is tried again with the
+    margins in turn, each attempt told whether it is the last, the option removed after
+    each; a margin the user set is never overridden (one attempt, the last)."""
+    from types import SimpleNamespace
+
+    from pipeline.distributed import eigen
+
+    class Options(dict):
+        def hasName(self, name):
+            return name in self
+
+        def setValue(self, name, value):
+            self[name] = value
+
+        def delValue(self, name):
+            del self[name]
+
+    options = Options()
+    PETSc = SimpleNamespace(Options=lambda: options,
+                            COMM_WORLD=SimpleNamespace(getRank=lambda: 0))
+    seen = []
+
+    def attempt(last):
+        seen.append((dict(options), last))
+        if len(seen) < 3:
+            raise eigen._WorkspaceShort("INFOG(1) = -9")
+        return "factor"
+
+    option = eigen.RELIEF_WORKSPACE_OPTION
+    assert eigen._with_workspace_retries(PETSc, option, True, attempt) == "factor"
+    margins = eigen.MUMPS_WORKSPACE_RETRIES
+    assert seen == [({}, False), ({option: margins[0]}, False), ({option: margins[1]}, True)]
+    assert options == {}
+    options[option] = 50
+    seen.clear()
+    assert eigen._with_workspace_retries(PETSc, option, True, lambda last: seen.append(last)
+                                         or "factor") == "factor"
+    assert seen == [True] and options == {option: 50}
+    assert eigen._workspace_short("MUMPS error in numerical factorization: INFOG(1)=-9, "
+                                  "INFO(2)=12")
+    assert not eigen._workspace_short("INFOG(1)=-10")

@@ -71,6 +71,10 @@ def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
 #: 0.02 on 3 ranks needs more than MUMPS' default)
 MUMPS_WORKSPACE_OPTION = "st_mat_mumps_icntl_14"
 MUMPS_WORKSPACE_RETRIES = (100, 300)
+#: the options prefix of the inertia relief's factor (:func:`shifted_cholesky`), and its
+#: MUMPS workspace option
+RELIEF_PREFIX = "relief_"
+RELIEF_WORKSPACE_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_14"
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
@@ -83,25 +87,45 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
     A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
     every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
     unless the user set that option."""
+    return _with_workspace_retries(
+        PETSc, MUMPS_WORKSPACE_OPTION, method == "factor",
+        lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
+                                       near_null, shift, last=last))
+
+
+def _with_workspace_retries(PETSc, option: str, retry: bool, attempt):
+    """``attempt(last)`` with MUMPS' default workspace and, while it raises
+    _WorkspaceShort, with the margins :data:`MUMPS_WORKSPACE_RETRIES` set as the PETSc
+    option ``option`` (not when ``retry`` is False or the user set it); ``last``: no
+    margin is left to try (the attempt raises its SolverError then)."""
     options = PETSc.Options()
-    user_set = options.hasName(MUMPS_WORKSPACE_OPTION)
-    margins = [None] + ([] if user_set or method != "factor" else
-                        list(MUMPS_WORKSPACE_RETRIES))
-    for attempt, margin in enumerate(margins):
+    user_set = options.hasName(option)
+    margins = [None] + ([] if user_set or not retry else list(MUMPS_WORKSPACE_RETRIES))
+    for i, margin in enumerate(margins):
         if margin is not None:
             if PETSc.COMM_WORLD.getRank() == 0:  # the same shortage on every rank: say it once
                 log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) "
                             "= %d %%", margin)
-            options.setValue(MUMPS_WORKSPACE_OPTION, margin)
+            options.setValue(option, margin)
         try:
-            return _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
-                                     near_null, shift, last=attempt == len(margins) - 1)
+            return attempt(i == len(margins) - 1)
         except _WorkspaceShort:
             continue
         finally:
             if margin is not None:
-                options.delValue(MUMPS_WORKSPACE_OPTION)
+                options.delValue(option)
     raise AssertionError("unreachable: the last attempt raises")  # pragma: no cover
+
+
+def _petsc_reason(exc) -> str:
+    """What went wrong, from a PETSc error: its message is its call stack, "[rank]
+    function() at file:line" per frame, and the last frame says it."""
+    return re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+
+
+def _workspace_short(reason: str) -> bool:
+    """Whether MUMPS ran out of workspace (INFOG(1) = -9 or -8)."""
+    return re.search(r"INFOG\(1\)\s*=\s*-(9|8)\b", reason) is not None
 
 
 class _WorkspaceShort(Exception):
@@ -144,10 +168,8 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
         eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
     except PETSc.Error as exc:
-        # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
-        # the last frame says what went wrong
-        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
-        if not last and re.search(r"INFOG\(1\)\s*=\s*-(9|8)\b", reason):
+        reason = _petsc_reason(exc)
+        if not last and _workspace_short(reason):
             eps.destroy()
             raise _WorkspaceShort(reason) from None
         if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
@@ -180,25 +202,39 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
 def shifted_cholesky(PETSc, K, M, shift: float):
     """(KSP, A): a PETSc solver of A x = b, A = K - shift M (``shift`` rad^2/s^2 below
     zero: A is positive definite where K is only semi-definite), by MUMPS' distributed
-    Cholesky factor, factorised now; the caller destroys both. A MUMPS or PETSc failure
-    is one line (SolverError)."""
+    Cholesky factor, factorised now; the caller destroys both. PETSc options with the
+    prefix :data:`RELIEF_PREFIX` apply to it; a factorisation short of workspace is
+    retried as the eigen solve's (:func:`solve_eigen`); a failure is one line
+    (SolverError)."""
     A = K.copy()
     A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-    ksp = PETSc.KSP().create(comm=A.getComm())
-    ksp.setOperators(A)
-    ksp.setType(PETSc.KSP.Type.PREONLY)
-    pc = ksp.getPC()
-    pc.setType(PETSc.PC.Type.CHOLESKY)
-    pc.setFactorSolverType("mumps")
+
+    def attempt(last: bool):
+        ksp = PETSc.KSP().create(comm=A.getComm())
+        ksp.setOptionsPrefix(RELIEF_PREFIX)
+        ksp.setOperators(A)
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
+        try:
+            ksp.setFromOptions()
+            ksp.setUp()
+        except PETSc.Error as exc:
+            ksp.destroy()
+            reason = _petsc_reason(exc)
+            if not last and _workspace_short(reason):
+                raise _WorkspaceShort(reason) from None
+            raise SolverError(f"modes.solver: slepc: the factorisation of K - sigma M "
+                              f"(sigma {shift:.3g} rad^2/s^2) failed "
+                              f"({reason.split('. ')[0][:240]})",
+                              key="modes.solver", value="slepc",
+                              expected="a factorisable K - sigma M") from None
+        return ksp
+
     try:
-        ksp.setUp()
-    except PETSc.Error as exc:
-        ksp.destroy()
+        return _with_workspace_retries(PETSc, RELIEF_WORKSPACE_OPTION, True, attempt), A
+    except BaseException:
         A.destroy()
-        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
-        raise SolverError(f"modes.solver: slepc: the factorisation of K - sigma M (sigma "
-                          f"{shift:.3g} rad^2/s^2) failed ({reason[:240]})",
-                          key="modes.solver", value="slepc",
-                          expected="a factorisable K - sigma M") from None
-    return ksp, A
+        raise
