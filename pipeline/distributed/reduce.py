@@ -36,7 +36,8 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
-from pipeline.distributed.mpi import allreduce_sum
+from pipeline.distributed.eigen import shifted_cholesky
+from pipeline.distributed.mpi import allreduce_sum, petsc
 from pipeline.distributed.operators import KspSolve, of_diagonals
 from pipeline.errors import ConfigError, SolverError
 from pipeline.distributed.submesh import RankMesh
@@ -114,19 +115,7 @@ def relief_rows(K, M, F: RowBlock, R: RowBlock, shift: float) -> RowBlock:
     M-orthonormal rigid modes ``R`` (n_free, r): :func:`relief_fixed_point` with a
     factor of K - shift M (``shift`` < 0 rad^2/s^2, made and freed here) and the
     distributed K and M (module; their PETSc matrices attached)."""
-    from pipeline.distributed.eigen import shifted_cholesky
-    from pipeline.distributed.mpi import petsc
-
-    ksp, A = shifted_cholesky(petsc()[0], K.petsc, M.petsc, shift)
-    factor = KspSolve(ksp, K, keep=[ksp, A], shift=shift)
-    try:
-        return _relief_fixed_point_rows(M, factor, F, R)
-    finally:
-        factor.release()
-
-
-def _relief_fixed_point_rows(M, factor, F: RowBlock, R: RowBlock) -> RowBlock:
-    Fe = F.like(F.local - M.apply(R.times(R.gram(F))).local)
+    Fe = F.like(F.local - M.apply(R.times(R.gram(F))).local)  # F - M R R^T F
 
     def mass(X: np.ndarray) -> np.ndarray:
         return M.apply(F.like(X)).local
@@ -137,8 +126,13 @@ def _relief_fixed_point_rows(M, factor, F: RowBlock, R: RowBlock) -> RowBlock:
     def norm(X: np.ndarray) -> float:
         return float(np.sqrt(allreduce_sum(F.comm, np.array([np.sum(X * X)]))[0]))
 
-    return F.like(relief_fixed_point(Fe.local, factor.solve_rows, mass, project, norm,
-                                     factor.shift))
+    ksp, A = shifted_cholesky(petsc()[0], K.petsc, M.petsc, shift)
+    factor = KspSolve(ksp, K, keep=[ksp, A], shift=shift)
+    try:
+        return F.like(relief_fixed_point(Fe.local, factor.solve_rows, mass, project, norm,
+                                         shift))
+    finally:
+        factor.release()
 
 
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
