@@ -78,6 +78,11 @@ MUMPS_WORKSPACE_RETRIES = (100, 300)
 #: that took 347 s; without it: 56 MB, 1.5 s, and the 100k-DOF cantilever 505 MB against
 #: 516 MB with it. Set to 0 unless the user set it.
 MUMPS_BLOCK_ANALYSIS_OPTION = "st_mat_mumps_icntl_15"
+#: the options prefix of the inertia relief's factor (:func:`shifted_cholesky`), and its
+#: MUMPS workspace and block-analysis options
+RELIEF_PREFIX = "relief_"
+RELIEF_WORKSPACE_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_14"
+RELIEF_BLOCK_ANALYSIS_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_15"
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
@@ -90,20 +95,43 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
     A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
     every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
     unless the user set that option."""
+    return _with_workspace_retries(
+        PETSc, MUMPS_WORKSPACE_OPTION, method == "factor",
+        lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
+                                       near_null, shift, last=last),
+        MUMPS_BLOCK_ANALYSIS_OPTION if method == "factor" else None)
+
+
+def _with_workspace_retries(PETSc, option: str, retry: bool, attempt,
+                            block_option: str | None = None):
+    """``attempt(last)`` with MUMPS' default workspace and, while it raises
+    _WorkspaceShort, with the margins :data:`MUMPS_WORKSPACE_RETRIES` set as the PETSc
+    option ``option`` (not when ``retry`` is False or the user set it); ``last``: no
+    margin is left to try (the attempt raises its SolverError then). ``block_option``:
+    MUMPS' ICNTL(15) option of this factor, set to 0 throughout unless the user set it
+    (:data:`MUMPS_BLOCK_ANALYSIS_OPTION`)."""
     options = PETSc.Options()
-    user_set = options.hasName(MUMPS_WORKSPACE_OPTION)
-    margins = [None] + ([] if user_set or method != "factor" else
-                        list(MUMPS_WORKSPACE_RETRIES))
-    with _option_unless_set(options, MUMPS_BLOCK_ANALYSIS_OPTION, 0, method == "factor"):
-        return _solve_with_retries(PETSc, SLEPc, K, M, count, tolerance, method, near_null,
-                                   shift, options, margins)
+    user_set = options.hasName(option)
+    margins = [None] + ([] if user_set or not retry else list(MUMPS_WORKSPACE_RETRIES))
+    with _option_unless_set(options, block_option, 0, block_option is not None):
+        for i, margin in enumerate(margins):
+            if margin is not None and PETSc.COMM_WORLD.getRank() == 0:
+                # the same shortage on every rank: say it once
+                log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) "
+                            "= %d %%", margin)
+            try:
+                with _option_unless_set(options, option, margin, margin is not None):
+                    return attempt(i == len(margins) - 1)
+            except _WorkspaceShort:
+                continue
+    raise AssertionError("unreachable: the last attempt raises")  # pragma: no cover
 
 
 @contextlib.contextmanager
-def _option_unless_set(options, name: str, value, wanted: bool = True):
+def _option_unless_set(options, name: str | None, value, wanted: bool = True):
     """PETSc option ``name`` = ``value`` for the duration (removed after, so the host
     process's options database is left as it was), unless the user set it."""
-    mine = wanted and not options.hasName(name)
+    mine = wanted and name is not None and not options.hasName(name)
     if mine:
         options.setValue(name, value)
     try:
@@ -113,21 +141,15 @@ def _option_unless_set(options, name: str, value, wanted: bool = True):
             options.delValue(name)
 
 
-def _solve_with_retries(PETSc, SLEPc, K, M, count, tolerance, method, near_null, shift,
-                        options, margins):
-    """:func:`solve_eigen`'s attempts, one per workspace margin of ``margins``."""
-    for attempt, margin in enumerate(margins):
-        if margin is not None:
-            log.warning("MUMPS ran out of workspace: factorising again with ICNTL(14) = "
-                        "%d %%", margin)
-        try:
-            with _option_unless_set(options, MUMPS_WORKSPACE_OPTION, margin,
-                                    margin is not None):
-                return _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
-                                         near_null, shift, last=attempt == len(margins) - 1)
-        except _WorkspaceShort:
-            continue
-    raise AssertionError("unreachable: the last attempt raises")  # pragma: no cover
+def _petsc_reason(exc) -> str:
+    """What went wrong, from a PETSc error: its message is its call stack, "[rank]
+    function() at file:line" per frame, and the last frame says it."""
+    return re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
+
+
+def _workspace_short(reason: str) -> bool:
+    """Whether MUMPS ran out of workspace (INFOG(1) = -9 or -8)."""
+    return re.search(r"INFOG\(1\)\s*=\s*-(9|8)\b", reason) is not None
 
 
 class _WorkspaceShort(Exception):
@@ -170,10 +192,8 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
         eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
     except PETSc.Error as exc:
-        # PETSc's message is its call stack, "[rank] function() at file:line" per frame;
-        # the last frame says what went wrong
-        reason = re.split(r"\[\d+\]\s*", " ".join(str(exc).split()))[-1].strip() or str(exc)
-        if not last and re.search(r"INFOG\(1\)\s*=\s*-(9|8)\b", reason):
+        reason = _petsc_reason(exc)
+        if not last and _workspace_short(reason):
             eps.destroy()
             raise _WorkspaceShort(reason) from None
         if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
@@ -201,3 +221,45 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
     if method == "multigrid":
         stats["inner_iterations"] = int(ksp.getIterationNumber())
     return values, rows, {**stats, "eps": eps, "ksp": ksp}
+
+
+def shifted_cholesky(PETSc, K, M, shift: float):
+    """(KSP, A): a PETSc solver of A x = b, A = K - shift M (``shift`` rad^2/s^2 below
+    zero: A is positive definite where K is only semi-definite), by MUMPS' distributed
+    Cholesky factor, factorised now; the caller destroys both. PETSc options with the
+    prefix :data:`RELIEF_PREFIX` apply to it; a factorisation short of workspace is
+    retried as the eigen solve's (:func:`solve_eigen`); a failure is one line
+    (SolverError)."""
+    A = K.copy()
+    A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+
+    def attempt(last: bool):
+        ksp = PETSc.KSP().create(comm=A.getComm())
+        ksp.setOptionsPrefix(RELIEF_PREFIX)
+        ksp.setOperators(A)
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
+        try:
+            ksp.setFromOptions()
+            ksp.setUp()
+        except PETSc.Error as exc:
+            ksp.destroy()
+            reason = _petsc_reason(exc)
+            if not last and _workspace_short(reason):
+                raise _WorkspaceShort(reason) from None
+            raise SolverError(f"modes.solver: slepc: the factorisation of K - sigma M "
+                              f"(sigma {shift:.3g} rad^2/s^2) failed "
+                              f"({reason.split('. ')[0][:240]})",
+                              key="modes.solver", value="slepc",
+                              expected="a factorisable K - sigma M") from None
+        return ksp
+
+    try:
+        return _with_workspace_retries(PETSc, RELIEF_WORKSPACE_OPTION, True, attempt,
+                                       RELIEF_BLOCK_ANALYSIS_OPTION), A
+    except BaseException:
+        A.destroy()
+        raise

@@ -4,8 +4,9 @@ The reduce stage runs on every rank with the same replicated small blocks (mode 
 port loads F, output rows T); it touches K and M only through products with such
 blocks, their diagonals and solves with K. :class:`RowMatrix` computes its own rows of
 A X and gathers the rest (MPI_Allgatherv): every rank gets the same (n_free, k) result.
-:class:`KspSolve` solves K X = B with the distributed
-factor that SLEPc's spectral transformation made (shift 0: the operator is K itself).
+:class:`KspSolve` solves (K - sigma M) X = B with the distributed
+factor that SLEPc's spectral transformation made (shift sigma 0: the operator is K
+itself; below 0 for a body its supports leave free to move).
 Every call is collective: all ranks make it, in the same order.
 """
 
@@ -111,12 +112,13 @@ def of_diagonals(fn, K: RowMatrix, M: RowMatrix):
 
 
 class KspSolve:
-    """X = K^-1 B for replicated (n_free,) or (n_free, k) B with a PETSc KSP whose
-    operator is K (rows distributed as ``matrix``); ``release`` frees the solver (and
-    the objects handed in ``keep``)."""
+    """X = (K - shift M)^-1 B for replicated (n_free,) or (n_free, k) B with a PETSc KSP
+    whose operator is K - shift M (rows distributed as ``matrix``; ``shift`` rad^2/s^2,
+    0: K itself); ``release`` frees the solver (and the objects handed in ``keep``)."""
 
-    def __init__(self, ksp, matrix: RowMatrix, keep=()):
+    def __init__(self, ksp, matrix: RowMatrix, keep=(), shift: float = 0.0):
         self.ksp, self.matrix, self.keep = ksp, matrix, list(keep)
+        self.shift = float(shift)
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         B = np.asarray(B, dtype=np.float64)
@@ -125,7 +127,8 @@ class KspSolve:
         return self.matrix.gather(self.solve_rows(Bp)).reshape(B.shape)
 
     def solve_rows(self, Bp: np.ndarray) -> np.ndarray:
-        """This rank's rows of K^-1 B from its rows of B ((hi - lo, k), PETSc order)."""
+        """This rank's rows of (K - shift M)^-1 B from its rows of B ((hi - lo, k), PETSc
+        order)."""
         if self.ksp is None:
             raise RuntimeError("the distributed factorisation was released")
         A, _ = self.ksp.getOperators()

@@ -12,11 +12,19 @@ rank (n: free DOFs, m: modes, n_u inputs, n_y outputs):
 - the static shapes X = K^-1 F (n, n_u) by the kept MUMPS factor, each rank its rows of
   F and X, refined until the normwise backward error |F - K X| / (|K| |X| + |F|) (inf
   norms) is below :data:`pipeline.solve.refine.BACKWARD_ERROR_TOL`;
+- a partly held body's inertia-relief shapes (:func:`relief_rows`, the serial
+  :func:`pipeline.reduce.statics.relief_shapes`): K X = F - M R R^T F, R^T M X = 0 (R:
+  its M-orthonormal rigid modes, the first of the basis), by the same fixed point with
+  MUMPS' factor of K - sigma M at the serial path's sigma = -1e-3 omega_{r+1}^2 (the
+  eigen solve's factor is at -1e-7 of the stiffness scale, which may lie near omega_{r+1}^2:
+  the fixed point's steps then shrink the error by only ~1/2 each);
 - the plant: Sigma = Phi^T F (m, n_u), Theta = T Phi (n_y, m) and the static compliance
   G = T X (n_y, n_u), summed over the ranks' rows; with ``residual`` the residual
   flexibility G - Theta Omega^-2 Sigma and the correction shapes X - Phi Omega^-2 Sigma
-  (rows stay); with ``augment`` the Ritz basis of [Phi, X] (:mod:`pipeline.reduce.augment`,
-  its Gram-Schmidt and projected pencil from the same local products and sums);
+  (rows stay; rigid modes carry no static deflection; a partly held body floats: its
+  G is the inertia-relief compliance, not stored); with ``augment`` the Ritz basis of
+  [Phi, X] (:mod:`pipeline.reduce.augment`, its Gram-Schmidt and projected pencil from
+  the same local products and sums);
 - stress modes (:func:`stress_blocks`): the recovery to the mesh points is linear in the
   displacements, so each rank recovers its own rows' share over the elements that
   touch them and the shares are summed point block by point block as rank 0 writes.
@@ -30,8 +38,9 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
-from pipeline.distributed.mpi import allreduce_sum
-from pipeline.distributed.operators import of_diagonals
+from pipeline.distributed.eigen import shifted_cholesky
+from pipeline.distributed.mpi import allreduce_sum, petsc
+from pipeline.distributed.operators import KspSolve, of_diagonals
 from pipeline.errors import ConfigError, SolverError
 from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.strain import nodal_strains_at, stresses_from_strains
@@ -39,6 +48,7 @@ from pipeline.reduce.augment import augment
 from pipeline.reduce.build import _damping_spec, check_ports_act
 from pipeline.reduce.modal import (DampingSpec, ReducedModel, _keep_clusters_whole, _omega,
                                    _ro, modal_statespace)
+from pipeline.reduce.statics import relief_fixed_point
 from pipeline.solve.refine import BACKWARD_ERROR_TOL
 from pipeline.solve.thresholds import stiffness_scale
 
@@ -103,6 +113,31 @@ def static_rows(K, factor, F: RowBlock) -> RowBlock:
                       f"<= {BACKWARD_ERROR_TOL:g} (is the body held?)")
 
 
+def relief_rows(K, M, F: RowBlock, R: RowBlock, shift: float) -> RowBlock:
+    """Inertia-relief static shapes X (n_free, n_u; rows stay) of a body that keeps the
+    M-orthonormal rigid modes ``R`` (n_free, r): :func:`relief_fixed_point` with a
+    factor of K - shift M (``shift`` < 0 rad^2/s^2, made and freed here) and the
+    distributed K and M (module; their PETSc matrices attached)."""
+    Fe = F.like(F.local - M.apply(R.times(R.gram(F))).local)  # F - M R R^T F
+
+    def mass(X: np.ndarray) -> np.ndarray:
+        return M.apply(F.like(X)).local
+
+    def project(X: np.ndarray) -> np.ndarray:
+        return X - R.local @ R.gram(M.apply(F.like(X)))
+
+    def norm(X: np.ndarray) -> float:
+        return float(np.sqrt(allreduce_sum(F.comm, np.array([np.sum(X * X)]))[0]))
+
+    ksp, A = shifted_cholesky(petsc()[0], K.petsc, M.petsc, shift)
+    factor = KspSolve(ksp, K, keep=[ksp, A], shift=shift)
+    try:
+        return F.like(relief_fixed_point(Fe.local, factor.solve_rows, mass, project, norm,
+                                         shift))
+    finally:
+        factor.release()
+
+
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
     """The distributed twin of :func:`pipeline.reduce.build.build_statespace`: (ports,
     reduced, filtered) with the reduced model's ``basis`` and ``correction_shapes`` as
@@ -139,8 +174,13 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     basis, w2 = Phi.columns(slice(0, n_modes)), omega2[:n_modes]
     check_basis_rows(K, M, basis, w2)
     n_rigid = min(int(modes.n_rigid), n_modes)
-    X = G = None
-    if n_rigid:
+    X = G = G_relief = None
+    if n_rigid and cfg.supports and correction != "none":
+        # a partly held body: inertia relief (pipeline.reduce.modal.reduce_model); floats
+        X = relief_rows(K, M, F, basis.columns(slice(0, n_rigid)),
+                        -1e-3 * float(omega2[n_rigid]))
+        G_relief = X.sensor_product(T)
+    elif n_rigid:
         if correction != "none":
             raise ConfigError(f"reduction.static_correction: {correction}, expected none: the "
                               f"body has {n_rigid} rigid-body mode(s) among the retained ones",
@@ -158,8 +198,9 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     Theta = basis.sensor_product(T)
     residual = shapes = None
     if correction == "residual":
-        flex = Sigma / w2[:, None]
-        residual = G - Theta @ flex
+        # rigid modes (omega^2 = 0, inertia relief) carry no static deflection
+        flex = Sigma / np.where(np.arange(w2.size) < n_rigid, np.inf, w2)[:, None]
+        residual = (G if G_relief is None else G_relief) - Theta @ flex
         shapes = X.like(X.local - basis.times(flex).local)
     ss = modal_statespace(w2, xi, Sigma, Theta, residual=residual,
                           input_names=list(ports.input_names),

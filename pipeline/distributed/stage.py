@@ -42,11 +42,13 @@ from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
+from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
 from pipeline.solve.eigen import default_shift
 from pipeline.solve.modes import Modes
+from pipeline.solve.stage import check_count_above_rigid
 from pipeline.store.schema import stress_modes_datasets
 
 log = logging.getLogger(__name__)
@@ -160,10 +162,10 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
 class WholeMesh:
     """What rank 0 evaluates on the whole mesh before the parts are sent (the others
     receive the parts, the counts and the small results): the space, its regions, the
-    element materials, the added masses (or None), the held and the free DOFs, the rigid
-    motions the supports leave (None: a free body or elastic supports, judged after
-    the assembly), the port matrices (None: no reduction), the mesh file kept, its
-    SHA-256 and the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m, or None)."""
+    element materials, the added masses (or None), the held and the free DOFs, the port
+    matrices (None: no reduction), the mesh file kept, its SHA-256 and the springs' and
+    bushings' stiffness ((n_dofs, n_dofs) N/m, or None). The rigid motions the supports
+    leave are judged after the assembly (:func:`supports_rigid_freedoms`)."""
 
     space: Any
     regions: dict
@@ -171,7 +173,6 @@ class WholeMesh:
     added: Any
     fixed: np.ndarray
     free: np.ndarray
-    rigid: Any
     ports: Any
     mesh_path: Path | None
     mesh_sha256: str
@@ -190,34 +191,21 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     check_gauges(space, regions, cfg.ports, materials)
     fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
     free = free_dofs(space.n_dofs, fixed)
-    left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
-    if cfg.supports and springs is None:  # springs: judged after the assembly
-        left = rigid_freedoms(space.node_points, space.node_points.mean(axis=0), fixed)
-        refuse_partly_held(left)
     ports = None if cfg.reduction is None else \
         port_matrices(space, regions, cfg.ports, material=materials)
-    return WholeMesh(space, regions, materials, added, fixed, free, left, ports, mesh_path,
+    return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
                      mesh_sha256, springs)
 
 
-def refuse_partly_held(left) -> None:
-    """One line (ConfigError) for supports that leave rigid-body motions free."""
-    if left.count:
-        raise ConfigError(
-            f"supports with modes.solver: slepc: the supports leave {left.count} "
-            f"rigid-body motion(s) free ({', '.join(left.names)}); a partly held "
-            "body is not distributed yet; expected supports that hold every rigid "
-            "motion, no supports (a free body), or another modes.solver",
-            key="supports", value=f"{left.count} rigid motion(s) left",
-            expected="a fully held or a free body")
-
-
-def spring_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMatrix,
-                          comm):
+def supports_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMatrix,
+                            comm):
     """The rigid motions that the held DOFs and the springs leave free, as the serial
     FE stage judges them (:func:`pipeline.fe.supports.rigid_freedoms` with the body's
     centre of mass, rigid mass and the floor SOFT_SUPPORT * median(K_ii / M_ii) of K
-    before the springs): evaluated on rank 0 (``whole``), the same on every rank."""
+    before the springs): evaluated on rank 0 (``whole``), the same on every rank, which
+    receives them without their (n_dofs, r) fields
+    (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank evaluates them
+    on its own points)."""
     median = of_diagonals(lambda Kd, Md: float(np.median(
         Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
     left = None
@@ -225,6 +213,7 @@ def spring_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMa
         left = rigid_freedoms(whole.space.node_points, props.center_of_mass, whole.fixed,
                               whole.springs, None, props.rigid_mass,
                               SOFT_SUPPORT * median if whole.free.size else 0.0)
+        left = left.without_fields()
     return comm.bcast(left, root=0)
 
 
@@ -254,11 +243,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         mesh = scatter_parts(comm, parts)
         del parts
         small = None if whole is None else (
-            whole.free, whole.fixed, whole.rigid, whole.ports, whole.mesh_path,
-            whole.mesh_sha256,
+            whole.free, whole.fixed, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
-        free, fixed, left, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small,
-                                                                                  root=0)
+        free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
@@ -273,9 +260,11 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             rigid_mass = rigid_mass + added_rigid
         props = properties_from_rigid_mass(rigid_mass)
         K = RowMatrix(comm, rows.K, part)
+        left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
+        if cfg.supports:  # the motions they leave: the serial FE stage's judgement
+            left = supports_rigid_freedoms(whole, props, K, RowMatrix(comm, rows.M, part),
+                                           comm)
         if mesh.springs is not None:  # springs and bushings: its owned rows added to K
-            left = spring_rigid_freedoms(whole, props, K, RowMatrix(comm, rows.M, part), comm)
-            refuse_partly_held(left)
             K = RowMatrix(comm, with_int32_indices(rows.K + mesh.springs), part)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
         if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
@@ -349,7 +338,12 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         near_null = rigid_near_null_space(
             PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
-    supported = bool(cfg.supports)
+    # a partly held body (supports that leave rigid motions) is solved as a free one,
+    # at the negative shift, its first fe.n_rigid modes those motions (the serial path)
+    supported = fe.n_rigid == 0
+    partly = fe.rigid is not None and fe.n_rigid > 0
+    if partly:
+        check_count_above_rigid(count, fe.n_rigid, fe.rigid.names)
     shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
     omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
                                        near_null, shift)
@@ -358,21 +352,32 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     K.petsc, M.petsc = Kp, Mp  # the products of the Rayleigh-Ritz step and the reduce stage
     omega2, shapes, residuals = rayleigh_ritz_rows(K, M, RowBlock(comm, K.part, local), shift)
     del local
-    # a free body's rigid-body modes: zero to round-off of the shift (as the serial path)
+    # a free body's rigid-body modes: zero to round-off of the shift (as the serial path);
+    # a partly held body's: its first fe.n_rigid, exact null vectors of K
     rigid = np.zeros(omega2.size, dtype=bool) if supported else \
         np.abs(omega2) < 1e-6 * abs(shift)
+    rigid[:fe.n_rigid if partly else 0] = True
     omega2 = np.maximum(np.where(rigid, 0.0, omega2), 0.0)
+    n_rigid = int(rigid.sum())
+    names: list[str] = []
+    if partly:  # the motions themselves, from each rank's own points
+        omega2, shapes = with_rigid_rows(
+            omega2, shapes, M, rigid_rows(fe.rigid, fe.space.local, fe.free, shapes),
+            n_rigid, fe.rigid.names)
+        n_rigid = fe.n_rigid
+        names = [f"rigid_{name}" for name in fe.rigid.names]
     stats.update(ranks=comm.size, tolerance=tolerance)
     # the spectral transformation's solver (shift 0: its operator is K) solves the
-    # static correction's K x = F; a free body's operator is K - sigma M, not K: no
-    # solver then. The PETSc objects (and K's and M's) are freed with it, when the
-    # pipeline drops K (every rank at the same point: PETSc's destroy is collective)
+    # static correction's K x = F; a free or partly held body's operator is K - sigma M,
+    # not K: no solver then (the inertia relief makes its own, as the serial path).
+    # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
+    # (every rank at the same point: PETSc's destroy is collective)
     factor: Any = KspSolve(ksp if supported else None, K,
                            keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
-    n_rigid = int(rigid.sum())
     labels = label_rows(fe.space, fe.free, shapes, n_rigid)
+    labels[:len(names)] = names
     for f, lab in zip(np.sqrt(omega2) / (2 * np.pi), labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
     return Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,

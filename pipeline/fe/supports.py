@@ -36,6 +36,7 @@ q = W u, and the bushing adds W^T K_b W (a dense block on the region's DOFs).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -73,15 +74,34 @@ class RigidFreedoms:
     """The rigid-body motions the supports leave free.
 
     names: (r,) ``translation_x`` ... ``rotation_z``, the unit twist each is closest to.
-    fields: (n_dofs, r) nodal displacements of each motion (m), zero on the held DOFs.
+    fields: (n_dofs, r) nodal displacements of each motion (m), zero on the held DOFs;
+    (0, r) in the form :meth:`without_fields` makes.
+    twists: (r, 6) the twist [v; omega L] of each motion at ``center`` ((3,) m), L =
+    ``length`` (m), so that ``fields`` = R_center diag(1, 1, 1, 1/L, 1/L, 1/L) twists^T
+    (:meth:`fields_at`), or None.
     """
 
     names: tuple[str, ...]
     fields: np.ndarray
+    twists: np.ndarray | None = None
+    center: np.ndarray | None = None
+    length: float = 1.0
 
     @property
     def count(self) -> int:
         return len(self.names)
+
+    def fields_at(self, node_points: np.ndarray) -> np.ndarray:
+        """(3 p, r) the displacements (m) of each motion at ``node_points`` (p, 3): the
+        rows of ``fields`` of those points, from the twists (no (n_dofs, r) array)."""
+        R = rigid_body_modes(node_points, self.center)
+        R[:, 3:] /= self.length
+        return R @ np.asarray(self.twists).T
+
+    def without_fields(self) -> RigidFreedoms:
+        """The same motions without the (n_dofs, r) ``fields`` (what an MPI rank is sent:
+        it evaluates :meth:`fields_at` on its own points)."""
+        return dataclasses.replace(self, fields=np.zeros((0, self.count)))
 
 
 @dataclass(frozen=True)
@@ -307,7 +327,8 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
         u, s, _ = np.linalg.svd(N, full_matrices=False)
         N = u[:, s > 1e-8]
     fields = R @ np.array(twists).T if twists else np.zeros((x.size, 0))
-    return RigidFreedoms(tuple(names), fields)
+    return RigidFreedoms(tuple(names), fields, np.array(twists).reshape(-1, 6),
+                         np.array(center, dtype=float), L)
 
 
 def support_summary(fe, modes) -> list[str]:

@@ -159,12 +159,23 @@ def relief_shapes(K, M, F, rigid: np.ndarray, shift: float, factorize=None,
         return np.asarray(T @ Xq, dtype=float)
     Fe = Fd - M @ (R @ (R.T @ Fd))
     solve = _solver(sp.csr_matrix(K - shift * M), None, factorize)
+    return relief_fixed_point(Fe, solve, lambda X: M @ X,
+                              lambda X: X - R @ (R.T @ (M @ X)), np.linalg.norm, shift)
+
+
+def relief_fixed_point(Fe: np.ndarray, solve, mass, project, norm, shift: float
+                       ) -> np.ndarray:
+    """The fixed point X <- project(A^-1 (Fe - shift M X)) of :func:`relief_shapes`,
+    from X = 0, stopped at a relative change norm(X_new - X) / norm(X_new) <=
+    :data:`RELIEF_TOL` (SolverError after :data:`RELIEF_MAX_STEPS`). ``Fe`` (n x n_u):
+    the load less its rigid part; ``solve``: b -> A^-1 b, A = K - shift M; ``mass``:
+    X -> M X; ``project``: X -> X - R R^T M X; ``norm``: the Frobenius norm of such an
+    array (on MPI ranks each holds its rows of every array and sums the norm's squares)."""
     X = np.zeros_like(Fe)
     change = np.inf
     for _ in range(RELIEF_MAX_STEPS):
-        Xn = np.asarray(solve(Fe - shift * (M @ X)), dtype=float).reshape(Fe.shape)
-        Xn -= R @ (R.T @ (M @ Xn))
-        change = np.linalg.norm(Xn - X) / max(np.linalg.norm(Xn), np.finfo(float).tiny)
+        Xn = project(np.asarray(solve(Fe - shift * mass(X)), dtype=float).reshape(Fe.shape))
+        change = norm(Xn - X) / max(norm(Xn), np.finfo(float).tiny)
         X = Xn
         if change <= RELIEF_TOL:
             return X

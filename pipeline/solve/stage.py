@@ -128,10 +128,8 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
     ``analysis``: a :class:`~pipeline.solve.backends.pardiso.PatternAnalysis` of K's
     pattern started during the assembly, or None.
     """
-    if body.rigid is not None and config.count <= body.rigid.shape[1]:
-        raise ConfigError.field("modes.count", config.count,
-                                f"more than the {body.rigid.shape[1]} rigid-body mode(s) the "
-                                f"supports leave ({', '.join(body.rigid_names)})")
+    if body.rigid is not None:
+        check_count_above_rigid(config.count, body.rigid.shape[1], body.rigid_names)
     K, M, rigid, coarse, T = body.K, body.M, body.rigid, body.coarse, body.constraint
     if T is not None:  # u = T q: an ordinary SPD pencil on q (pipeline.fe.constraints)
         K, M = (T.T @ (K @ T)).tocsr(), (T.T @ (M @ T)).tocsr()
@@ -174,16 +172,7 @@ def with_rigid_motions(modes: Modes, M: sp.spmatrix, rigid: np.ndarray,
     """
     r = rigid.shape[1]
     w = modes.omega2
-    if modes.n_rigid > r:
-        raise SolverError(
-            f"the stiffness system is singular: {modes.n_rigid} zero-frequency modes where "
-            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}): a mechanism "
-            "inside the mesh (parts joined only at an edge or a point?)")
-    if w.size <= r or (r and w[r - 1] > 1e-6 * w[r]):
-        raise SolverError(
-            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}), but the "
-            f"eigensolver found {int(np.count_nonzero(w <= 1e-6 * w[-1]))} modes at ~0 Hz "
-            f"among {w.size}; expected modes.count > {r} and the first {r} at ~0 Hz")
+    check_rigid_found(modes.n_rigid, w, r, names)
     R = np.array(rigid, dtype=float)
     MR = M @ R
     G = R.T @ MR
@@ -195,3 +184,31 @@ def with_rigid_motions(modes: Modes, M: sp.spmatrix, rigid: np.ndarray,
     omega2 = np.concatenate([np.zeros(r), w[r:]])
     return dataclasses.replace(modes, shapes=np.hstack([R, phi]), omega2=omega2,
                                frequencies_hz=np.sqrt(omega2) / (2 * np.pi), n_rigid=r)
+
+
+def check_count_above_rigid(count: int, r: int, names: tuple[str, ...]) -> None:
+    """Refuse (ConfigError, before the solve) ``modes.count`` not above the r rigid-body
+    motions the supports leave (``names``)."""
+    if count <= r:
+        raise ConfigError.field("modes.count", count,
+                                f"more than the {r} rigid-body mode(s) the "
+                                f"supports leave ({', '.join(names)})")
+
+
+def check_rigid_found(n_found: int, omega2: np.ndarray, r: int,
+                      names: tuple[str, ...]) -> None:
+    """Refuse (SolverError) an eigensolution whose zero-frequency modes do not match the
+    r rigid-body motions the supports leave (``names``): more of them (``n_found``, a
+    mechanism the supports analysis cannot see), or fewer than r of ``omega2`` (n_m,
+    rad^2/s^2, ascending) clearly below the first elastic one."""
+    w = omega2
+    if n_found > r:
+        raise SolverError(
+            f"the stiffness system is singular: {n_found} zero-frequency modes where "
+            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}): a mechanism "
+            "inside the mesh (parts joined only at an edge or a point?)")
+    if w.size <= r or (r and w[r - 1] > 1e-6 * w[r]):
+        raise SolverError(
+            f"the supports leave {r} rigid-body motion(s) ({', '.join(names)}), but the "
+            f"eigensolver found {int(np.count_nonzero(w <= 1e-6 * w[-1]))} modes at ~0 Hz "
+            f"among {w.size}; expected modes.count > {r} and the first {r} at ~0 Hz")
