@@ -38,6 +38,10 @@ ROUND_OFF = {"modes/residuals": 1e-8}
 
 
 def _same_file(a, b) -> None:
+    """Every dataset of two files equal to rtol 1e-9 (ROUND_OFF aside). The residual
+    flexibility R (a difference of nearly equal terms, and D and B built from it) moves by
+    1.6e-7 of itself between MKL on one thread and on two: the CLI child and this process
+    must solve on the same count (the child inherits this process's environment)."""
     (da, attrs_a), (db, attrs_b) = _datasets(a), _datasets(b)
     assert sorted(da) == sorted(db)
     for name in da:

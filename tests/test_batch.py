@@ -102,9 +102,9 @@ def local_run(tmp_path_factory):
 
 def test_a_local_cluster_leaves_the_environment_as_it_was(local_run):
     """dask's nannies write their workers' variables (MKL_NUM_THREADS=1, OMP_NUM_THREADS,
-    PYTHONHASHSEED) into the process that starts them; left behind, MKL_NUM_THREADS made
-    the next in-process run's residual flexibility differ from a fresh process's by 1.6e-7
-    of itself (tests/test_api.py after this file)."""
+    PYTHONHASHSEED) into the process that starts them; left behind, a CLI child started
+    later (tests/test_api.py) solved on one MKL thread, this process on two, and their
+    residual flexibilities differed by 1.6e-7 of themselves."""
     *_, before, after = local_run
     changed = {k: (before.get(k), after.get(k)) for k in set(before) | set(after)
                if before.get(k) != after.get(k)}

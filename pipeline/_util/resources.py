@@ -390,10 +390,11 @@ def environment_kept():
 
     For third-party code that writes the host's environment: dask's ``Nanny`` sets its
     workers' variables (``MKL_NUM_THREADS=1``, ``OMP_NUM_THREADS=1``, ``PYTHONHASHSEED``,
-    ``MALLOC_TRIM_THRESHOLD_``) in the process that starts them. Left there, a later MKL
-    started on one thread and :mod:`pipeline.solve.mkl` took ``MKL_NUM_THREADS`` for the
-    user's choice: the residual flexibility of the next in-process run moved by 1.6e-7 of
-    itself (a difference of nearly equal terms, summed in another order)."""
+    ``MALLOC_TRIM_THRESHOLD_``) in the process that starts them. Left there, every process
+    the host starts later inherits them: a ``python -m pipeline run`` child then solved on
+    one MKL thread, the host on two, and the residual flexibility (a difference of nearly
+    equal terms, summed in another order) of the two runs of one config differed by
+    1.6e-7 of itself."""
     saved = dict(os.environ)
     try:
         yield
