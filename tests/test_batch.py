@@ -95,8 +95,20 @@ def local_run(tmp_path_factory):
     """The small batch through a local cluster of two worker processes."""
     folder = tmp_path_factory.mktemp("local")
     path = make_batch(folder)
+    environ = dict(os.environ)
     result = run_batch(path, folder / "out", workers=2, progress=False, echo=lambda s: None)
-    return path, result
+    return path, result, environ, dict(os.environ)
+
+
+def test_a_local_cluster_leaves_the_environment_as_it_was(local_run):
+    """dask's nannies write their workers' variables (MKL_NUM_THREADS=1, OMP_NUM_THREADS,
+    PYTHONHASHSEED) into the process that starts them; left behind, a CLI child started
+    later (tests/test_api.py) solved on one MKL thread, this process on two, and their
+    residual flexibilities differed by 1.6e-7 of themselves."""
+    *_, before, after = local_run
+    changed = {k: (before.get(k), after.get(k)) for k in set(before) | set(after)
+               if before.get(k) != after.get(k)}
+    assert not changed, f"environment changed: {changed}"
 
 
 # --------------------------------------------------------------------------- validation
@@ -227,7 +239,7 @@ def test_memory_aware_admission():
 
 # --------------------------------------------------------------------------- local cluster
 def test_local_batch_writes_outputs_and_rerun_computes_nothing(local_run):
-    path, result = local_run
+    path, result, *_ = local_run
     out = result.outdir
     assert [o.status for o in result.outcomes] == ["done"] * 3, \
         [o.record.get("error") for o in result.outcomes]
@@ -455,7 +467,7 @@ def test_existing_scheduler_gives_the_same_results(local_run, tmp_path):
     """
     import psutil
 
-    path, local = local_run
+    path, local, *_ = local_run
     spec = load_batch(path)
     largest = max(c.memory_bytes for c in spec.cases)
     out = tmp_path / "out"
@@ -500,7 +512,7 @@ def test_results_sent_back_when_the_worker_cannot_see_the_folder(local_run, tmp_
     """A worker on another machine sends the file's bytes; the client writes it."""
     from pipeline.apps.batch import run_case_task
 
-    path, local = local_run
+    path, local, *_ = local_run
     case = load_batch(path).cases[0]
     folder = tmp_path / "elsewhere"
     folder.mkdir()

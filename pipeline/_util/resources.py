@@ -381,3 +381,26 @@ def check_factor_memory(factor_bytes_exact: float, n_dofs: int,
             f"the sparse factorisation of the {n_dofs}-DOF stiffness matrix needs "
             f"{factor_bytes_exact / 1e9:.1f} GB, but only {have / 1e9:.1f} GB is available; "
             f"a mesh.size about {factor:.2f} times larger would fit")
+
+
+@contextlib.contextmanager
+def environment_kept():
+    """Give ``os.environ`` back on exit as it was on entry: variables set inside the block
+    are removed, changed ones get their old value.
+
+    For third-party code that writes the host's environment: dask's ``Nanny`` sets its
+    workers' variables (``MKL_NUM_THREADS=1``, ``OMP_NUM_THREADS=1``, ``PYTHONHASHSEED``,
+    ``MALLOC_TRIM_THRESHOLD_``) in the process that starts them. Left there, every process
+    the host starts later inherits them: a ``python -m pipeline run`` child then solved on
+    one MKL thread, the host on two, and the residual flexibility (a difference of nearly
+    equal terms, summed in another order) of the two runs of one config differed by
+    1.6e-7 of itself."""
+    saved = dict(os.environ)
+    try:
+        yield
+    finally:
+        for name in [k for k in os.environ if k not in saved]:
+            del os.environ[name]
+        for name, value in saved.items():
+            if os.environ.get(name) != value:
+                os.environ[name] = value

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline._util.atomic import private_folder, write_bytes, write_text
+from pipeline._util.resources import environment_kept
 from pipeline.apps.batch import report
 from pipeline.apps.batch.cache import (
     CaseRecord,
@@ -339,7 +340,10 @@ def execute(pending: list[Case], weights: Mapping[str, int], cases_dir: Path,
         available = available_memory_bytes()
         threads_per_case = max(1, (os.cpu_count() or 1) // n)
         # the workers' scratch folder is private and removed with the cluster (dask's
-        # default, <TMPDIR>/dask-scratch-space, is shared and stays behind)
+        # default, <TMPDIR>/dask-scratch-space, is shared and stays behind); dask's nannies
+        # write their workers' variables (MKL_NUM_THREADS=1, ...) into this process's
+        # environment: it is given back as it was when the cluster is gone
+        scratch_holder.enter_context(environment_kept())
         scratch = scratch_holder.enter_context(private_folder("pipeline-dask-"))
         try:
             cluster, client = start_local_cluster(n, available, threads_per_case, scratch)
