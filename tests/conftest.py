@@ -181,14 +181,29 @@ def eigenvalue_rtol(K, M=None, tolerance: float | None = None, n_zero: int = 0,
 @pytest.fixture(autouse=True)
 def _cli_process_settings_undone():
     """A test that calls the console script's ``pipeline.cli.main`` in this process gets
-    the CLI's process settings (pipeline.cli.process); they are undone after it, so that
-    no later test runs in a tuned process by the order the tests ran in."""
+    the CLI's process settings (pipeline.cli.process), its log handler on the root logger
+    and its signal handlers; they are undone after it, so that no later test runs in a
+    tuned process by the order the tests ran in (a root handler left on a closed capsys
+    stream made later tests print "Logging error: I/O operation on closed file")."""
+    import logging
     import os
+    import signal
 
+    from pipeline.cli.main import STAGE_LOGGERS
     from pipeline.cli.process import PROCESS_SETTINGS
 
     saved = {name: os.environ.get(name) for name in PROCESS_SETTINGS}
+    stage_levels = {name: logging.getLogger(name).level for name in STAGE_LOGGERS}
+    signals = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
     yield
+    for s, h in signals.items():
+        signal.signal(s, h)
+    root.handlers[:] = handlers
+    root.setLevel(level)
+    for name, stage_level in stage_levels.items():
+        logging.getLogger(name).setLevel(stage_level)
     for name, value in saved.items():
         if value is None:
             os.environ.pop(name, None)

@@ -122,17 +122,10 @@ from pathlib import Path  # noqa: E402
 
 @pytest.fixture
 def signals():
-    """Restore the signal handlers and log handlers that main() installs."""
-    import logging
-
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
+    """The signal and log handlers main() installs are restored after every test by
+    conftest's autouse ``_cli_process_settings_undone``; kept as the name these tests
+    ask for."""
     yield
-    for s, h in saved.items():
-        signal.signal(s, h)
-    root.handlers[:] = handlers
-    root.setLevel(level)
 
 
 @pytest.fixture(scope="module")
