@@ -66,6 +66,23 @@ def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
     return PETSc.NullSpace().createRigidBody(coords)
 
 
+def rigid_rows_near_null_space(PETSc, A, rows_rigid: np.ndarray):
+    """PETSc's near-null space of A from this rank's rows (n_loc, 6) of the six rigid-body
+    modes restricted to the free DOFs (a point may have only some of its DOFs free: a
+    component held), made orthonormal over all ranks (Cholesky of their Gram matrix)."""
+    comm = PETSc.COMM_WORLD.tompi4py()
+    local = np.ascontiguousarray(rows_rigid, dtype=float)
+    gram = comm.allreduce(local.T @ local)
+    L = np.linalg.cholesky(gram)
+    Q = np.linalg.solve(L, local.T).T  # local @ L^-T
+    vecs = []
+    for j in range(Q.shape[1]):
+        v = A.createVecLeft()
+        v.getArray()[:] = Q[:, j]
+        vecs.append(v)
+    return PETSc.NullSpace().create(vectors=vecs)
+
+
 #: PETSc option of MUMPS' workspace margin (ICNTL(14), percent above its analysis'
 #: estimate) for the shift-invert factor, and the margins tried after a factorisation
 #: that ran out of workspace (INFOG(1) = -9 or -8: cantilever_materials at mesh.size

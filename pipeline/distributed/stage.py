@@ -28,7 +28,8 @@ import scipy.sparse as sp
 from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
-from pipeline.distributed.eigen import petsc_matrix, rigid_near_null_space, solve_eigen
+from pipeline.distributed.eigen import (petsc_matrix, rigid_near_null_space,
+                                        rigid_rows_near_null_space, solve_eigen)
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
@@ -330,13 +331,18 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
     method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
     near_null = None
-    if method == "multigrid" and whole_nodes(fe.free, fe.space.n_nodes) is not None:
-        # whole points on every rank (the partition keeps them): their coordinates give
-        # GAMG the rigid-body modes; otherwise GAMG runs without (slower, still right)
+    if method == "multigrid":
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
         mesh = fe.space.local
-        near_null = rigid_near_null_space(
-            PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
+        if whole_nodes(fe.free, fe.space.n_nodes) is not None:
+            # whole points on every rank (the partition keeps them): their coordinates
+            # give GAMG the rigid-body modes
+            near_null = rigid_near_null_space(
+                PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
+        else:  # components held: the rigid-body modes' free rows
+            points = mesh.space.node_points[mesh.local_nodes(rows // 3)]
+            near_null = rigid_rows_near_null_space(
+                PETSc, Kp, rigid_body_modes(points)[3 * np.arange(rows.size) + rows % 3])
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
     # a partly held body (supports that leave rigid motions) is solved as a free one,
     # at the negative shift, its first fe.n_rigid modes those motions (the serial path)
