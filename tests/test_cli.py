@@ -113,19 +113,11 @@ def test_run_prints_a_short_summary_and_stage_lines_when_piped(tmp_path):
 # --------------------------------------------------------------------------- issue 17
 # Destinations are checked before any work (classes 1, 4, 7 of issue 17). The commands
 # run in this process (``pipeline.cli.main.main``); refusals come before meshing, so each
-# takes milliseconds. ``signals`` restores the handlers main() installs.
+# takes milliseconds. conftest's autouse fixture restores the handlers main() installs.
 import os  # noqa: E402
 import shutil  # noqa: E402
 import signal  # noqa: E402
 from pathlib import Path  # noqa: E402
-
-
-@pytest.fixture
-def signals():
-    """The signal and log handlers main() installs are restored after every test by
-    conftest's autouse ``_cli_process_settings_undone``; kept as the name these tests
-    ask for."""
-    yield
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +144,7 @@ def digest(path: Path) -> bytes:
     return hashlib.sha256(path.read_bytes()).digest()
 
 
-def test_run_never_writes_over_its_config_or_a_foreign_file(tmp_path, capsys, signals):
+def test_run_never_writes_over_its_config_or_a_foreign_file(tmp_path, capsys):
     """Class 1: ``run c.yaml -o c.yaml`` (on main: the config replaced by HDF5, exit 0),
     through a symlink and a hard link to it, over the geometry file, over a foreign file."""
     cfg = tmp_path / "c.yaml"
@@ -179,8 +171,7 @@ def test_run_never_writes_over_its_config_or_a_foreign_file(tmp_path, capsys, si
     assert code == 8 and "is the input" in err, err
 
 
-def test_export_never_writes_over_its_input_or_another_model(model_file, tmp_path, capsys,
-                                                             signals):
+def test_export_never_writes_over_its_input_or_another_model(model_file, tmp_path, capsys):
     """Class 1: ``export F.h5 --to json -o F.h5`` (on main: the model replaced by JSON);
     the XDMF data file ``<stem>.h5`` landing on another model file (on main: destroyed)."""
     f = tmp_path / "F.h5"
@@ -206,7 +197,7 @@ def test_export_never_writes_over_its_input_or_another_model(model_file, tmp_pat
     assert cli(capsys, "export", f, "--to", "xdmf", "-o", tmp_path / "H.xdmf")[0] == 0
 
 
-def test_destinations_are_checked_before_any_work(model_file, tmp_path, capsys, signals,
+def test_destinations_are_checked_before_any_work(model_file, tmp_path, capsys,
                                                   monkeypatch):
     """Class 4: a missing folder, a directory as -o, a file as a folder, a read-only
     folder: one line, exit 8, before meshing (on main: created folders, or a traceback
@@ -292,7 +283,7 @@ def test_region_names_that_cannot_be_keys_are_refused(tmp_path):
     assert not (tmp_path / "k.h5").exists()
 
 
-def test_batch_names_that_cannot_be_folders_are_refused(tmp_path, capsys, signals):
+def test_batch_names_that_cannot_be_folders_are_refused(tmp_path, capsys):
     """Class 7: a batch name with a newline or a slash never becomes a folder."""
     for bad in ('"a\\nb"', '"../up"', '"a/b"', '""'):
         f = tmp_path / "b.yaml"
@@ -303,8 +294,7 @@ def test_batch_names_that_cannot_be_folders_are_refused(tmp_path, capsys, signal
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.yaml"]
 
 
-def test_fmu_and_simscape_exports_replace_their_own_files_only(model_file, tmp_path, capsys,
-                                                               signals):
+def test_fmu_and_simscape_exports_replace_their_own_files_only(model_file, tmp_path, capsys):
     """An FMU this package exported is replaced without --force; a foreign zip of that
     name is not (its modelDescription.xml does not name us); the default FMU name follows
     --model, so the plant and the filtered FMU never replace each other."""
