@@ -103,7 +103,8 @@ RELIEF_BLOCK_ANALYSIS_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_15"
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
-                near_null=None, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+                near_null=None, shift: float = 0.0, prefix: str = ""
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
     (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
     below zero for a free body, whose K is singular). ``method``: ``factor`` or
@@ -111,12 +112,14 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
 
     A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
     every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
-    unless the user set that option."""
+    unless the user set that option. ``prefix``: the PETSc options prefix of the solve
+    (its ``eps_*``, ``st_*`` options; the two-grid start block's own,
+    :mod:`pipeline.distributed.multigrid`)."""
     return _with_workspace_retries(
-        PETSc, MUMPS_WORKSPACE_OPTION, method == "factor",
+        PETSc, prefix + MUMPS_WORKSPACE_OPTION, method == "factor",
         lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
-                                       near_null, shift, last=last),
-        MUMPS_BLOCK_ANALYSIS_OPTION if method == "factor" else None)
+                                       near_null, shift, last=last, prefix=prefix),
+        prefix + MUMPS_BLOCK_ANALYSIS_OPTION if method == "factor" else None)
 
 
 def _with_workspace_retries(PETSc, option: str, retry: bool, attempt,
@@ -174,10 +177,12 @@ class _WorkspaceShort(Exception):
 
 
 def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
-                      near_null, shift: float, last: bool):
+                      near_null, shift: float, last: bool, prefix: str = ""):
     """One attempt of :func:`solve_eigen`; ``last``: a workspace shortage raises the
     SolverError instead of _WorkspaceShort."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
+    if prefix:
+        eps.setOptionsPrefix(prefix)
     eps.setOperators(K, M)
     eps.setProblemType(SLEPc.EPS.ProblemType.GHEP)
     eps.setDimensions(nev=count)

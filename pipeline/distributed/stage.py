@@ -31,6 +31,7 @@ from pipeline.distributed.assemble import local_node_mass, local_rows, with_int3
 from pipeline.distributed.eigen import (petsc_matrix, rigid_near_null_space,
                                         rigid_rows_near_null_space, solve_eigen)
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
+from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
 from pipeline.fe.assemble import whole_nodes
@@ -47,7 +48,9 @@ from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
-from pipeline.solve.eigen import default_shift
+from pipeline._util.resources import lobpcg_guard
+from pipeline.solve.eigen import (MULTIGRID_MAX_SWEEPS, MULTIGRID_START_TOLERANCE,
+                                  MULTIGRID_TOLERANCE, default_shift)
 from pipeline.solve.modes import Modes
 from pipeline.solve.stage import check_count_above_rigid
 from pipeline.store.schema import stress_modes_datasets
@@ -331,7 +334,8 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
     method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
     near_null = None
-    if method == "multigrid":
+    two_grid = method == "multigrid" and fe.space.order == 2
+    if method == "multigrid" and not two_grid:
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
         mesh = fe.space.local
         if whole_nodes(fe.free, fe.space.n_nodes) is not None:
@@ -351,9 +355,18 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     if partly:
         check_count_above_rigid(count, fe.n_rigid, fe.rigid.names)
     shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
-    omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
-                                       near_null, shift)
-    eps, ksp = stats.pop("eps"), stats.pop("ksp")
+    if two_grid:  # LOBPCG preconditioned by the two-grid cycle: no factor of K
+        P = prolongation(PETSc, fe.space, fe.free, K.part, world().rank)
+        tolerance = cfg.modes.tolerance or MULTIGRID_TOLERANCE
+        _, local, stats, ksp = lobpcg_modes(
+            PETSc, SLEPc, Kp, Mp, P, count, count + lobpcg_guard(count), shift, tolerance,
+            MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
+        owned = [ksp, P, *stats.pop("keep")]
+    else:
+        omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
+                                           near_null, shift)
+        eps, ksp = stats.pop("eps"), stats.pop("ksp")
+        owned = [eps]  # SLEPc's solver owns its KSP
     comm = world()
     K.petsc, M.petsc = Kp, Mp  # the products of the Rayleigh-Ritz step and the reduce stage
     omega2, shapes, residuals = rayleigh_ritz_rows(K, M, RowBlock(comm, K.part, local), shift)
@@ -379,7 +392,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
     # (every rank at the same point: PETSc's destroy is collective)
     factor: Any = KspSolve(ksp if supported else None, K,
-                           keep=[eps, Kp, Mp] + ([near_null] if near_null else []))
+                           keep=[*owned, Kp, Mp] + ([near_null] if near_null else []))
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
     labels = label_rows(fe.space, fe.free, shapes, n_rigid)

@@ -186,19 +186,35 @@ def _gram(left: list[np.ndarray], right: list[np.ndarray],
     return G
 
 
-def _residuals(KX, MX, w, sigma):
-    """R = K X - M X diag(w) (n, m) and the relative residuals (m,)."""
+def _one_process(partial: np.ndarray) -> np.ndarray:
+    """The sum over ranks of a per-rank partial product, on one process: the product."""
+    return partial
+
+
+def _times(A, X: np.ndarray) -> np.ndarray:
+    """A X for a sparse A, or ``A(X)`` for an operator given as a function."""
+    return A(X) if callable(A) else sparse_times_dense(A, X)
+
+
+def _residuals(KX, MX, w, sigma, total=_one_process):
+    """R = K X - M X diag(w) (n, m) and the relative residuals (m,); ``total`` sums the
+    ranks' partial column sums (rows on several ranks)."""
     R = MX * -w
     R += KX
-    scale = np.maximum(column_norms(KX), abs(sigma) * column_norms(MX))
-    return R, column_norms(R) / np.where(scale > 0, scale, 1.0)
+
+    def norms(A):
+        return column_norms(A) if total is _one_process else \
+            np.sqrt(total(np.einsum("ij,ij->j", A, A)))
+    scale = np.maximum(norms(KX), abs(sigma) * norms(MX))
+    return R, norms(R) / np.where(scale > 0, scale, 1.0)
 
 
 def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
            precondition: Callable[[np.ndarray], np.ndarray], count: int, *,
            sigma: float = 0.0, target: float = 1e-6, max_sweeps: int = 100,
            patience: int = 8, on_sweep: Callable[[int, float], None] | None = None,
-           budget: float | None = None) -> LobpcgResult:
+           budget: float | None = None,
+           total: Callable[[np.ndarray], np.ndarray] = _one_process) -> LobpcgResult:
     """The ``count`` lowest eigenpairs of (K, M) from the start block X (n, m >= count).
 
     Stops when every wanted relative residual is <= ``target``, after ``max_sweeps``, or
@@ -209,15 +225,21 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
     every sweep. ``budget``: from sweep :data:`PROJECT_FROM` on, give up (``abandoned``)
     as soon as :func:`projected_sweeps` exceeds it (a caller with a faster alternative
     for a slowly converging problem; None: no projection).
+
+    Rows on several MPI ranks (:mod:`pipeline.distributed.eigen`): X and every block
+    hold this rank's rows, K and M are functions X -> K X of such blocks, and ``total``
+    sums a small array over the ranks (MPI_Allreduce): every Gram matrix and column sum
+    is a per-rank partial product summed by it, so every rank computes the same small
+    Rayleigh-Ritz problems and takes the same steps.
     """
     t0 = time.perf_counter()
     X = np.ascontiguousarray(X, dtype=np.float64)
     n, m = X.shape
     if not 0 < count <= m:
         raise ValueError(f"count {count}: expected 1..{m} (the columns of the start block)")
-    KX, MX = sparse_times_dense(K, X), sparse_times_dense(M, X)
+    KX, MX = _times(K, X), _times(M, X)
     # Rayleigh-Ritz on span(X): ordered, exactly M-orthonormal
-    w, B = _rayleigh_ritz(X.T @ KX, X.T @ MX)
+    w, B = _rayleigh_ritz(total(X.T @ KX), total(X.T @ MX))
     X, KX, MX = X @ B, KX @ B, MX @ B
     P = KP = MP = None
     history: list[float] = []
@@ -226,12 +248,12 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
     floor = max(abs(sigma), np.finfo(float).tiny)
     sweeps = 0
     while True:
-        R, res = _residuals(KX, MX, w, sigma)
+        R, res = _residuals(KX, MX, w, sigma, total)
         active = rho > target  # soft locking: converged columns get no new directions
         active[count:] = True  # guard columns keep helping the last wanted ones
         R = _columns(R, active)
         Z = np.asarray(precondition(R), dtype=np.float64).reshape(n, -1)
-        rho[active] = np.sqrt(np.abs(np.einsum("ij,ij->j", R, Z))
+        rho[active] = np.sqrt(np.abs(total(np.einsum("ij,ij->j", R, Z)))
                               / np.maximum(np.abs(w[active]), floor))
         del R
         worst = float(rho[:count].max())
@@ -255,7 +277,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         again[np.flatnonzero(active) >= count] = True
         Z = _columns(Z, again)
         active[np.flatnonzero(active)[~again]] = False
-        KZ, MZ = sparse_times_dense(K, Z), sparse_times_dense(M, Z)
+        KZ, MZ = _times(K, Z), _times(M, Z)
         # W = [Z, P] and its images, kept as column blocks (joining them would write
         # three (n, 2m) arrays a sweep, a seventh of the sweep's time at 1M DOFs)
         if P is not None:
@@ -268,7 +290,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         # W -= X (X^T M W): M-orthogonal to X, the images alike (one classical
         # Gram-Schmidt pass; what it leaves is handled by the explicit Gram matrix below)
         for Wb, KWb, MWb in zip(W, KW, MW):
-            C = MX.T @ Wb
+            C = total(MX.T @ Wb)
             _update(Wb, X, C, -1.0)
             _update(KWb, KX, C, -1.0)
             _update(MWb, MX, C, -1.0)
@@ -276,7 +298,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         # the M-orthonormal basis W C of span W (C from W's Gram matrix, SVQB), never
         # formed: its Rayleigh-Ritz blocks are C^T (W^T K W) C etc., from products of
         # W's own blocks (forming W C and its images cost a third of a sweep's flops)
-        G = _gram(W, MW, symmetric=True)
+        G = total(_gram(W, MW, symmetric=True))
         G = 0.5 * (G + G.T)
         scale = 1.0 / np.sqrt(np.maximum(np.diag(G), np.finfo(float).tiny))
         g, E = np.linalg.eigh(G * scale[:, None] * scale[None, :])
@@ -290,9 +312,10 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         # unconverged directions), and carried from sweep to sweep it grew to 2e-10 in
         # the lowest eigenvalue after 400 Jacobi-preconditioned sweeps of a 1D pencil
         # (8e-12 computed)
-        Kr[:m, :m], Gr[:m, :m] = X.T @ KX, X.T @ MX
-        Kr[:m, m:], Gr[:m, m:] = _gram([X], KW) @ C, _gram([X], MW) @ C
-        Kr[m:, m:] = C.T @ _gram(W, KW, symmetric=True) @ C
+        Kr[:m, :m], Gr[:m, :m] = total(X.T @ KX), total(X.T @ MX)
+        Kr[:m, m:] = total(_gram([X], KW)) @ C
+        Gr[:m, m:] = total(_gram([X], MW)) @ C
+        Kr[m:, m:] = C.T @ total(_gram(W, KW, symmetric=True)) @ C
         Gr[m:, m:] = C.T @ G @ C
         Kr[m:, :m], Gr[m:, :m] = Kr[:m, m:].T, Gr[:m, m:].T
         w, U = _rayleigh_ritz(Kr, Gr)
