@@ -43,6 +43,8 @@ from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
+from pipeline.distributed.prestress import (check_rotation, preload_ports,
+                                            rotation_model)  # noqa: F401 (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
@@ -79,16 +81,8 @@ def check_supported(cfg: Config) -> None:
                               "distributing, or another modes.solver",
                               key=f"masses[{i}].coupling", value="rigid",
                               expected="distributing")
-    not_yet = [(key, what) for key, what, present in (
-        ("rotation", "a rotating body", cfg.rotation is not None),)
-        if present]
-    if not_yet:
-        key, what = not_yet[0]
-        raise ConfigError(f"{key} with modes.solver: slepc: the distributed path does not "
-                          f"handle {what} yet (each rank assembles its elements' materials "
-                          "and masses, held or free); expected no such key, or another "
-                          "modes.solver",
-                          key=key, value=what, expected=f"no {key} with modes.solver: slepc")
+    if cfg.rotation is not None:
+        check_rotation(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -194,6 +188,8 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     free = free_dofs(space.n_dofs, fixed)
     ports = None if cfg.reduction is None else \
         port_matrices(space, regions, cfg.ports, material=materials)
+    if ports is None and cfg.rotation is not None:  # a rotating body's preloads
+        ports = port_matrices(space, regions, preload_ports(cfg))
     return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
                      mesh_sha256, springs)
 

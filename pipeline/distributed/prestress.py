@@ -1,0 +1,337 @@
+"""Rotating and preloaded bodies on MPI ranks: the ``/rotation`` group from distributed K, M.
+
+The serial stage (:mod:`pipeline.reduce.rotation`, physics in :mod:`pipeline.fe.prestress`)
+works with the whole prestress matrices on the free DOFs (n_s). Here rank r holds the
+PETSc rows ``lo:hi`` it owns and its part of the mesh (its elements and the one element
+layer around them, :class:`~pipeline.distributed.submesh.RankMesh`), and evaluates every
+term with the serial kernels on that part:
+
+- the scalar node mass m (kg) of its part's elements; its rows at the nodes it owns are
+  the whole mesh's (every element touching such a node is in the part);
+- the centrifugal loads f_ij = (m (x) A_ij) r per unit W_ij (its rows) and the preload
+  loads F_k of the force and moment inputs (rank 0's port matrices, its rows);
+- the static shapes u = K^-1 [f, F] by the MUMPS factor the eigen solve made
+  (:func:`pipeline.distributed.reduce.static_rows`, refined as the static correction);
+- the geometric stiffness K_G(sigma(u)) of its part's elements: sigma needs u on every
+  node of its elements, its own rows and the halo the other ranks own
+  (:class:`Halo`: each rank sends the rows its neighbours ask for, nothing else);
+- every product A X with A = K_G,ij, M_ij = m (x) A_ij or m (x) [e_k x] of a row block X:
+  X on the part's nodes (the halo), A X on the part, the owned rows kept. Its
+  projections V^T A V = sum_r V_r^T (A V)_r are summed over the ranks (MPI_Allreduce);
+- the reduced basis V = [Phi, u_c, K^-1 (K_G1 - M_perp) phi_k] M-orthonormalised with
+  the distributed M (:func:`reduced_basis_rows`, the serial Gram-Schmidt);
+- the full FE sweep: K(Omega) = K + Omega^2 (K_G1 - M_perp) as a PETSc matrix (K's plus
+  Omega^2 times the spin term's rows, MatAXPY), its lowest n_m modes by SLEPc
+  (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS) and the
+  exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
+  K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
+
+No rank holds the whole K, M, K_G or the whole basis: the tall blocks are
+:class:`~pipeline.distributed.blocks.RowBlock` s, the small (n_b, n_b) terms are the same
+on every rank. Rigid masses tied by distributing couplings add their point-mass terms
+(:func:`pipeline.fe.prestress.point_mass_prestress`) through their six motions
+q = G u, summed over the ranks' rows of the coupled region.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import scipy.sparse as sp
+
+from pipeline.config import Config, Ports
+from pipeline.distributed.blocks import RowBlock
+from pipeline.distributed.eigen import petsc_matrix, solve_eigen
+from pipeline.distributed.mpi import allreduce_sum, petsc
+from pipeline.distributed.operators import RowMatrix
+from pipeline.distributed.reduce import rayleigh_ritz_rows, static_rows
+from pipeline.errors import SolverError
+from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
+                                   geometric_stiffness, node_mass_matrix, tensor_mass,
+                                   tensor_weights)
+from pipeline.fe.space import FESpace, build_space
+from pipeline.reduce.rotation import _check_point, _check_stress, _density, _weighted
+from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
+
+log = logging.getLogger(__name__)
+
+
+def preload_ports(cfg: Config) -> Ports:
+    """The force and moment inputs of ``cfg``: the preloads of a rotating body."""
+    return Ports(inputs=tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment")))
+
+
+def check_rotation(cfg: Config) -> None:
+    """One line (ConfigError, before any work) for the rotating bodies the distributed
+    path does not handle: the factor-free eigen solve (the sweep's shift-invert is
+    MUMPS'), added masses (their prestress terms are not distributed yet). A body without
+    supports is refused by the config's validation already."""
+    from pipeline.errors import ConfigError
+
+    if cfg.modes.method == "multigrid":
+        raise ConfigError("modes.method: multigrid with modes.solver: slepc and rotation: the "
+                          "prestressed sweep is solved on MUMPS' factor; expected modes.method "
+                          "factor or auto", key="modes.method", value="multigrid",
+                          expected="factor or auto with rotation")
+    for i, m in enumerate(cfg.masses):
+        raise ConfigError(f"masses[{i}] with modes.solver: slepc and rotation: the added "
+                          "masses' centrifugal and spin-softening terms are not distributed "
+                          "yet; expected no masses, or another modes.solver",
+                          key=f"masses[{i}]", value=m.kind, expected="no masses with rotation")
+
+
+class Halo:
+    """A rank's view of row blocks on the DOFs of its part of the mesh.
+
+    ``mesh.dof_rows`` (3 n_loc,) is the PETSc row of each local DOF (-1: held). The rows
+    in ``lo:hi`` are this rank's; the others (the halo) are asked once of their owners.
+    Collective: every rank builds it and calls :meth:`to_local` in the same order."""
+
+    def __init__(self, comm, mesh, part):
+        self.comm, self.part = comm, part
+        self.lo, self.hi = part.rows(comm.rank)
+        rows = np.asarray(mesh.dof_rows, dtype=np.int64)
+        self.rows, self.n_loc = rows, rows.size
+        self.n_free = int(part.order.size)
+        owned = (rows >= self.lo) & (rows < self.hi)
+        self.owned = np.flatnonzero(owned)  # local DOFs of the owned rows
+        self.halo = np.flatnonzero((rows >= 0) & ~owned)
+        need = rows[self.halo]
+        owner = np.searchsorted(part.starts, need, side="right") - 1
+        asks = [need[owner == r] for r in range(comm.size)]
+        self.where = [self.halo[owner == r] for r in range(comm.size)]
+        # the rows each rank asks of this one, as offsets into this rank's rows
+        self.sends = [np.asarray(a) - self.lo for a in comm.alltoall(asks)]
+
+    def to_local(self, X: RowBlock) -> np.ndarray:
+        """(3 n_loc, k): X on the part's DOFs (its own rows and the halo), 0 where held."""
+        out = np.zeros((self.n_loc, X.local.shape[1]))
+        out[self.owned] = X.local[self.rows[self.owned] - self.lo]
+        got = self.comm.alltoall([X.local[s] for s in self.sends])
+        for r, values in enumerate(got):
+            out[self.where[r]] = values
+        return out
+
+    def owned_rows(self, Y: np.ndarray) -> np.ndarray:
+        """(hi - lo, k) this rank's rows (PETSc order) of a (3 n_loc, k) field Y."""
+        Y = np.asarray(Y, dtype=float).reshape(self.n_loc, -1)
+        out = np.zeros((self.hi - self.lo, Y.shape[1]))
+        out[self.rows[self.owned] - self.lo] = Y[self.owned]
+        return out
+
+    def block(self, Y: np.ndarray) -> RowBlock:
+        """The RowBlock of this rank's rows of a (3 n_loc, k) field Y."""
+        return RowBlock(self.comm, self.part, self.owned_rows(Y))
+
+    def csr_rows(self, A: sp.spmatrix) -> sp.csr_matrix:
+        """(hi - lo, n_free) CSR, PETSc's rows and columns, of a (3 n_loc, 3 n_loc) matrix
+        of the part whose owned rows are complete; held columns dropped, int32 indices."""
+        from pipeline.distributed.assemble import with_int32_indices
+
+        B = sp.csr_matrix(A)[self.owned].tocoo()
+        cols = self.rows[B.col]
+        keep = cols >= 0
+        return with_int32_indices(sp.csr_matrix(
+            (B.data[keep], (self.rows[self.owned][B.row[keep]] - self.lo, cols[keep])),
+            shape=(self.hi - self.lo, self.n_free)))
+
+    def apply(self, A: sp.spmatrix, X: RowBlock, X_local: np.ndarray | None = None
+              ) -> RowBlock:
+        """A X (rows stay) for a matrix of the part (its owned rows complete);
+        ``X_local``: X on the part when already at hand."""
+        return self.block(A @ (self.to_local(X) if X_local is None else X_local))
+
+
+def reduced_basis_rows(shapes: RowBlock, M: RowMatrix, extra: RowBlock | None) -> RowBlock:
+    """The distributed twin of :func:`pipeline.reduce.rotation.reduced_basis`: ``shapes``
+    (M-orthonormal), then each column of ``extra`` M-orthonormalised against them (twice,
+    for round-off) and each other; a column already spanned (relative M-norm below 1e-8)
+    is dropped."""
+    if extra is None or extra.local.shape[1] == 0:
+        return shapes
+    V = shapes
+    for c in range(extra.local.shape[1]):
+        col = extra.columns(slice(c, c + 1))
+        x = col
+        for _ in range(2):
+            x = x.like(x.local - V.times(V.gram(M.apply(x))).local)
+        norm = float(np.sqrt(x.gram(M.apply(x))[0, 0]))
+        if norm > 1e-8 * float(np.sqrt(col.gram(M.apply(col))[0, 0])):
+            V = V.like(np.hstack([V.local, x.local / norm]))
+    return V
+
+
+def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix,
+                   modes) -> RotationModel:
+    """The distributed twin of :func:`pipeline.reduce.rotation.rotation_model` (module):
+    the same :class:`~pipeline.reduce.spin.RotationModel` on every rank, from the
+    distributed K, M (:class:`RowMatrix`, PETSc matrices attached), the modes' row block
+    and MUMPS factor, and this rank's part of the mesh (``space.local``)."""
+    rotation = cfg.rotation
+    comm = K.comm
+    if modes.factorization is None or modes.factorization.ksp is None or modes.n_rigid:
+        raise SolverError("rotation with modes.solver: slepc: the body is not held "
+                          f"({modes.n_rigid} rigid-body mode(s)): the centrifugal static "
+                          "solve needs a supported body; expected supports that hold it",
+                          key="rotation", value="unsupported body",
+                          expected="a held body")
+    mesh = space.local
+    part_space = kernel_space(mesh.space)
+    halo = Halo(comm, mesh, K.part)
+    axis = unit(rotation.axis)
+    point = np.asarray(rotation.point, dtype=float)
+    material = mesh.materials
+    if comm.rank == 0:
+        _check_point(point, space.node_points)
+    _check_stress_once(comm, rotation, axis, mesh, material)
+    node_mass = node_mass_matrix(part_space, _density(material))  # the part's m, kg
+    loads = halo.block(centrifugal_loads(part_space, node_mass, point))  # (n_s, 6) rows
+    ports = preload_ports(cfg)
+    names = tuple(p.name for p in ports.inputs)
+    rhs = loads
+    if names:
+        cols = [space.ports.input_names.index(n) for n in names]
+        F = sp.csr_matrix(space.ports.F)[:, cols][np.asarray(free)].tocsr()
+        rhs = loads.like(np.hstack([loads.local, F[loads.free_rows()].toarray()]))
+    factor = modes.factorization
+    U = static_rows(K, factor, rhs)  # (n_s, 6 + n_in) static shapes, rows stay
+    geometric = geometric_stiffness(part_space, material, halo.to_local(U))
+    softening = [tensor_mass(node_mass, entry_matrix(i, j)) for i, j in TENSOR_ENTRIES]
+    k = len(TENSOR_ENTRIES)
+    weights = tensor_weights(axis)
+    spin = (_weighted(geometric[:k], weights) - _weighted(softening, weights)).tocsr()
+    Phi: RowBlock = modes.shapes
+    n_m = Phi.local.shape[1]
+    static = U.columns(slice(0, k)).times(weights[:, None]) if rotation.static_shape else None
+    corrections = None
+    if rotation.correction_shapes:
+        n_c = min(rotation.correction_shapes, n_m)
+        corrections = static_rows(K, factor, halo.apply(spin, Phi.columns(slice(0, n_c))))
+    with_static = reduced_basis_rows(Phi, M, static)  # a shape the modes span is dropped
+    V = reduced_basis_rows(with_static, M, corrections)
+    plain = V.local.shape[1] == n_m
+    V_local = halo.to_local(V)
+
+    def project(matrices) -> np.ndarray:
+        n_b = V.local.shape[1]
+        return np.array([V.gram(halo.apply(A, V, V_local)) for A in matrices]
+                        ).reshape(-1, n_b, n_b)
+
+    omega2 = np.asarray(modes.omega2, dtype=float)
+    centrifugal, euler, coriolis = inertia_loads_rows(halo, node_mass, mesh.space.node_points
+                                                      - point, loads, V, V_local)
+    model = RotationModel(
+        axis=axis, point=point, speeds_rad_s=np.asarray(rotation.speeds_rad_s, float),
+        frequencies_hz=np.zeros((0, n_m)),
+        frequencies_reduced_hz=np.zeros((0, V.local.shape[1])),
+        stiffness=np.diag(omega2).astype(float) if plain else V.gram(K.apply(V)),
+        mass=np.eye(n_m) if plain else V.gram(M.apply(V)),
+        geometric=project(geometric[:k]), softening=project(softening),
+        preload=project(geometric[k:]), input_names=names, n_modes=n_m,
+        static_shape=with_static.local.shape[1] > n_m,
+        centrifugal_load=centrifugal, euler_load=euler, coriolis=coriolis)
+    reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
+    full = full_frequencies_rows(K, M, halo.csr_rows(spin), model.speeds_rad_s, n_m,
+                                 cfg.modes.tolerance or 1e-10,
+                                 rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
+    return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
+
+
+def kernel_space(space: FESpace) -> FESpace:
+    """The part's space with the scikit-fem mesh the prestress kernels assemble on
+    (:func:`pipeline.fe.space.sub_space` has none). Its nodes are the part's: vertices
+    ascending, then the edge midpoints ascending by the whole mesh's edge number, which
+    is lexicographic in the vertex numbers, as scikit-fem numbers a mesh's edges; the
+    element nodes are checked to be the part's."""
+    built = build_space(space.body, space.order)
+    if not np.array_equal(built.element_nodes, space.element_nodes):
+        raise RuntimeError("rotation: a rank's part of the mesh is numbered unlike "
+                           "scikit-fem's basis of it")
+    return built
+
+
+def _check_stress_once(comm, rotation, axis, mesh, material) -> None:
+    """The serial stress warning (:func:`pipeline.reduce.rotation._check_stress`) on rank
+    0, with the whole body's largest distance from the axis and densest, softest law
+    (each rank's part measured, the extremes taken over the ranks)."""
+    r = mesh.space.node_points - np.asarray(rotation.point, dtype=float)
+    radius = np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1), initial=0.0)
+    rho = float(np.max(material.rho, initial=0.0))
+    top = allreduce_sum(comm, np.array([radius, rho]), "MAX")
+    if comm.rank != 0:
+        return
+    # the radius at the point farthest from the axis: a stand-in point at that distance
+    far = np.asarray(rotation.point, float) + top[0] * _normal(axis)
+    law = material.uniform if material.uniform is not None else dataclasses.replace(
+        material, index=np.arange(material.D.shape[0]), rho=np.array([top[1]]))
+    _check_stress(rotation, axis, far[None, :], law)
+
+
+def _normal(axis: np.ndarray) -> np.ndarray:
+    """A unit vector normal to the unit ``axis``."""
+    trial = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    n = trial - (trial @ axis) * axis
+    return n / np.linalg.norm(n)
+
+
+def inertia_loads_rows(halo: Halo, node_mass: sp.spmatrix, offsets: np.ndarray,
+                       loads: RowBlock, V: RowBlock, V_local: np.ndarray):
+    """The distributed twin of :func:`pipeline.reduce.rotation.inertia_loads`:
+    (centrifugal (6, n_b), euler (3, n_b), coriolis (3, n_b, n_b)) from the part's node
+    mass (n_loc x n_loc, kg), its nodes' offsets x - p (n_loc, 3) m, the load rows f
+    (n_s, 6) and the basis V (rows, and ``V_local`` on the part)."""
+    n_loc, n_b = node_mass.shape[0], V.local.shape[1]
+    nodal = V_local.reshape(n_loc, 3, n_b)
+    euler = np.empty((3, n_b))
+    coriolis = np.empty((3, n_b, n_b))
+    for k, e in enumerate(np.eye(3)):
+        arm = np.cross(e, offsets)  # (n_loc, 3)
+        euler[k] = V.gram(halo.block((node_mass @ arm).reshape(-1, 1)))[:, 0]
+        turned = np.cross(e[None, :, None], nodal, axis=1)  # e_k x each column's vectors
+        coriolis[k] = V.gram(halo.block(
+            (node_mass @ turned.reshape(n_loc, -1)).reshape(3 * n_loc, n_b)))
+    return V.gram(loads).T, euler, coriolis
+
+
+def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, speeds,
+                          count: int, tolerance: float, rest_hz: np.ndarray) -> np.ndarray:
+    """(n_speeds, count) Hz: the lowest prestressed frequencies of the full FE model at
+    each speed (rad/s), K(Omega) = K + Omega^2 S (``spin_rows``: this rank's rows of
+    S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
+    (count,): the frequencies at rest (a speed 0 is not solved again)."""
+    PETSc, SLEPc = petsc()
+    n = K.shape[0]
+    S = petsc_matrix(PETSc, spin_rows, n)
+    out = np.empty((len(speeds), count))
+    try:
+        for i, speed in enumerate(speeds):
+            if speed == 0:
+                out[i] = rest_hz[:count]
+                continue
+            A = K.petsc.copy()
+            A.axpy(speed ** 2, S, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            At = RowMatrix(K.comm, None, K.part)
+            At.petsc = A
+            try:
+                try:
+                    omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
+                                                      tolerance, "factor")
+                except SolverError:
+                    raise unstable(speed, "the full FE model") from None
+                stats.pop("eps").destroy()
+                if np.min(omega2) <= 0.0:  # LDL^T factored an indefinite K(Omega)
+                    raise unstable(speed, "the full FE model")
+                omega2 = rayleigh_ritz_rows(At, M, RowBlock(K.comm, K.part, rows), 0.0)[0]
+            finally:
+                A.destroy()
+            if omega2[0] <= 0.0:
+                raise unstable(speed, "the full FE model")
+            out[i] = np.sqrt(omega2[:count]) / (2 * np.pi)
+            log.info("rotation: %g rad/s: f = %s Hz", speed,
+                     ", ".join(f"{f:.4g}" for f in out[i, :4]))
+    finally:
+        S.destroy()
+    return out
