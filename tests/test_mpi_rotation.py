@@ -13,6 +13,7 @@ below 2e-12. The refusals of what the distributed path does not handle need no M
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -41,53 +42,84 @@ def test_spinning_cantilever_on_two_ranks(tmp_path):
 
 
 @pytest.mark.mpi
-def test_spinning_materials_without_reduction_on_two_ranks(tmp_path):
+def test_spinning_materials_and_masses_without_reduction_on_two_ranks(tmp_path):
     """Steel, aluminium and an orthotropic CFRP tip: each rank's stress takes its
-    elements' own laws; without a reduction rank 0 makes the preload's port matrix
-    alone (the serial stage's). A free spin axis off the principal ones."""
+    elements' own laws; the tip's distributing point mass adds its rigid-body load,
+    softening and own geometric stiffness through its six motions summed over the
+    ranks, an area mass its node mass on each rank's part; without a reduction rank 0
+    makes the preload's port matrix alone (the serial stage's). A spin axis off the
+    principal ones, the static and two correction shapes (a few seconds)."""
     spin = ("rotation={axis: [0, 1, 1], point: [0, 0.01, 0.025], "
-            "speeds_rad_s: [0, 300]}")
+            "speeds_rad_s: [-100, 0, 300], static_shape: true, correction_shapes: 2}")
+    masses = ("masses=[{name: sensor, mass: 0.2, inertia: [2.0e-5, 3.0e-5, 2.0e-5, 1.0e-6, "
+              "0, 0], point: [0.52, 0.01, 0.025], region: tip, coupling: distributing}, "
+              "{name: paint, kind: area, density: 2.0, region: top}]")
     serial, dist = _serial_and_two_ranks(tmp_path, "configs/cantilever_materials.yaml",
-                                         "mesh.size=0.02", "masses=[]", "reduction=null",
+                                         "mesh.size=0.02", masses, "reduction=null",
                                          "ports.outputs=[]", spin)
     _same_file(serial, dist)
+    with h5py.File(dist) as b:
+        assert b["rotation"].attrs["n_basis"] == 13 and "statespace" not in b
+
+
+#: the command line with the reduced model's stability check stubbed out, so that the
+#: full FE sweep meets the unstable speed first
+FULL_SWEEP_FIRST = """\
+import sys
+import numpy as np
+import pipeline.distributed.prestress as prestress
+prestress.reduced_frequencies = lambda model: np.zeros(
+    (model.speeds_rad_s.size, model.stiffness.shape[0]))
+from pipeline.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
 
 
 @pytest.mark.mpi
-def test_unstable_speed_on_two_ranks_is_named_and_nothing_written(tmp_path):
+@pytest.mark.parametrize("where", ["the reduced model", "the full FE model"])
+def test_unstable_speed_on_two_ranks_is_named_and_nothing_written(tmp_path, where):
     """Spun about its own length the beam softens past its first frequency (~413 rad/s
-    at this mesh): the full FE sweep finds a negative eigenvalue (MUMPS' LDL^T factors
-    the indefinite K(Omega)) and names the speed in one line, as the serial path."""
+    at this mesh): the reduced model's check names the speed before the sweep, and so
+    does the full FE sweep where it comes first (MUMPS' LDL^T factors the indefinite
+    K(Omega): SLEPc's negative eigenvalue), in one line, as the serial path."""
     out = tmp_path / "x.h5"
+    entry = ["-m", "pipeline"]
+    if where == "the full FE model":
+        (tmp_path / "full_first.py").write_text(FULL_SWEEP_FIRST)
+        entry = [str(tmp_path / "full_first.py")]
     spin = "rotation={axis: [1, 0, 0], point: [0, 0.01, 0.025], speeds_rad_s: [0, 300, 900]}"
     proc = subprocess.run(
-        [*_mpiexec(), str(MPI_PYTHON), "-m", "pipeline", "run", "configs/cantilever.yaml",
+        [*_mpiexec(), str(MPI_PYTHON), *entry, "run", "configs/cantilever.yaml",
          "--set", "mesh.size=0.025", "--set", "modes.count=4", "--set", spin,
          "--set", "modes.solver=slepc", "-o", str(out)], cwd=ROOT, capture_output=True,
         text=True, timeout=600,
-        env={**__import__("os").environ, "PYTHONPATH": str(ROOT),
-             "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"})
+        env={**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+             "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"})
     assert proc.returncode == 5, proc.stderr[-2000:]
     lines = [ln for ln in proc.stderr.splitlines() if "rotation.speeds_rad_s" in ln]
-    assert lines and all("900 rad/s" in ln for ln in lines), proc.stderr[-2000:]
+    assert lines and all("900 rad/s" in ln and where in ln for ln in lines), \
+        proc.stderr[-2000:]
     assert not out.exists()
 
 
 @pytest.mark.parametrize("overrides, key", [
     (["modes.method=multigrid"], "modes.method"),
-    (["masses=[{name: m, mass: 0.2, inertia: [1.0e-5, 1.0e-5, 1.0e-5, 0, 0, 0], "
-      "point: [0.52, 0.01, 0.025], region: tip, coupling: distributing}]"], r"masses\[0\]"),
-], ids=["factor-free", "masses"])
+    (["supports=[{region: root, fix: [normal]}, {region: root, fix: [x, y, z]}]"],
+     r"supports\[0\]\.fix"),
+], ids=["factor-free", "local-frame-support"])
 def test_rotation_the_distributed_path_does_not_handle_is_refused(overrides, key):
-    """One line naming the key, before any meshing."""
+    """One line naming the key, before any meshing (check_rotation itself: the local-frame
+    support is refused by check_supported too until the constraint is distributed)."""
     from pipeline.config import load_config
+    from pipeline.distributed.prestress import check_rotation
     from pipeline.distributed.stage import check_supported
     from pipeline.errors import ConfigError
 
     cfg = load_config(ROOT / "configs" / "cantilever.yaml",
                       ["modes.solver=slepc", "mesh.size=0.02", SPIN] + overrides)
-    with pytest.raises(ConfigError, match=rf"^{key}(: [\w ]+)? with modes.solver: slepc"):
-        check_supported(cfg)
+    for check in (check_supported, check_rotation):
+        with pytest.raises(ConfigError, match=rf"^{key}(: [\w ]+)? with modes.solver: slepc"):
+            check(cfg)
 
 
 def test_cli_refuses_before_meshing(tmp_path):

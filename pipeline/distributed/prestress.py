@@ -42,15 +42,18 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config, Ports
+from pipeline.distributed.assemble import with_int32_indices
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, petsc
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.reduce import rayleigh_ritz_rows, static_rows
+from pipeline.distributed.submesh import petsc_numbering
 from pipeline.errors import SolverError
 from pipeline.fe.prestress import (TENSOR_ENTRIES, centrifugal_loads, entry_matrix,
-                                   geometric_stiffness, node_mass_matrix, tensor_mass,
-                                   tensor_weights)
+                                   geometric_stiffness, node_mass_matrix,
+                                   rigid_centrifugal_load, rigid_geometric_stiffness,
+                                   rigid_mass_of, tensor_mass, tensor_weights)
 from pipeline.fe.space import FESpace, build_space
 from pipeline.reduce.rotation import _check_point, _check_stress, _density, _weighted
 from pipeline.reduce.spin import RotationModel, reduced_frequencies, unit, unstable
@@ -66,8 +69,8 @@ def preload_ports(cfg: Config) -> Ports:
 def check_rotation(cfg: Config) -> None:
     """One line (ConfigError, before any work) for the rotating bodies the distributed
     path does not handle: the factor-free eigen solve (the sweep's shift-invert is
-    MUMPS'), added masses (their prestress terms are not distributed yet). A body without
-    supports is refused by the config's validation already."""
+    MUMPS'), supports in a local frame (the exact constraint u = T q). A body without supports and rigidly coupled masses are refused by the
+    config's validation already, on every path."""
     from pipeline.errors import ConfigError
 
     if cfg.modes.method == "multigrid":
@@ -75,11 +78,92 @@ def check_rotation(cfg: Config) -> None:
                           "prestressed sweep is solved on MUMPS' factor; expected modes.method "
                           "factor or auto", key="modes.method", value="multigrid",
                           expected="factor or auto with rotation")
-    for i, m in enumerate(cfg.masses):
-        raise ConfigError(f"masses[{i}] with modes.solver: slepc and rotation: the added "
-                          "masses' centrifugal and spin-softening terms are not distributed "
-                          "yet; expected no masses, or another modes.solver",
-                          key=f"masses[{i}]", value=m.kind, expected="no masses with rotation")
+    for i, support in enumerate(cfg.supports):
+        if support.local_fix:  # the exact constraint u = T q: not in the prestress terms
+            raise ConfigError(f"supports[{i}].fix: components in a local frame with "
+                              "modes.solver: slepc and rotation: the prestress under the "
+                              "exact constraint u = T q is not distributed; expected global "
+                              "x, y, z components", key=f"supports[{i}].fix",
+                              value=list(support.local_fix), expected="global components")
+
+
+def rotation_masses(cfg: Config, space, regions) -> tuple | None:
+    """Rank 0, on the whole mesh: (the scalar node mass of the area masses (n_nodes x
+    n_nodes CSR, kg) or None, the distributing point masses' (dofs, G, M6, P)) of a
+    rotating body (:mod:`pipeline.fe.added_mass`), or None without rotation or masses.
+    Both live on the masses' surface regions only (every rank gets them)."""
+    if cfg.rotation is None or not cfg.masses:
+        return None
+    from pipeline.fe.added_mass import area_node_mass, distributing_point_masses
+
+    return (area_node_mass(space, regions, cfg.masses),
+            tuple(distributing_point_masses(space, regions, cfg.masses)))
+
+
+class RankPointMasses:
+    """The rigid masses tied by distributing couplings on one rank: their six motions
+    q = G u summed over the ranks' rows of the coupled region, and every term
+    G^T B G of :func:`pipeline.fe.prestress.point_mass_prestress` as this rank's rows.
+
+    ``point_masses``: (dofs, G (6, 3 n_r), M6, P) each; ``dof_rows`` (n_dofs,) the PETSc
+    row of every DOF (-1: held); ``point`` (3,) m the spin axis' point."""
+
+    def __init__(self, comm, point_masses, point, dof_rows: np.ndarray, lo: int, hi: int):
+        self.comm, self.lo, self.hi = comm, lo, hi
+        self.items = []
+        for dofs, G, M6, P in point_masses:
+            rows = dof_rows[np.asarray(dofs)]
+            mine, held = (rows >= lo) & (rows < hi), rows < 0
+            self.items.append((rows[mine] - lo, G[:, mine], rows[~held], G[:, ~held],
+                               np.asarray(M6, float), np.asarray(P, float) - point))
+
+    def motions(self, X: RowBlock) -> list[np.ndarray]:
+        """(6, k) q = G X of each mass, the same on every rank."""
+        if not self.items:
+            return []
+        local = np.stack([G @ X.local[rows] for rows, G, *_ in self.items])
+        return list(allreduce_sum(self.comm, local))
+
+    def blocks(self, per_entry) -> list[list[np.ndarray]]:
+        """Each mass's six (6, 6) blocks per_entry(M6, A_ij) in TENSOR_ENTRIES order."""
+        return [[per_entry(item[4], entry_matrix(i, j)) for i, j in TENSOR_ENTRIES]
+                for item in self.items]
+
+    def loads(self) -> np.ndarray:
+        """(hi - lo, 6) this rank's rows of the masses' centrifugal loads per unit W_ij."""
+        out = np.zeros((self.hi - self.lo, len(TENSOR_ENTRIES)))
+        for rows, G, _, _, M6, offset in self.items:
+            for col, (i, j) in enumerate(TENSOR_ENTRIES):
+                out[rows, col] += G.T @ rigid_centrifugal_load(M6, offset, entry_matrix(i, j))
+        return out
+
+    def apply(self, blocks: list[np.ndarray], q: list[np.ndarray], k: int) -> np.ndarray:
+        """(hi - lo, k) this rank's rows of sum G^T B G X (``blocks``: each mass's B,
+        ``q``: its motions G X)."""
+        out = np.zeros((self.hi - self.lo, k))
+        for (rows, G, *_), B, qm in zip(self.items, blocks, q):
+            out[rows] += G.T @ (B @ qm)
+        return out
+
+    def csr_rows(self, blocks: list[np.ndarray], n_free: int) -> sp.csr_matrix:
+        """(hi - lo, n_free) CSR: this rank's rows of sum G^T B G, PETSc's columns."""
+        out = sp.csr_matrix((self.hi - self.lo, n_free))
+        for (rows, G, cols, G_free, *_), B in zip(self.items, blocks):
+            block = G.T @ B @ G_free
+            r, c = np.meshgrid(rows, cols, indexing="ij")
+            out = out + sp.csr_matrix((block.ravel(), (r.ravel(), c.ravel())),
+                                      shape=out.shape)
+        return out
+
+    def inertia(self, q: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(euler (3, n_b), coriolis (3, n_b, n_b)) of the masses' motions q = G V."""
+        n_b = q[0].shape[1]
+        euler, coriolis = np.zeros((3, n_b)), np.zeros((3, n_b, n_b))
+        for (*_, M6, offset), qm in zip(self.items, q):
+            for k, e in enumerate(np.eye(3)):
+                euler[k] += qm.T @ (M6 @ np.concatenate([np.cross(e, offset), e]))
+                coriolis[k] += qm.T @ rigid_mass_of(M6, np.cross(e, np.eye(3)).T) @ qm
+        return euler, coriolis
 
 
 class Halo:
@@ -128,8 +212,6 @@ class Halo:
     def csr_rows(self, A: sp.spmatrix) -> sp.csr_matrix:
         """(hi - lo, n_free) CSR, PETSc's rows and columns, of a (3 n_loc, 3 n_loc) matrix
         of the part whose owned rows are complete; held columns dropped, int32 indices."""
-        from pipeline.distributed.assemble import with_int32_indices
-
         B = sp.csr_matrix(A)[self.owned].tocoo()
         cols = self.rows[B.col]
         keep = cols >= 0
@@ -168,7 +250,8 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     """The distributed twin of :func:`pipeline.reduce.rotation.rotation_model` (module):
     the same :class:`~pipeline.reduce.spin.RotationModel` on every rank, from the
     distributed K, M (:class:`RowMatrix`, PETSc matrices attached), the modes' row block
-    and MUMPS factor, and this rank's part of the mesh (``space.local``)."""
+    and MUMPS factor, this rank's part of the mesh (``space.local``) and the added masses
+    rank 0 evaluated (``space.rotation_masses``)."""
     rotation = cfg.rotation
     comm = K.comm
     if modes.factorization is None or modes.factorization.ksp is None or modes.n_rigid:
@@ -186,10 +269,15 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     if comm.rank == 0:
         _check_point(point, space.node_points)
     _check_stress_once(comm, rotation, axis, mesh, material)
+    area, point_masses = space.rotation_masses or (None, ())
     node_mass = node_mass_matrix(part_space, _density(material))  # the part's m, kg
+    if area is not None:  # the area masses' rows of its nodes (their triangles' nodes)
+        node_mass = (node_mass + sp.csr_matrix(area)[mesh.points][:, mesh.points]).tocsr()
+    masses = RankPointMasses(comm, point_masses, point,
+                             petsc_numbering(space.n_dofs, free, K.part), halo.lo, halo.hi)
     loads = halo.block(centrifugal_loads(part_space, node_mass, point))  # (n_s, 6) rows
-    ports = preload_ports(cfg)
-    names = tuple(p.name for p in ports.inputs)
+    loads = loads.like(loads.local + masses.loads())
+    names = tuple(p.name for p in preload_ports(cfg).inputs)
     rhs = loads
     if names:
         cols = [space.ports.input_names.index(n) for n in names]
@@ -202,39 +290,57 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     k = len(TENSOR_ENTRIES)
     weights = tensor_weights(axis)
     spin = (_weighted(geometric[:k], weights) - _weighted(softening, weights)).tocsr()
+    pm_geo = masses.blocks(rigid_geometric_stiffness)
+    pm_soft = masses.blocks(rigid_mass_of)
+    pm_spin = [sum(w * (g - m) for w, g, m in zip(weights, geo, soft))
+               for geo, soft in zip(pm_geo, pm_soft)]
+
+    def apply_spin(X: RowBlock) -> RowBlock:
+        """(K_G1 - M_perp) X, rows stay."""
+        Y = halo.apply(spin, X)
+        return Y.like(Y.local + masses.apply(pm_spin, masses.motions(X), X.local.shape[1]))
+
     Phi: RowBlock = modes.shapes
     n_m = Phi.local.shape[1]
     static = U.columns(slice(0, k)).times(weights[:, None]) if rotation.static_shape else None
     corrections = None
     if rotation.correction_shapes:
         n_c = min(rotation.correction_shapes, n_m)
-        corrections = static_rows(K, factor, halo.apply(spin, Phi.columns(slice(0, n_c))))
+        corrections = static_rows(K, factor, apply_spin(Phi.columns(slice(0, n_c))))
     with_static = reduced_basis_rows(Phi, M, static)  # a shape the modes span is dropped
     V = reduced_basis_rows(with_static, M, corrections)
     plain = V.local.shape[1] == n_m
-    V_local = halo.to_local(V)
+    V_local, q = halo.to_local(V), masses.motions(V)
 
-    def project(matrices) -> np.ndarray:
+    def project(matrices, blocks=None) -> np.ndarray:
+        """(len(matrices), n_b, n_b) V^T A V, plus the masses' q^T B q per entry."""
         n_b = V.local.shape[1]
-        return np.array([V.gram(halo.apply(A, V, V_local)) for A in matrices]
-                        ).reshape(-1, n_b, n_b)
+        out = np.array([V.gram(halo.apply(A, V, V_local)) for A in matrices]
+                       ).reshape(-1, n_b, n_b)
+        for per_entry, qm in zip(blocks or (), q):
+            out += np.array([qm.T @ B @ qm for B in per_entry])
+        return out
 
     omega2 = np.asarray(modes.omega2, dtype=float)
     centrifugal, euler, coriolis = inertia_loads_rows(halo, node_mass, mesh.space.node_points
                                                       - point, loads, V, V_local)
+    if masses.items:
+        pm_euler, pm_coriolis = masses.inertia(q)
+        euler, coriolis = euler + pm_euler, coriolis + pm_coriolis
     model = RotationModel(
         axis=axis, point=point, speeds_rad_s=np.asarray(rotation.speeds_rad_s, float),
         frequencies_hz=np.zeros((0, n_m)),
         frequencies_reduced_hz=np.zeros((0, V.local.shape[1])),
         stiffness=np.diag(omega2).astype(float) if plain else V.gram(K.apply(V)),
         mass=np.eye(n_m) if plain else V.gram(M.apply(V)),
-        geometric=project(geometric[:k]), softening=project(softening),
+        geometric=project(geometric[:k], pm_geo), softening=project(softening, pm_soft),
         preload=project(geometric[k:]), input_names=names, n_modes=n_m,
         static_shape=with_static.local.shape[1] > n_m,
         centrifugal_load=centrifugal, euler_load=euler, coriolis=coriolis)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
-    full = full_frequencies_rows(K, M, halo.csr_rows(spin), model.speeds_rad_s, n_m,
-                                 cfg.modes.tolerance or 1e-10,
+    spin_rows = halo.csr_rows(spin) + masses.csr_rows(pm_spin, halo.n_free)
+    full = full_frequencies_rows(K, M, with_int32_indices(spin_rows), model.speeds_rad_s,
+                                 n_m, cfg.modes.tolerance or 1e-10,
                                  rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 

@@ -43,8 +43,8 @@ from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
-from pipeline.distributed.prestress import (check_rotation, preload_ports,
-                                            rotation_model)  # noqa: F401 (run.py's)
+from pipeline.distributed.prestress import (check_rotation, preload_ports,  # noqa: F401
+                                            rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
@@ -243,6 +243,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             whole.free, whole.fixed, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
         free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+        spin_masses = comm.bcast(None if whole is None else
+                                 rotation_masses(cfg, whole.space, whole.regions), root=0)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
@@ -267,12 +269,14 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
-                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space))
+                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
+                rotation_masses=spin_masses)
             regions, materials = whole.regions, whole.materials
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
-                                     np.zeros((0, nb), np.int64), mesh, ports)
+                                     np.zeros((0, nb), np.int64), mesh, ports,
+                                     rotation_masses=spin_masses)
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
