@@ -3,12 +3,14 @@
 
 The reference is the single-process run (PARDISO and scipy) in this interpreter; the
 2-rank file must equal it with test_mpi.py's tolerances (frequencies 1e-8 relative,
-every other float 1e-8 of its largest entry). Measured on the cantilever at mesh.size
-0.02 with the centrifugal static shape and two correction shapes: the prestressed
-frequencies 3e-12, the reduced terms built from the static stress (geometric_stiffness,
-preload_stiffness) 9e-11 (the static solves are refined to a backward error of 1e-13:
-MUMPS' and PARDISO's shapes differ by that times the condition number), the rest
-below 2e-12. The refusals of what the distributed path does not handle need no MPI.
+every other float 1e-8 of its largest entry). Measured (2 ranks; 3 ranks the same):
+the prestressed frequencies 3e-12 (cantilever) and 7e-13 (materials and masses); the
+terms of the modes alone below 4e-11; the columns of the basis' centrifugal static
+shape and correction shapes up to 9e-11 (cantilever) and 8e-10 (materials and masses)
+of each dataset's largest entry: those shapes are static solves (each path refines to
+a backward error of 1e-10, pipeline.solve.refine) of which only the small remainder
+outside the modes' span is kept and normalised, which amplifies the solvers' difference
+as the residual flexibility's is (test_mpi.py). The refusals need no MPI.
 """
 
 from __future__ import annotations
