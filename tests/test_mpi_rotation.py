@@ -19,11 +19,96 @@ import os
 import subprocess
 import sys
 
+import threading
+
 import h5py
+import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ALUMINIUM, ROOT, build_model
 from test_mpi import MPI_PYTHON, _mpiexec, _same_file, _serial_and_two_ranks
+
+class _ThreadRank:
+    """One emulated rank of ``size`` threads: ``alltoall`` as MPI's (each rank sends
+    item r of its list to rank r), for the halo exchange without MPI."""
+
+    def __init__(self, rank: int, size: int, shared: dict, barrier: threading.Barrier):
+        self.rank, self.size, self.shared, self.barrier = rank, size, shared, barrier
+
+    def alltoall(self, items):
+        self.shared[self.rank] = list(items)
+        self.barrier.wait()
+        out = [self.shared[r][self.rank] for r in range(self.size)]
+        self.barrier.wait()
+        return out
+
+
+def _on_ranks(size: int, work) -> list:
+    """work(comm) on ``size`` emulated ranks (threads); the results in rank order."""
+    shared, barrier, out, errors = {}, threading.Barrier(size), [None] * size, []
+
+    def run(r):
+        try:
+            out[r] = work(_ThreadRank(r, size, shared, barrier))
+        except BaseException as exc:  # noqa: BLE001 (reported below)
+            errors.append(exc)
+            barrier.abort()
+
+    threads = [threading.Thread(target=run, args=(r,)) for r in range(size)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return out
+
+
+def test_each_ranks_prestress_rows_are_the_serial_ones(tmp_path):
+    """Without MPI, 3 emulated ranks: the halo exchange puts every free row of a block
+    on the part's DOFs (its own and its neighbours'), and each rank's rows of the
+    centrifugal loads, the spin-softening mass and the geometric stiffness of a
+    displacement field (assembled on its part of the mesh with the serial kernels),
+    stacked, are the serial matrices' rows, to round-off of the summation order."""
+    from pipeline.distributed.blocks import RowBlock
+    from pipeline.distributed.partition import slab_partition
+    from pipeline.distributed.prestress import Halo, kernel_space
+    from pipeline.distributed.submesh import split_mesh
+    from pipeline.fe import prestress as ps
+    from pipeline.fe.assemble import restrict
+    from pipeline.fe.materials import assign_materials
+
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    size, point = 3, np.array([0.0, 0.01, 0.025])
+    part = slab_partition(space.node_points, free, size)
+    U = np.zeros((space.n_dofs, 2))
+    U[free] = np.random.default_rng(1).standard_normal((free.size, 2)) * 1e-6
+    m = ps.node_mass_matrix(space, ALUMINIUM.rho)
+    loads = ps.centrifugal_loads(space, m, point)[free][part.order]
+    soft = restrict(ps.tensor_mass(m, ps.entry_matrix(0, 1)), free)[part.order][:, part.order]
+    geo = restrict(ps.geometric_stiffness(space, ALUMINIUM, U)[1], free)
+    geo = geo[part.order][:, part.order]
+    parts = list(split_mesh(space, assign_materials(space, ALUMINIUM), free, part, size))
+
+    def rank_rows(comm):
+        mesh = parts[comm.rank]
+        halo = Halo(comm, mesh, part)
+        U_local = halo.to_local(RowBlock(comm, part, U[free][part.owned_free(comm.rank)]))
+        dofs = (3 * mesh.points[:, None] + np.arange(3)).ravel()  # global DOF of each
+        assert np.array_equal(U_local, U[dofs])  # held DOFs: 0 on both
+        local = kernel_space(mesh.space)
+        m_r = ps.node_mass_matrix(local, mesh.materials.uniform.rho)
+        return (halo.owned_rows(ps.centrifugal_loads(local, m_r, point)),
+                halo.csr_rows(ps.tensor_mass(m_r, ps.entry_matrix(0, 1))).toarray(),
+                halo.csr_rows(ps.geometric_stiffness(local, mesh.materials, U_local)[1]
+                              ).toarray())
+
+    rows = _on_ranks(size, rank_rows)
+    for i, serial in enumerate((loads, soft.toarray(), geo.toarray())):
+        stacked = np.vstack([r[i] for r in rows])
+        np.testing.assert_allclose(stacked, serial, rtol=0, atol=1e-12 * np.abs(serial).max())
+
 
 SPIN = ("rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], "
         "speeds_rad_s: [-100, 0, 100, 800], static_shape: true, correction_shapes: 2}")
