@@ -10,8 +10,9 @@ term with the serial kernels on that part:
   the whole mesh's (every element touching such a node is in the part);
 - the centrifugal loads f_ij = (m (x) A_ij) r per unit W_ij (its rows) and the preload
   loads F_k of the force and moment inputs (rank 0's port matrices, its rows);
-- the static shapes u = K^-1 [f, F] by the MUMPS factor the eigen solve made
-  (:func:`pipeline.distributed.reduce.static_rows`, refined as the static correction);
+- the static shapes u = K^-1 [f, F] by the eigen solve's solver of K (MUMPS' factor,
+  or CG on GAMG with ``modes.method: multigrid``;
+  :func:`pipeline.distributed.reduce.static_rows`, refined as the static correction);
 - the geometric stiffness K_G(sigma(u)) of its part's elements: sigma needs u on every
   node of its elements, its own rows and the halo the other ranks own
   (:class:`Halo`: each rank sends the rows its neighbours ask for, nothing else);
@@ -22,7 +23,8 @@ term with the serial kernels on that part:
   the distributed M (:func:`reduced_basis_rows`, the serial Gram-Schmidt);
 - the full FE sweep: K(Omega) = K + Omega^2 (K_G1 - M_perp) as a PETSc matrix (K's plus
   Omega^2 times the spin term's rows, MatAXPY), its lowest n_m modes by SLEPc
-  (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS) and the
+  (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS, or on
+  CG with GAMG and K's rigid-body near-null space with ``modes.method: multigrid``) and the
   exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
   K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
 
@@ -68,16 +70,11 @@ def preload_ports(cfg: Config) -> Ports:
 
 def check_rotation(cfg: Config) -> None:
     """One line (ConfigError, before any work) for the rotating bodies the distributed
-    path does not handle: the factor-free eigen solve (the sweep's shift-invert is
-    MUMPS'), supports in a local frame (the exact constraint u = T q). A body without supports and rigidly coupled masses are refused by the
-    config's validation already, on every path."""
+    path does not handle: supports in a local frame (the exact constraint u = T q; a
+    body without supports and rigidly coupled masses are refused by the config's
+    validation already, on every path)."""
     from pipeline.errors import ConfigError
 
-    if cfg.modes.method == "multigrid":
-        raise ConfigError("modes.method: multigrid with modes.solver: slepc and rotation: the "
-                          "prestressed sweep is solved on MUMPS' factor; expected modes.method "
-                          "factor or auto", key="modes.method", value="multigrid",
-                          expected="factor or auto with rotation")
     for i, support in enumerate(cfg.supports):
         if support.local_fix:  # the exact constraint u = T q: not in the prestress terms
             raise ConfigError(f"supports[{i}].fix: components in a local frame with "
@@ -106,9 +103,11 @@ class RankPointMasses:
     G^T B G of :func:`pipeline.fe.prestress.point_mass_prestress` as this rank's rows.
 
     ``point_masses``: (dofs, G (6, 3 n_r), M6, P) each; ``dof_rows`` (n_dofs,) the PETSc
-    row of every DOF (-1: held); ``point`` (3,) m the spin axis' point."""
+    row of every DOF (-1: held; None without masses); ``point`` (3,) m the spin axis'
+    point."""
 
-    def __init__(self, comm, point_masses, point, dof_rows: np.ndarray, lo: int, hi: int):
+    def __init__(self, comm, point_masses, point, dof_rows: np.ndarray | None, lo: int,
+                 hi: int):
         self.comm, self.lo, self.hi = comm, lo, hi
         self.items = []
         for dofs, G, M6, P in point_masses:
@@ -273,8 +272,8 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     node_mass = node_mass_matrix(part_space, _density(material))  # the part's m, kg
     if area is not None:  # the area masses' rows of its nodes (their triangles' nodes)
         node_mass = (node_mass + sp.csr_matrix(area)[mesh.points][:, mesh.points]).tocsr()
-    masses = RankPointMasses(comm, point_masses, point,
-                             petsc_numbering(space.n_dofs, free, K.part), halo.lo, halo.hi)
+    masses = RankPointMasses(comm, point_masses, point, petsc_numbering(
+        space.n_dofs, free, K.part) if point_masses else None, halo.lo, halo.hi)
     loads = halo.block(centrifugal_loads(part_space, node_mass, point))  # (n_s, 6) rows
     loads = loads.like(loads.local + masses.loads())
     names = tuple(p.name for p in preload_ports(cfg).inputs)
@@ -341,7 +340,9 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     spin_rows = halo.csr_rows(spin) + masses.csr_rows(pm_spin, halo.n_free)
     full = full_frequencies_rows(K, M, with_int32_indices(spin_rows), model.speeds_rad_s,
                                  n_m, cfg.modes.tolerance or 1e-10,
-                                 rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi))
+                                 rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi),
+                                 method="multigrid" if cfg.modes.method == "multigrid"
+                                 else "factor")
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 
 
@@ -402,12 +403,16 @@ def inertia_loads_rows(halo: Halo, node_mass: sp.spmatrix, offsets: np.ndarray,
 
 
 def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, speeds,
-                          count: int, tolerance: float, rest_hz: np.ndarray) -> np.ndarray:
+                          count: int, tolerance: float, rest_hz: np.ndarray,
+                          method: str = "factor") -> np.ndarray:
     """(n_speeds, count) Hz: the lowest prestressed frequencies of the full FE model at
     each speed (rad/s), K(Omega) = K + Omega^2 S (``spin_rows``: this rank's rows of
     S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
-    (count,): the frequencies at rest (a speed 0 is not solved again)."""
+    (count,): the frequencies at rest (a speed 0 is not solved again). ``method``:
+    ``factor`` (MUMPS) or ``multigrid`` (CG on GAMG with the near-null space the eigen
+    solve gave K: the rigid-body modes, still K(Omega)'s lowest-energy motions)."""
     PETSc, SLEPc = petsc()
+    near_null = K.petsc.getNearNullSpace() if method == "multigrid" else None
     n = K.shape[0]
     S = petsc_matrix(PETSc, spin_rows, n)
     out = np.empty((len(speeds), count))
@@ -424,7 +429,7 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
             try:
                 try:
                     omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
-                                                      tolerance, "factor")
+                                                      tolerance, method, near_null)
                 except SolverError:
                     raise unstable(speed, "the full FE model") from None
                 stats.pop("eps").destroy()
