@@ -184,24 +184,44 @@ def test_unstable_speed_on_two_ranks_is_named_and_nothing_written(tmp_path, wher
     at this mesh): the reduced model's check names the speed before the sweep, and so
     does the full FE sweep where it comes first (MUMPS' LDL^T factors the indefinite
     K(Omega): SLEPc's negative eigenvalue), in one line, as the serial path."""
-    out = tmp_path / "x.h5"
     entry = ["-m", "pipeline"]
     if where == "the full FE model":
         (tmp_path / "full_first.py").write_text(FULL_SWEEP_FIRST)
         entry = [str(tmp_path / "full_first.py")]
     spin = "rotation={axis: [1, 0, 0], point: [0, 0.01, 0.025], speeds_rad_s: [0, 300, 900]}"
+    lines = _failing_run(tmp_path, entry, "rotation.speeds_rad_s", "mesh.size=0.025",
+                         "modes.count=4", spin)
+    assert all("900 rad/s" in ln and where in ln for ln in lines), lines
+
+
+@pytest.mark.mpi
+def test_partly_held_spinning_body_on_two_ranks_is_refused(tmp_path):
+    """Held along x only, the body keeps three rigid motions: no static centrifugal
+    stress (the serial path fails in its singular factorisation); one line, exit code 5,
+    nothing written."""
+    lines = _failing_run(tmp_path, ["-m", "pipeline"], "rotation with modes.solver",
+                         "mesh.size=0.03", "supports=[{region: root, fix: [x]}]",
+                         "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], "
+                         "speeds_rad_s: [0, 100]}")
+    assert all("3 rigid-body mode(s)" in ln for ln in lines), lines
+
+
+def _failing_run(tmp_path, entry, marker: str, *sets: str) -> list[str]:
+    """Run ``entry`` (``-m pipeline`` or a script) on 2 ranks with the ``sets`` on the
+    cantilever; it must fail with exit code 5 and write nothing: the stderr lines that
+    contain ``marker`` (at least one)."""
+    out = tmp_path / "x.h5"
+    args = [a for item in (*sets, "modes.solver=slepc") for a in ("--set", item)]
     proc = subprocess.run(
-        [*_mpiexec(), str(MPI_PYTHON), *entry, "run", "configs/cantilever.yaml",
-         "--set", "mesh.size=0.025", "--set", "modes.count=4", "--set", spin,
-         "--set", "modes.solver=slepc", "-o", str(out)], cwd=ROOT, capture_output=True,
-        text=True, timeout=600, check=False,
-        env={**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
-             "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"})
+        [*_mpiexec(), str(MPI_PYTHON), *entry, "run", "configs/cantilever.yaml", *args,
+         "-o", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600,
+        check=False, env={**os.environ, "PYTHONPATH": str(ROOT),
+                          "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"})
     assert proc.returncode == 5, proc.stderr[-2000:]
-    lines = [ln for ln in proc.stderr.splitlines() if "rotation.speeds_rad_s" in ln]
-    assert lines and all("900 rad/s" in ln and where in ln for ln in lines), \
-        proc.stderr[-2000:]
     assert not out.exists()
+    lines = [ln for ln in proc.stderr.splitlines() if marker in ln]
+    assert lines, proc.stderr[-2000:]
+    return lines
 
 
 def test_rotation_with_local_frame_supports_is_refused_before_work():
