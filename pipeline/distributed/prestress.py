@@ -366,13 +366,15 @@ def _check_stress_once(comm, rotation, axis, mesh, material) -> None:
     r = mesh.space.node_points - np.asarray(rotation.point, dtype=float)
     radius = np.max(np.linalg.norm(r - np.outer(r @ axis, axis), axis=1), initial=0.0)
     rho = float(np.max(material.rho, initial=0.0))
-    top = allreduce_sum(comm, np.array([radius, rho]), "MAX")
+    used = np.zeros(material.D.shape[0])  # the laws some element of the body takes
+    used[np.unique(material.index)] = 1.0
+    top = allreduce_sum(comm, np.concatenate([[radius, rho], used]), "MAX")
     if comm.rank != 0:
         return
     # the radius at the point farthest from the axis: a stand-in point at that distance
     far = np.asarray(rotation.point, float) + top[0] * _normal(axis)
     law = material.uniform if material.uniform is not None else dataclasses.replace(
-        material, index=np.arange(material.D.shape[0]), rho=np.array([top[1]]))
+        material, index=np.flatnonzero(top[2:]), rho=np.array([top[1]]))
     _check_stress(rotation, axis, far[None, :], law)
 
 
