@@ -93,8 +93,18 @@ def rotation_masses(cfg: Config, space, regions) -> tuple | None:
         return None
     from pipeline.fe.added_mass import area_node_mass, distributing_point_masses
 
-    return (area_node_mass(space, regions, cfg.masses),
+    area = area_node_mass(space, regions, cfg.masses)  # sent as its entries only
+    return (None if area is None else sp.coo_matrix(area),
             tuple(distributing_point_masses(space, regions, cfg.masses)))
+
+
+def on_part(A: sp.coo_matrix, points: np.ndarray) -> sp.csr_matrix:
+    """(n_loc, n_loc) CSR: the entries of the (n_nodes, n_nodes) ``A`` between the part's
+    nodes ``points`` (global numbers, ascending), in local numbers."""
+    n = points.size
+    rows, cols = (np.minimum(np.searchsorted(points, g), n - 1) for g in (A.row, A.col))
+    keep = (points[rows] == A.row) & (points[cols] == A.col)
+    return sp.csr_matrix((A.data[keep], (rows[keep], cols[keep])), shape=(n, n))
 
 
 class RankPointMasses:
@@ -271,7 +281,7 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     area, point_masses = space.rotation_masses or (None, ())
     node_mass = node_mass_matrix(part_space, _density(material))  # the part's m, kg
     if area is not None:  # the area masses' rows of its nodes (their triangles' nodes)
-        node_mass = (node_mass + sp.csr_matrix(area)[mesh.points][:, mesh.points]).tocsr()
+        node_mass = (node_mass + on_part(area, mesh.points)).tocsr()
     masses = RankPointMasses(comm, point_masses, point, petsc_numbering(
         space.n_dofs, free, K.part) if point_masses else None, halo.lo, halo.hi)
     loads = halo.block(centrifugal_loads(part_space, node_mass, point))  # (n_s, 6) rows
