@@ -77,7 +77,7 @@ mpi-modes: $(MPI_STAMP)
 	$(MPI_RUN) $(MPI_PY) -m pipeline run $(CONFIG) --set modes.solver=slepc -o outputs/$(basename $(notdir $(CONFIG)))-mpi.h5
 
 mpi-test: $(MPI_STAMP)
-	$(MPI_PY) -m pytest -q -m mpi tests/test_mpi.py
+	$(MPI_PY) -m pytest -q -m mpi tests/test_mpi*.py
 
 clean:
 	rm -rf outputs/*.h5 meshes/*.msh .pytest_cache

@@ -200,7 +200,8 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
 
     if cfg.rotation is not None:
         with _stage("rotation", times):
-            rotation_datasets, rotation_attrs = rotation_tree(rotation_model(
+            rotation_datasets, rotation_attrs = rotation_tree((
+                rotation_model if distributed is None else distributed.rotation_model)(
                 cfg, space, regions, free, K, M, modes))
             tree.update(rotation_datasets)
             group_attrs.update(rotation_attrs)

@@ -44,6 +44,8 @@ from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
+from pipeline.distributed.prestress import (check_rotation, preload_ports,  # noqa: F401
+                                            rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
@@ -82,16 +84,8 @@ def check_supported(cfg: Config) -> None:
                               "distributing, or another modes.solver",
                               key=f"masses[{i}].coupling", value="rigid",
                               expected="distributing")
-    not_yet = [(key, what) for key, what, present in (
-        ("rotation", "a rotating body", cfg.rotation is not None),)
-        if present]
-    if not_yet:
-        key, what = not_yet[0]
-        raise ConfigError(f"{key} with modes.solver: slepc: the distributed path does not "
-                          f"handle {what} yet (each rank assembles its elements' materials "
-                          "and masses, held or free); expected no such key, or another "
-                          "modes.solver",
-                          key=key, value=what, expected=f"no {key} with modes.solver: slepc")
+    if cfg.rotation is not None:
+        check_rotation(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -197,6 +191,8 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     free = free_dofs(space.n_dofs, fixed)
     ports = None if cfg.reduction is None else \
         port_matrices(space, regions, cfg.ports, material=materials)
+    if ports is None and cfg.rotation is not None:  # a rotating body's preloads
+        ports = port_matrices(space, regions, preload_ports(cfg))
     return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
                      mesh_sha256, springs)
 
@@ -250,6 +246,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             whole.free, whole.fixed, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
         free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+        spin_masses = comm.bcast(None if whole is None else
+                                 rotation_masses(cfg, whole.space, whole.regions), root=0)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
@@ -274,12 +272,14 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
-                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space))
+                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
+                rotation_masses=spin_masses)
             regions, materials = whole.regions, whole.materials
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
-                                     np.zeros((0, nb), np.int64), mesh, ports)
+                                     np.zeros((0, nb), np.int64), mesh, ports,
+                                     rotation_masses=spin_masses)
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,

@@ -89,7 +89,8 @@ class DistributedSpace:
     path: the whole mesh's counts on every rank, its points and elements (the file's
     ``/mesh``) on rank 0 only ((0, 3) and (0, nb) elsewhere), this rank's part
     (``local``), the port matrices rank 0 made (None: no reduction) and (rank 0) the
-    nodal volume weights of the mode labels."""
+    nodal volume weights of the mode labels; a rotating body's added masses (rank 0's
+    :func:`pipeline.distributed.prestress.rotation_masses`, on every rank) or None."""
 
     order: int
     n_nodes: int
@@ -99,6 +100,7 @@ class DistributedSpace:
     local: RankMesh
     ports: Any = None
     node_weights: np.ndarray | None = None
+    rotation_masses: Any = None
 
     @property
     def n_dofs(self) -> int:
