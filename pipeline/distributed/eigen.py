@@ -4,7 +4,8 @@ Factor path (``modes.method: factor`` or ``auto``): Krylov-Schur on the shift-an
 operator (K - sigma M)^-1 M with sigma = 0 (a supported body; a free body's sigma is
 below zero, :func:`pipeline.solve.eigen.default_shift`), the solves by MUMPS'
 distributed Cholesky factor of K - sigma M (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
-Factor-free path (``modes.method: multigrid``): the same Krylov-Schur iteration with
+Factor-free path (``modes.method: multigrid``) on linear elements (quadratic ones take
+LOBPCG on the two-grid cycle, :mod:`pipeline.distributed.multigrid`): the same Krylov-Schur iteration with
 inexact shift-invert, each solve with K by conjugate gradients preconditioned by PETSc's
 algebraic multigrid (GAMG) with the six rigid-body modes as its near-null space
 (``MatNullSpace`` from the point coordinates), to 1e-12 relative: no factor is ever

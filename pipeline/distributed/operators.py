@@ -116,9 +116,15 @@ class KspSolve:
     whose operator is K - shift M (rows distributed as ``matrix``; ``shift`` rad^2/s^2,
     0: K itself); ``release`` frees the solver (and the objects handed in ``keep``)."""
 
-    def __init__(self, ksp, matrix: RowMatrix, keep=(), shift: float = 0.0):
+    #: the factor-free path's P2 -> P1 prolongation (a PETSc matrix, among ``keep``), which
+    #: the solves of related operators reuse (a spinning body's K(Omega)); None otherwise
+    prolongation = None
+
+    def __init__(self, ksp, matrix: RowMatrix, keep=(), shift: float = 0.0,
+                 prolongation=None):
         self.ksp, self.matrix, self.keep = ksp, matrix, list(keep)
         self.shift = float(shift)
+        self.prolongation = prolongation
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         B = np.asarray(B, dtype=np.float64)
@@ -145,4 +151,4 @@ class KspSolve:
     def release(self) -> None:
         for obj in self.keep:
             obj.destroy()
-        self.keep, self.ksp = [], None
+        self.keep, self.ksp, self.prolongation = [], None, None

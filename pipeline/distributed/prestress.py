@@ -11,7 +11,7 @@ term with the serial kernels on that part:
 - the centrifugal loads f_ij = (m (x) A_ij) r per unit W_ij (its rows) and the preload
   loads F_k of the force and moment inputs (rank 0's port matrices, its rows);
 - the static shapes u = K^-1 [f, F] by the eigen solve's solver of K (MUMPS' factor,
-  or CG on GAMG with ``modes.method: multigrid``;
+  or, with ``modes.method: multigrid``, CG on its two-grid cycle (GAMG on linear elements);
   :func:`pipeline.distributed.reduce.static_rows`, refined as the static correction);
 - the geometric stiffness K_G(sigma(u)) of its part's elements: sigma needs u on every
   node of its elements, its own rows and the halo the other ranks own
@@ -23,8 +23,10 @@ term with the serial kernels on that part:
   the distributed M (:func:`reduced_basis_rows`, the serial Gram-Schmidt);
 - the full FE sweep: K(Omega) = K + Omega^2 (K_G1 - M_perp) as a PETSc matrix (K's plus
   Omega^2 times the spin term's rows, MatAXPY), its lowest n_m modes by SLEPc
-  (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS, or on
-  CG with GAMG and K's rigid-body near-null space with ``modes.method: multigrid``) and the
+  (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS; with
+  ``modes.method: multigrid`` LOBPCG on the two-grid cycle of K(Omega) made from the
+  modes stage's prolongation, :mod:`pipeline.distributed.multigrid`, or on linear
+  elements CG with GAMG and K's rigid-body near-null space) and the
   exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
   K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
 
@@ -47,6 +49,10 @@ from pipeline.config import Config, Ports
 from pipeline.distributed.assemble import with_int32_indices
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
+from pipeline.distributed.multigrid import lobpcg_modes
+from pipeline._util.resources import lobpcg_guard
+from pipeline.solve.eigen import (MULTIGRID_MAX_SWEEPS, MULTIGRID_START_TOLERANCE,
+                                  MULTIGRID_TOLERANCE)
 from pipeline.distributed.mpi import allreduce_sum, petsc
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.reduce import rayleigh_ritz_rows, static_rows
@@ -348,11 +354,13 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
         centrifugal_load=centrifugal, euler_load=euler, coriolis=coriolis)
     reduced = reduced_frequencies(model)  # cheap: an unstable speed is named before the sweep
     spin_rows = halo.csr_rows(spin) + masses.csr_rows(pm_spin, halo.n_free)
+    prolongation = getattr(modes.factorization, "prolongation", None)
     full = full_frequencies_rows(K, M, with_int32_indices(spin_rows), model.speeds_rad_s,
-                                 n_m, cfg.modes.tolerance or 1e-10,
+                                 n_m, cfg.modes.tolerance or
+                                 (MULTIGRID_TOLERANCE if prolongation is not None else 1e-10),
                                  rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi),
                                  method="multigrid" if cfg.modes.method == "multigrid"
-                                 else "factor")
+                                 else "factor", prolongation=prolongation)
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 
 
@@ -416,13 +424,15 @@ def inertia_loads_rows(halo: Halo, node_mass: sp.spmatrix, offsets: np.ndarray,
 
 def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, speeds,
                           count: int, tolerance: float, rest_hz: np.ndarray,
-                          method: str = "factor") -> np.ndarray:
+                          method: str = "factor", prolongation=None) -> np.ndarray:
     """(n_speeds, count) Hz: the lowest prestressed frequencies of the full FE model at
     each speed (rad/s), K(Omega) = K + Omega^2 S (``spin_rows``: this rank's rows of
     S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
     (count,): the frequencies at rest (a speed 0 is not solved again). ``method``:
     ``factor`` (MUMPS) or ``multigrid`` (CG on GAMG with the near-null space the eigen
-    solve gave K: the rigid-body modes, still K(Omega)'s lowest-energy motions)."""
+    solve gave K: the rigid-body modes, still K(Omega)'s lowest-energy motions; with the
+    factor-free path's ``prolongation`` P: LOBPCG on the two-grid cycle of K(Omega), as
+    the modes at rest, ``tolerance`` its preconditioned residual)."""
     PETSc, SLEPc = petsc()
     near_null = K.petsc.getNearNullSpace() if method == "multigrid" else None
     n = K.shape[0]
@@ -440,11 +450,18 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
             At.petsc = A
             try:
                 try:
-                    omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
-                                                      tolerance, method, near_null)
+                    if prolongation is not None:
+                        omega2, rows, stats, ksp = lobpcg_modes(
+                            PETSc, SLEPc, A, M.petsc, prolongation, count,
+                            count + lobpcg_guard(count), 0.0, tolerance,
+                            MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
+                        ksp.destroy()
+                    else:
+                        omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
+                                                          tolerance, method, near_null)
+                        stats.pop("eps").destroy()
                 except SolverError:
                     raise unstable(speed, "the full FE model") from None
-                stats.pop("eps").destroy()
                 if np.min(omega2) <= 0.0:  # LDL^T factored an indefinite K(Omega)
                     raise unstable(speed, "the full FE model")
                 omega2 = rayleigh_ritz_rows(At, M, RowBlock(K.comm, K.part, rows), 0.0)[0]

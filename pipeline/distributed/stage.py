@@ -392,7 +392,8 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
     # (every rank at the same point: PETSc's destroy is collective)
     factor: Any = KspSolve(ksp if supported else None, K,
-                           keep=[*owned, Kp, Mp] + ([near_null] if near_null else []))
+                           keep=[*owned, Kp, Mp] + ([near_null] if near_null else []),
+                           prolongation=P if two_grid else None)
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
     labels = label_rows(fe.space, fe.free, shapes, n_rigid)
