@@ -430,7 +430,6 @@ def test_shipped_configs_on_two_ranks(tmp_path, config):
 
 
 @pytest.mark.mpi
-@pytest.mark.slow
 def test_factor_free_path_with_held_components_on_two_ranks(tmp_path):
     """The orthotropic plate, its edges held in some components only (so its points are
     not whole on the ranks), on the factor-free path: the two-grid cycle's P1 coarse
@@ -528,7 +527,7 @@ def test_a_factorisation_short_of_workspace_is_retried_with_larger_margins():
             raise eigen._WorkspaceShort("INFOG(1) = -9")
         return "factor"
 
-    option = eigen.RELIEF_WORKSPACE_OPTION
+    option = eigen.RELIEF_PREFIX + "mat_mumps_icntl_14"
     assert eigen._with_workspace_retries(PETSc, option, True, attempt) == "factor"
     margins = eigen.MUMPS_WORKSPACE_RETRIES
     assert seen == [({}, False), ({option: margins[0]}, False), ({option: margins[1]}, True)]

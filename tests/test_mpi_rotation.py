@@ -129,7 +129,6 @@ def test_spinning_cantilever_on_two_ranks(tmp_path):
 
 
 @pytest.mark.mpi
-@pytest.mark.slow
 def test_spinning_cantilever_factor_free_on_two_ranks(tmp_path):
     """``modes.method: multigrid``: the static shapes by CG on the eigen solve's two-grid
     cycle, the sweep's modes by LOBPCG on the two-grid cycle of K(Omega), no factor of

@@ -99,8 +99,6 @@ MUMPS_BLOCK_ANALYSIS_OPTION = "st_mat_mumps_icntl_15"
 #: the options prefix of the inertia relief's factor (:func:`shifted_cholesky`), and its
 #: MUMPS workspace and block-analysis options
 RELIEF_PREFIX = "relief_"
-RELIEF_WORKSPACE_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_14"
-RELIEF_BLOCK_ANALYSIS_OPTION = RELIEF_PREFIX + "mat_mumps_icntl_15"
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
@@ -246,20 +244,15 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
     return values, rows, {**stats, "eps": eps, "ksp": ksp}
 
 
-def shifted_cholesky(PETSc, K, M, shift: float):
-    """(KSP, A): a PETSc solver of A x = b, A = K - shift M (``shift`` rad^2/s^2 below
-    zero: A is positive definite where K is only semi-definite), by MUMPS' distributed
-    Cholesky factor, factorised now; the caller destroys both. PETSc options with the
-    prefix :data:`RELIEF_PREFIX` apply to it; a factorisation short of workspace is
-    retried as the eigen solve's (:func:`solve_eigen`); a failure is one line
-    (SolverError)."""
-    A = K.copy()
-    A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
-    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-
+def mumps_cholesky(PETSc, A, prefix: str, what: str):
+    """A KSP that solves A x = b by MUMPS' distributed Cholesky factor of A, factorised
+    now (the caller destroys it); PETSc options with ``prefix`` apply to it, a
+    factorisation short of workspace is retried as the eigen solve's
+    (:func:`solve_eigen`) and MUMPS' analysis by blocks is off unless set; a failure is
+    one line (SolverError) naming ``what`` was factorised."""
     def attempt(last: bool):
         ksp = PETSc.KSP().create(comm=A.getComm())
-        ksp.setOptionsPrefix(RELIEF_PREFIX)
+        ksp.setOptionsPrefix(prefix)
         ksp.setOperators(A)
         ksp.setType(PETSc.KSP.Type.PREONLY)
         pc = ksp.getPC()
@@ -273,16 +266,27 @@ def shifted_cholesky(PETSc, K, M, shift: float):
             reason = _petsc_reason(exc)
             if not last and _workspace_short(reason):
                 raise _WorkspaceShort(reason) from None
-            raise SolverError(f"modes.solver: slepc: the factorisation of K - sigma M "
-                              f"(sigma {shift:.3g} rad^2/s^2) failed "
+            raise SolverError(f"modes.solver: slepc: the factorisation of {what} failed "
                               f"({reason.split('. ')[0][:240]})",
                               key="modes.solver", value="slepc",
-                              expected="a factorisable K - sigma M") from None
+                              expected=f"a factorisable {what}") from None
         return ksp
 
+    return _with_workspace_retries(PETSc, prefix + "mat_mumps_icntl_14", True, attempt,
+                                   prefix + "mat_mumps_icntl_15")
+
+
+def shifted_cholesky(PETSc, K, M, shift: float):
+    """(KSP, A): a PETSc solver of A x = b, A = K - shift M (``shift`` rad^2/s^2 below
+    zero: A is positive definite where K is only semi-definite), by MUMPS' distributed
+    Cholesky factor (:func:`mumps_cholesky`, options prefix :data:`RELIEF_PREFIX`),
+    factorised now; the caller destroys both."""
+    A = K.copy()
+    A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+    A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     try:
-        return _with_workspace_retries(PETSc, RELIEF_WORKSPACE_OPTION, True, attempt,
-                                       RELIEF_BLOCK_ANALYSIS_OPTION), A
+        return mumps_cholesky(PETSc, A, RELIEF_PREFIX,
+                              f"K - sigma M (sigma {shift:.3g} rad^2/s^2)"), A
     except BaseException:
         A.destroy()
         raise

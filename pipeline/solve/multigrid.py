@@ -216,14 +216,19 @@ class TwoGrid:
             rho = rho_new
         return Z
 
-    @staticmethod
-    def _residual(R: np.ndarray, Z: np.ndarray | None, A: sp.csr_matrix) -> np.ndarray:
+    def _residual(self, R: np.ndarray, Z: np.ndarray | None, A) -> np.ndarray:
         """R - A Z in a new array (R itself copied when Z is None)."""
         if Z is None:
             return R.copy()
-        AZ = sparse_times_dense(A, Z)
+        AZ = self._product(A, Z)
         np.subtract(R, AZ, out=AZ)
         return AZ
+
+    @staticmethod
+    def _product(A, X: np.ndarray) -> np.ndarray:
+        """A X for the cycle's double-precision operators (A, P^T, P); a subclass whose
+        operators are distributed (:mod:`pipeline.distributed.multigrid`) overrides it."""
+        return sparse_times_dense(A, X)
 
     def apply(self, R: np.ndarray, single: bool = False) -> np.ndarray:
         """T R (float64) for R (n,) or (n, k); ``single``: the float32 cycle of the
@@ -250,10 +255,10 @@ class TwoGrid:
             Z = self._smooth(R, None)
             res = self._residual(R, Z, self.A)
             restrict = self.PT
-        rc = np.ascontiguousarray(sparse_times_dense(restrict, res.astype(np.float64)))
+        rc = np.ascontiguousarray(self._product(restrict, res.astype(np.float64)))
         del res
         zc = np.asarray(self.coarse.solve(rc)).reshape(rc.shape)
-        Z += sparse_times_dense(self.P, np.ascontiguousarray(zc)).astype(Z.dtype)
+        Z += self._product(self.P, np.ascontiguousarray(zc)).astype(Z.dtype)
         Z = self._smooth_single(Rh, Z) if single else self._smooth(R, Z)
         Z = Z.astype(np.float64, copy=False)
         if single:
