@@ -479,11 +479,9 @@ def test_slender_beam_on_two_ranks_within_its_conditioning(tmp_path):
 @pytest.mark.parametrize("overrides, key", [
     (["rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100]}"],
      "rotation"),
-    (["supports=[{region: root, fix: [normal]}]"],
-     r"supports\[0\]\.fix"),
 ])
 def test_what_the_distributed_path_does_not_handle_is_refused_before_work(overrides, key):
-    """What the distributed path does not do (local-frame supports, rotation) stops it in one line naming the key, before any meshing."""
+    """What the distributed path does not do (rotation) stops it in one line naming the key, before any meshing."""
     from pipeline.config import load_config
     from pipeline.distributed.stage import check_supported
     from pipeline.errors import ConfigError
