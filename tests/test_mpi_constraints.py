@@ -156,6 +156,18 @@ def test_exact_constraints_on_two_ranks(tmp_path, raw, overrides):
 
 
 @pytest.mark.mpi
+def test_both_constraints_on_three_ranks_with_the_augmented_basis(tmp_path):
+    """The shaft held radially with a mass rigidly coupled to its free end, on 3 ranks
+    (PT-Scotch's parts), ``static_correction: augment`` (the Ritz basis of [Phi, X] with
+    X = T K_q^-1 T^T F): the same file."""
+    mass = ("masses=[{name: m, mass: 2.0, inertia: [1e-3, 2e-3, 2e-3, 0, 0, 0], "
+            "point: [0.45, 0.02, 0.02], region: tip, coupling: rigid}]")
+    serial, dist = _serial_and_two_ranks(tmp_path, _config(tmp_path, SHAFT), mass,
+                                         "reduction.static_correction=augment", ranks=3)
+    _same_file(serial, dist, ranks=3)
+
+
+@pytest.mark.mpi
 def test_partly_held_body_with_a_rigid_coupling_on_two_ranks(tmp_path, monkeypatch):
     """The cantilever held along x at its root, the mass rigidly coupled to its tip:
     three rigid motions (translation y, z, rotation x) in q's coordinates

@@ -132,7 +132,8 @@ class DistributedConstraint:
         gram = sp.csr_matrix((data, indices, indptr), shape=(q_hi - q_lo, self.n_q))
         from scipy.sparse.linalg import splu
 
-        self._gram_lu = splu(sp.csc_matrix(gram[:, q_lo:q_hi]))
+        # a rank may own no coordinate (all its rows a coupling's slaves)
+        self._gram_lu = splu(sp.csc_matrix(gram[:, q_lo:q_hi])) if q_hi > q_lo else None
         return self.K, self.M
 
     def _row_matrix(self, PETSc, A) -> RowMatrix:
