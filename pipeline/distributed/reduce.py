@@ -38,6 +38,7 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import shifted_cholesky
 from pipeline.distributed.mpi import allreduce_sum, petsc
 from pipeline.distributed.operators import KspSolve, of_diagonals
@@ -174,11 +175,14 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     basis, w2 = Phi.columns(slice(0, n_modes)), omega2[:n_modes]
     check_basis_rows(K, M, basis, w2)
     n_rigid = min(int(modes.n_rigid), n_modes)
+    # u = T q: the static solves run on the coordinates, X = T X_q (pipeline.fe.constraints)
+    on = Unconstrained(K, M) if modes.constraint is None else modes.constraint
     X = G = G_relief = None
     if n_rigid and cfg.supports and correction != "none":
         # a partly held body: inertia relief (pipeline.reduce.modal.reduce_model); floats
-        X = relief_rows(K, M, F, basis.columns(slice(0, n_rigid)),
-                        -1e-3 * float(omega2[n_rigid]))
+        X = on.from_q(relief_rows(on.K, on.M, on.to_q(F),
+                                  on.coordinates(basis.columns(slice(0, n_rigid))),
+                                  -1e-3 * float(omega2[n_rigid])))
         G_relief = X.sensor_product(T)
     elif n_rigid:
         if correction != "none":
@@ -189,7 +193,7 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
         log.warning("floating body (%d rigid-body modes): no static compliance computed",
                     n_rigid)
     else:
-        X = static_rows(K, modes.factorization, F)
+        X = on.from_q(static_rows(on.K, modes.factorization, on.to_q(F)))
         G = X.sensor_product(T)
     if correction == "augment":  # the Ritz basis of [Phi, X], rows on their ranks
         w2, basis = augment(K.apply, M.apply, basis, X, list(ports.input_names), w2)

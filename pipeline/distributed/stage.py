@@ -38,7 +38,7 @@ from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.body import (body_properties, node_volume_weights,
                               properties_from_rigid_mass, rigid_body_modes)
 from pipeline.fe.ports import check_gauges, port_matrices
-from pipeline.fe.model import FEModel, mesh_config
+from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
 from pipeline.fe.regions import fixed_dofs, free_dofs
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
@@ -47,6 +47,7 @@ from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_
 from pipeline.distributed.prestress import (check_rotation, preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
+from pipeline.distributed.constraints import distribute_constraint
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
@@ -70,20 +71,6 @@ def check_supported(cfg: Config) -> None:
                           "unsupported K on one process; expected no connections, or another "
                           "modes.solver", key="connections", value=len(cfg.connections),
                           expected="no connections with modes.solver: slepc")
-    for i, s in enumerate(cfg.supports):
-        if s.local_fix:
-            raise ConfigError(f"supports[{i}].fix: components in a local frame with "
-                              "modes.solver: slepc: the exact constraint u = T q is not "
-                              "distributed yet; expected global x, y, z components, or "
-                              "another modes.solver", key=f"supports[{i}].fix",
-                              value=list(s.local_fix), expected="global components")
-    for i, m in enumerate(cfg.masses):
-        if m.kind == "point" and m.coupling == "rigid":
-            raise ConfigError(f"masses[{i}].coupling: rigid with modes.solver: slepc: the "
-                              "exact constraint u = T q is not distributed yet; expected "
-                              "distributing, or another modes.solver",
-                              key=f"masses[{i}].coupling", value="rigid",
-                              expected="distributing")
     if cfg.rotation is not None:
         check_rotation(cfg)
     if cfg.modes.precision == "mixed":
@@ -161,9 +148,11 @@ class WholeMesh:
     """What rank 0 evaluates on the whole mesh before the parts are sent (the others
     receive the parts, the counts and the small results): the space, its regions, the
     element materials, the added masses (or None), the held and the free DOFs, the port
-    matrices (None: no reduction), the mesh file kept, its SHA-256 and the springs' and
-    bushings' stiffness ((n_dofs, n_dofs) N/m, or None). The rigid motions the supports
-    leave are judged after the assembly (:func:`supports_rigid_freedoms`)."""
+    matrices (None: no reduction), the mesh file kept, its SHA-256, the springs' and
+    bushings' stiffness ((n_dofs, n_dofs) N/m, or None) and the inputs of the exact
+    constraint u = T q (:func:`pipeline.fe.model.constraint_inputs`, or None). The
+    rigid motions the supports leave are judged after the assembly
+    (:func:`supports_rigid_freedoms`)."""
 
     space: Any
     regions: dict
@@ -175,6 +164,7 @@ class WholeMesh:
     mesh_path: Path | None
     mesh_sha256: str
     springs: Any = None
+    constraint: Any = None
 
 
 def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
@@ -183,18 +173,19 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     before any rank assembles."""
     meshed = mesh_config(cfg, mesh_dir)
     space, regions, materials = meshed.space, meshed.regions, meshed.materials
-    added, springs = meshed.added, meshed.supports.springs
+    added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
     mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
     del meshed
     check_gauges(space, regions, cfg.ports, materials)
     fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
     free = free_dofs(space.n_dofs, fixed)
+    constraint = constraint_inputs(space, regions, cfg, free, extra)  # refusals: before K
     ports = None if cfg.reduction is None else \
         port_matrices(space, regions, cfg.ports, material=materials)
     if ports is None and cfg.rotation is not None:  # a rotating body's preloads
         ports = port_matrices(space, regions, preload_ports(cfg))
     return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
-                     mesh_sha256, springs)
+                     mesh_sha256, springs, constraint)
 
 
 def supports_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMatrix,
@@ -210,8 +201,9 @@ def supports_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: Row
         Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
     left = None
     if whole is not None:
+        held = None if whole.constraint is None else whole.constraint[0]
         left = rigid_freedoms(whole.space.node_points, props.center_of_mass, whole.fixed,
-                              whole.springs, None, props.rigid_mass,
+                              whole.springs, held, props.rigid_mass,
                               SOFT_SUPPORT * median if whole.free.size else 0.0)
         left = left.without_fields()
     return comm.bcast(left, root=0)
@@ -248,6 +240,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
         spin_masses = comm.bcast(None if whole is None else
                                  rotation_masses(cfg, whole.space, whole.regions), root=0)
+        # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
+        constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
+                                           3 * n_nodes, free, part)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
@@ -285,7 +280,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=K, M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
-                   n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials)
+                   n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials,
+                   constraint=constraint)
 
 
 def added_rigid_mass(space, added) -> np.ndarray:
@@ -327,26 +323,33 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     K, M = fe.K, fe.M
     n = K.shape[0]
     count = cfg.modes.count
+    Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
+    con = fe.constraint  # u = T q: the pencil (K_q, M_q) on the coordinates q
+    if con is not None:
+        K.petsc, M.petsc = Kp, Mp  # the reduce stage's products on the free DOFs
+        K, M = con.project(PETSc, K, M)
+        Kp, Mp, n = K.petsc, M.petsc, con.n_q
     if count >= n:
         raise ConfigError(f"modes.count: {count} modes of a body with {n} free DOFs; expected "
                           f"fewer than {n}", key="modes.count", value=count,
                           expected=f"< {n}")
-    Kp, Mp = petsc_matrix(PETSc, K.local, n), petsc_matrix(PETSc, M.local, n)
     method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
     near_null = None
     two_grid = method == "multigrid" and fe.space.order == 2
     if method == "multigrid" and not two_grid:
         rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
         mesh = fe.space.local
-        if whole_nodes(fe.free, fe.space.n_nodes) is not None:
+        if con is None and whole_nodes(fe.free, fe.space.n_nodes) is not None:
             # whole points on every rank (the partition keeps them): their coordinates
             # give GAMG the rigid-body modes
             near_null = rigid_near_null_space(
                 PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
-        else:  # components held: the rigid-body modes' free rows
+        else:  # components held: the rigid-body modes' free rows (u = T q: their q)
             points = mesh.space.node_points[mesh.local_nodes(rows // 3)]
-            near_null = rigid_rows_near_null_space(
-                PETSc, Kp, rigid_body_modes(points)[3 * np.arange(rows.size) + rows % 3])
+            null_rows = rigid_body_modes(points)[3 * np.arange(rows.size) + rows % 3]
+            if con is not None:
+                null_rows = con.coordinates(RowBlock(world(), fe.K.part, null_rows)).local
+            near_null = rigid_rows_near_null_space(PETSc, Kp, null_rows)
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
     # a partly held body (supports that leave rigid motions) is solved as a free one,
     # at the negative shift, its first fe.n_rigid modes those motions (the serial path)
@@ -356,7 +359,10 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         check_count_above_rigid(count, fe.n_rigid, fe.rigid.names)
     shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
     if two_grid:  # LOBPCG preconditioned by the two-grid cycle: no factor of K
-        P = prolongation(PETSc, fe.space, fe.free, K.part, world().rank)
+        P = prolongation(PETSc, fe.space, fe.free, fe.K.part, world().rank)
+        if con is not None:  # the coarse space on q: T^T P (the serial path's)
+            P_u, P = P, con.T.transposeMatMult(P)
+            P_u.destroy()
         tolerance = cfg.modes.tolerance or MULTIGRID_TOLERANCE
         _, local, stats, ksp = lobpcg_modes(
             PETSc, SLEPc, Kp, Mp, P, count, count + lobpcg_guard(count), shift, tolerance,
@@ -380,11 +386,15 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     n_rigid = int(rigid.sum())
     names: list[str] = []
     if partly:  # the motions themselves, from each rank's own points
-        omega2, shapes = with_rigid_rows(
-            omega2, shapes, M, rigid_rows(fe.rigid, fe.space.local, fe.free, shapes),
-            n_rigid, fe.rigid.names)
+        R = rigid_rows(fe.rigid, fe.space.local, fe.free,
+                       RowBlock(comm, fe.K.part, np.zeros((fe.K.hi - fe.K.lo, 0))))
+        omega2, shapes = with_rigid_rows(omega2, shapes, M,
+                                         R if con is None else con.coordinates(R),
+                                         n_rigid, fe.rigid.names)
         n_rigid = fe.n_rigid
         names = [f"rigid_{name}" for name in fe.rigid.names]
+    if con is not None:  # phi = T psi
+        shapes = con.from_q(shapes)
     stats.update(ranks=comm.size, tolerance=tolerance)
     # the spectral transformation's solver (shift 0: its operator is K) solves the
     # static correction's K x = F; a free or partly held body's operator is K - sigma M,
@@ -392,7 +402,8 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
     # (every rank at the same point: PETSc's destroy is collective)
     factor: Any = KspSolve(ksp if supported else None, K,
-                           keep=[*owned, Kp, Mp] + ([near_null] if near_null else []),
+                           keep=[*owned] + ([near_null] if near_null else [])
+                           + ([Kp, Mp] if con is None else [con, fe.K.petsc, fe.M.petsc]),
                            prolongation=P if two_grid else None)
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
@@ -403,7 +414,8 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     return Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
                  residuals=residuals, n_rigid=n_rigid, backend=BACKEND, shift=shift,
                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor,
-                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, fe.free, shapes))
+                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, fe.free, shapes),
+                 constraint=con)
 
 
 def stress_modes_tree(cfg: Config, space, free, models) -> dict:

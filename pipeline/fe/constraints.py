@@ -95,23 +95,16 @@ def build_constraint(free: np.ndarray, n_dofs: int, rows: sp.spmatrix | None,
     constrained = np.zeros(free.size, dtype=bool)
     r_parts, c_parts, v_parts, keys = [], [], [], []  # c_parts: column within its group
     if rows is not None and rows.shape[0]:
-        held, r, c, v, k = _local_frame_triplets(sp.csr_matrix(rows), free, position, n_dofs)
+        held, r, c, v, k = local_frame_triplets(sp.csr_matrix(rows), free, position, n_dofs)
         constrained[held] = True
         r_parts.append(r), c_parts.append(c), v_parts.append(v), keys.append(k)
     for nodes, points, P in rigid:
         dofs = position[3 * nodes[:, None] + np.arange(3)]  # (n_s, 3)
         constrained[dofs.ravel()] = True
-        # u_s = u_P - skew(x_s - P) theta_P: (n_s, 3, 6) rows on the master's columns
-        d = points - np.asarray(P, dtype=float)
-        block = np.zeros((nodes.size, 3, 6))
-        block[:, :, :3] = np.eye(3)
-        block[:, 0, 4], block[:, 0, 5] = d[:, 2], -d[:, 1]
-        block[:, 1, 3], block[:, 1, 5] = -d[:, 2], d[:, 0]
-        block[:, 2, 3], block[:, 2, 4] = d[:, 1], -d[:, 0]
         r_parts.append(np.repeat(dofs.ravel(), 6))
         c_parts.append(np.tile(np.arange(6), dofs.size))
-        v_parts.append(block.ravel())
-        keys.append(3.0 * nodes.min() + np.arange(6) / 6.0)
+        v_parts.append(rigid_coupling_rows(points, P).ravel())
+        keys.append(master_keys(nodes.min()))
     plain = np.flatnonzero(~constrained)
     # columns in DOF order: each unconstrained free DOF, each group's columns at the place
     # of its first node (a small bandwidth for the factorisation)
@@ -127,8 +120,27 @@ def build_constraint(free: np.ndarray, n_dofs: int, rows: sp.spmatrix | None,
     return Constraint(T, int(free.size - sort_key.size), what)
 
 
-def _local_frame_triplets(rows: sp.csr_matrix, free: np.ndarray, position: np.ndarray,
-                          n_dofs: int):
+def rigid_coupling_rows(points: np.ndarray, P) -> np.ndarray:
+    """(n_s, 3, 6) the rows of T of slave points ``points`` (n_s, 3) m on the six
+    columns of the master point ``P`` (3,) m: u_s = u_P - skew(x_s - P) theta_P
+    (module docstring; dimensionless on u_P, m/rad on theta_P)."""
+    d = np.asarray(points, dtype=float) - np.asarray(P, dtype=float)
+    block = np.zeros((d.shape[0], 3, 6))
+    block[:, :, :3] = np.eye(3)
+    block[:, 0, 4], block[:, 0, 5] = d[:, 2], -d[:, 1]
+    block[:, 1, 3], block[:, 1, 5] = -d[:, 2], d[:, 0]
+    block[:, 2, 3], block[:, 2, 4] = d[:, 1], -d[:, 0]
+    return block
+
+
+def master_keys(lowest_slave: int) -> np.ndarray:
+    """(6,) the column sort keys of a rigid coupling's master whose lowest slave node is
+    ``lowest_slave``: its columns sit at the place of that node's DOFs."""
+    return 3.0 * lowest_slave + np.arange(6) / 6.0
+
+
+def local_frame_triplets(rows: sp.csr_matrix, free: np.ndarray, position: np.ndarray,
+                         n_dofs: int):
     """(the free DOFs of the held nodes, T rows, columns within the group, values, column
     sort keys) of the held local directions ``rows`` (module docstring); a node whose
     every component is held keeps no column (its DOFs are zero rows of T)."""

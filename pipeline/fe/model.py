@@ -63,7 +63,8 @@ class FEModel:
     constraint: u = T q on the free DOFs (:mod:`pipeline.fe.constraints`: components held
     in a local frame, rigid couplings of added masses), or None (u = q); K and M are the
     unconstrained ones (M with the added masses), and the modes stage solves T^T K T,
-    T^T M T.
+    T^T M T (on MPI ranks: each rank's rows of T,
+    :class:`pipeline.distributed.constraints.DistributedConstraint`).
     mesh_path: the mesh file kept (None: not kept); mesh_sha256: SHA-256 of the mesh file
     the run read; n_elements: number of tetrahedra.
     materials: the material of every element (``material`` and ``materials``).
@@ -219,6 +220,15 @@ def _constraint(space: FESpace, regions, cfg: Config, free: np.ndarray,
                 extra: SupportStiffness) -> Constraint | None:
     """u = T q of the components held in a local frame and the rigid couplings of added
     masses (:mod:`pipeline.fe.constraints`), or None when there are none."""
+    inputs = constraint_inputs(space, regions, cfg, free, extra)
+    return None if inputs is None else build_constraint(free, space.n_dofs, *inputs)
+
+
+def constraint_inputs(space: FESpace, regions, cfg: Config, free: np.ndarray,
+                      extra: SupportStiffness):
+    """(the held local directions ((n_c, n_dofs) CSR) or None, the rigid couplings
+    (:func:`pipeline.fe.added_mass.rigid_couplings`), what they hold) of u = T q, or None
+    when there are none; a misplaced rigid coupling is refused here (RegionError)."""
     held = None if extra.constraint is None else \
         (3 * (extra.constraint.indices // 3)[:, None] + np.arange(3)).ravel()
     rigid = rigid_couplings(space, regions, cfg.masses, free, held)
@@ -226,7 +236,7 @@ def _constraint(space: FESpace, regions, cfg: Config, free: np.ndarray,
         return None
     what = " and ".join(w for w, on in (("local-frame supports", extra.constraint is not None),
                                          (f"{len(rigid)} rigid mass coupling(s)", rigid)) if on)
-    return build_constraint(free, space.n_dofs, extra.constraint, rigid, what)
+    return extra.constraint, rigid, what
 
 
 def nodes_dofs(nodes: np.ndarray) -> np.ndarray:

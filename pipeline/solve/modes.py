@@ -41,7 +41,9 @@ class Modes:
     factorization: the kept factorisation of K (shift 0 only), or None; of T^T K T when
     ``constraint`` is set.
     constraint: (n_free, n_q) T of the exact constraint u = T q the modes were solved
-    under (:mod:`pipeline.fe.constraints`; ``shapes`` are T psi already), or None.
+    under (:mod:`pipeline.fe.constraints`; ``shapes`` are T psi already), or None; on
+    MPI ranks its distributed twin
+    (:class:`pipeline.distributed.constraints.DistributedConstraint`).
     """
 
     omega2: np.ndarray
