@@ -51,7 +51,8 @@ api: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_pipeline.py $(BENCH_ARGS)
 	$(PY) benchmarks/bench_solvers.py $(SOLVER_BENCH_ARGS)
-	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py; \
+	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py && \
+	$(MPI_PY) benchmarks/bench_mpi.py --method multigrid --no-cuts; \
 	else echo "distributed section skipped: make mpi-env"; fi
 
 # The distributed path (docs/distributed.md): PETSc, SLEPc and OpenMPI from Debian's

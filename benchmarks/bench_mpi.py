@@ -1,7 +1,10 @@
 """Benchmark of the distributed path (``modes.solver: slepc``): wall time and peak memory
 per rank on 1 and 2 MPI ranks, and the per-rank memory model extrapolated to a large body.
 
-``make bench`` runs it when the MPI environment exists (``make mpi-env``); by hand:
+``make bench`` runs it when the MPI environment exists (``make mpi-env``), with MUMPS'
+factor and then factor-free (``--method multigrid``: the two-grid LOBPCG, whose only
+factor is the P1 coarse problem's), so that the extrapolations say which solver takes
+fewer nodes; by hand:
 ``.venv-mpi/bin/python benchmarks/bench_mpi.py [--size 0.005] [--ranks 1,2]``.
 
 Each case is ``mpiexec -n P python benchmarks/bench_mpi.py --worker``: the pipeline on
@@ -216,6 +219,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cuts", action="store_true",
                     help="only compare the slab and graph partitions (no solve)")
     ap.add_argument("--cut-size", type=float, default=0.01, help="mesh.size of --cuts, m")
+    ap.add_argument("--no-cuts", action="store_true",
+                    help="skip the partition comparison (a second method's run)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cut-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--case", default="cantilever", help=argparse.SUPPRESS)
@@ -230,8 +235,7 @@ def main(argv=None) -> int:
     if shutil.which("mpiexec") is None:
         print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
         return 1
-    cuts = cut_table(args.cut_size, [2, 4], args.timeout)
-    for line in cuts:
+    for line in ([] if args.no_cuts else cut_table(args.cut_size, [2, 4], args.timeout)):
         print(line)
     if args.cuts:
         return 0
