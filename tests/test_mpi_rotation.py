@@ -10,7 +10,9 @@ shape and correction shapes up to 9e-11 (cantilever) and 8e-10 (materials and ma
 of each dataset's largest entry: those shapes are static solves (each path refines to
 a backward error of 1e-10, pipeline.solve.refine) of which only the small remainder
 outside the modes' span is kept and normalised, which amplifies the solvers' difference
-as the residual flexibility's is (test_mpi.py). The refusals need no MPI.
+as the residual flexibility's is (test_mpi.py). A shaft held in a local frame
+(u = T q) runs the static solves and the sweep on q: frequencies 4e-14, datasets 5e-11
+(3 ranks the same). The refusals need no MPI.
 """
 
 from __future__ import annotations
@@ -210,14 +212,15 @@ def test_partly_held_spinning_body_on_two_ranks_is_refused(tmp_path):
     assert all("3 rigid-body mode(s)" in ln for ln in lines), lines
 
 
-def _failing_run(tmp_path, entry, marker: str, *sets: str) -> list[str]:
-    """Run ``entry`` (``-m pipeline`` or a script) on 2 ranks with the ``sets`` on the
-    cantilever; it must fail with exit code 5 and write nothing: the stderr lines that
+def _failing_run(tmp_path, entry, marker: str, *sets: str,
+                 config: str = "configs/cantilever.yaml") -> list[str]:
+    """Run ``entry`` (``-m pipeline`` or a script) on 2 ranks with the ``sets`` on
+    ``config``; it must fail with exit code 5 and write nothing: the stderr lines that
     contain ``marker`` (at least one)."""
     out = tmp_path / "x.h5"
     args = [a for item in (*sets, "modes.solver=slepc") for a in ("--set", item)]
     proc = subprocess.run(
-        [*_mpiexec(), str(MPI_PYTHON), *entry, "run", "configs/cantilever.yaml", *args,
+        [*_mpiexec(), str(MPI_PYTHON), *entry, "run", config, *args,
          "-o", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600,
         check=False, env={**os.environ, "PYTHONPATH": str(ROOT),
                           "OMPI_ALLOW_RUN_AS_ROOT": "1", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"})
@@ -280,6 +283,19 @@ def test_spinning_shaft_held_in_a_local_frame_factor_free_on_two_ranks(tmp_path)
                                          distributed=("modes.method=multigrid",
                                                       "modes.tolerance=1e-11"))
     _same_file(serial, dist)
+
+
+@pytest.mark.mpi
+def test_unstable_speed_of_the_shaft_held_in_a_local_frame_is_named(tmp_path):
+    """The full FE sweep on q first (the reduced check stubbed out): above its first
+    bending frequency (1715 Hz, 10.8e3 rad/s) the shaft spun about its own axis softens
+    past zero, MUMPS' LDL^T of T^T K(Omega) T has a negative eigenvalue: one line naming
+    the speed, exit code 5, nothing written."""
+    (tmp_path / "full_first.py").write_text(FULL_SWEEP_FIRST)
+    lines = _failing_run(tmp_path, [str(tmp_path / "full_first.py")], "rotation.speeds_rad_s",
+                         "rotation.speeds_rad_s=[0, 500, 12000]",
+                         config=_spinning_shaft(tmp_path))
+    assert all("12000 rad/s" in ln and "the full FE model" in ln for ln in lines), lines
 
 
 def test_cli_refuses_a_spinning_body_with_a_rigid_coupling_before_meshing(tmp_path):
