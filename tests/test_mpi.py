@@ -481,15 +481,12 @@ def test_slender_beam_on_two_ranks_within_its_conditioning(tmp_path):
 
 
 @pytest.mark.parametrize("overrides, key", [
-    (["supports=[{region: root, fix: [normal]}]",
-      "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100]}"],
-     r"supports\[0\]\.fix"),
     (["modes.precision=mixed"], r"modes\.precision"),
 ])
 def test_what_the_distributed_path_does_not_handle_is_refused_before_work(overrides, key):
-    """What the distributed path does not do (a spinning body with supports in a local
-    frame; mixed precision, which Debian's double-precision PETSc cannot factorise)
-    stops it in one line naming the key, before any meshing."""
+    """What the distributed path does not do (mixed precision, which Debian's
+    double-precision PETSc cannot factorise) stops it in one line naming the key, before
+    any meshing."""
     from pipeline.config import load_config
     from pipeline.distributed.stage import check_supported
     from pipeline.errors import ConfigError

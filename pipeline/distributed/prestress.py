@@ -30,6 +30,13 @@ term with the serial kernels on that part:
   exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
   K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
 
+Under an exact constraint u = T q (supports in a local frame,
+:class:`~pipeline.distributed.constraints.DistributedConstraint`) the terms above stay
+on u; the static shapes are X = T K_q^-1 T^T F (the modes stage's solver of
+K_q = T^T K T), so the basis satisfies the constraint, and the full FE sweep runs on q:
+T^T K(Omega) T = K_q + Omega^2 T^T (K_G1 - M_perp) T (PETSc's PtAP) with M_q, as the
+serial stage does.
+
 No rank holds the whole K, M, K_G or the whole basis: the tall blocks are
 :class:`~pipeline.distributed.blocks.RowBlock` s, the small (n_b, n_b) terms are the same
 on every rank. Rigid masses tied by distributing couplings add their point-mass terms
@@ -48,6 +55,7 @@ import scipy.sparse as sp
 from pipeline.config import Config, Ports
 from pipeline.distributed.assemble import with_int32_indices
 from pipeline.distributed.blocks import RowBlock
+from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.multigrid import lobpcg_modes
 from pipeline._util.resources import lobpcg_guard
@@ -72,22 +80,6 @@ log = logging.getLogger(__name__)
 def preload_ports(cfg: Config) -> Ports:
     """The force and moment inputs of ``cfg``: the preloads of a rotating body."""
     return Ports(inputs=tuple(p for p in cfg.ports.inputs if p.kind in ("force", "moment")))
-
-
-def check_rotation(cfg: Config) -> None:
-    """One line (ConfigError, before any work) for the rotating bodies the distributed
-    path does not handle: supports in a local frame (the exact constraint u = T q; a
-    body without supports and rigidly coupled masses are refused by the config's
-    validation already, on every path)."""
-    from pipeline.errors import ConfigError
-
-    for i, support in enumerate(cfg.supports):
-        if support.local_fix:  # the exact constraint u = T q: not in the prestress terms
-            raise ConfigError(f"supports[{i}].fix: components in a local frame with "
-                              "modes.solver: slepc and rotation: the prestress under the "
-                              "exact constraint u = T q is not distributed; expected global "
-                              "x, y, z components", key=f"supports[{i}].fix",
-                              value=list(support.local_fix), expected="global components")
 
 
 def rotation_masses(cfg: Config, space, regions) -> tuple | None:
@@ -299,7 +291,14 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
         F = sp.csr_matrix(space.ports.F)[:, cols][np.asarray(free)].tocsr()
         rhs = loads.like(np.hstack([loads.local, F[loads.free_rows()].toarray()]))
     factor = modes.factorization
-    U = static_rows(K, factor, rhs)  # (n_s, 6 + n_in) static shapes, rows stay
+    # u = T q: the static solves run on the coordinates, X = T K_q^-1 T^T F
+    on = Unconstrained(K, M) if modes.constraint is None else modes.constraint
+
+    def solve_static(F: RowBlock) -> RowBlock:
+        """K^-1 F (n_s, k) on the body's constraint, rows stay."""
+        return on.from_q(static_rows(on.K, factor, on.to_q(F)))
+
+    U = solve_static(rhs)  # (n_s, 6 + n_in) static shapes, rows stay
     geometric = geometric_stiffness(part_space, material, halo.to_local(U))
     softening = [tensor_mass(node_mass, entry_matrix(i, j)) for i, j in TENSOR_ENTRIES]
     k = len(TENSOR_ENTRIES)
@@ -321,7 +320,7 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     corrections = None
     if rotation.correction_shapes:
         n_c = min(rotation.correction_shapes, n_m)
-        corrections = static_rows(K, factor, apply_spin(Phi.columns(slice(0, n_c))))
+        corrections = solve_static(apply_spin(Phi.columns(slice(0, n_c))))
     with_static = reduced_basis_rows(Phi, M, static)  # a shape the modes span is dropped
     V = reduced_basis_rows(with_static, M, corrections)
     plain = V.local.shape[1] == n_m
@@ -360,7 +359,8 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
                                  (MULTIGRID_TOLERANCE if prolongation is not None else 1e-10),
                                  rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi),
                                  method="multigrid" if cfg.modes.method == "multigrid"
-                                 else "factor", prolongation=prolongation)
+                                 else "factor", prolongation=prolongation,
+                                 constraint=modes.constraint)
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 
 
@@ -424,7 +424,8 @@ def inertia_loads_rows(halo: Halo, node_mass: sp.spmatrix, offsets: np.ndarray,
 
 def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, speeds,
                           count: int, tolerance: float, rest_hz: np.ndarray,
-                          method: str = "factor", prolongation=None) -> np.ndarray:
+                          method: str = "factor", prolongation=None,
+                          constraint=None) -> np.ndarray:
     """(n_speeds, count) Hz: the lowest prestressed frequencies of the full FE model at
     each speed (rad/s), K(Omega) = K + Omega^2 S (``spin_rows``: this rank's rows of
     S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
@@ -432,11 +433,17 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
     ``factor`` (MUMPS) or ``multigrid`` (CG on GAMG with the near-null space the eigen
     solve gave K: the rigid-body modes, still K(Omega)'s lowest-energy motions; with the
     factor-free path's ``prolongation`` P: LOBPCG on the two-grid cycle of K(Omega), as
-    the modes at rest, ``tolerance`` its preconditioned residual)."""
+    the modes at rest, ``tolerance`` its preconditioned residual). ``constraint``: the
+    :class:`~pipeline.distributed.constraints.DistributedConstraint` u = T q or None; the
+    sweep then runs on q, T^T K(Omega) T = K_q + Omega^2 T^T S T (PETSc's PtAP) with M_q,
+    and ``prolongation`` is already q's (T^T P, the modes stage's)."""
     PETSc, SLEPc = petsc()
+    S = petsc_matrix(PETSc, spin_rows, K.shape[0])
+    if constraint is not None:
+        S_u, S = S, S.ptap(constraint.T)
+        S_u.destroy()
+        K, M = constraint.K, constraint.M
     near_null = K.petsc.getNearNullSpace() if method == "multigrid" else None
-    n = K.shape[0]
-    S = petsc_matrix(PETSc, spin_rows, n)
     out = np.empty((len(speeds), count))
     try:
         for i, speed in enumerate(speeds):

@@ -44,7 +44,7 @@ from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import PointBlocks, RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
-from pipeline.distributed.prestress import (check_rotation, preload_ports,  # noqa: F401
+from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
@@ -71,8 +71,6 @@ def check_supported(cfg: Config) -> None:
                           "unsupported K on one process; expected no connections, or another "
                           "modes.solver", key="connections", value=len(cfg.connections),
                           expected="no connections with modes.solver: slepc")
-    if cfg.rotation is not None:
-        check_rotation(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
