@@ -4,13 +4,12 @@ Factor path (``modes.method: factor`` or ``auto``): Krylov-Schur on the shift-an
 operator (K - sigma M)^-1 M with sigma = 0 (a supported body; a free body's sigma is
 below zero, :func:`pipeline.solve.eigen.default_shift`), the solves by MUMPS'
 distributed Cholesky factor of K - sigma M (PETSc's ``PCCHOLESKY`` with the ``mumps`` solver type).
-Factor-free path (``modes.method: multigrid``) on linear elements (quadratic ones take
-LOBPCG on the two-grid cycle, :mod:`pipeline.distributed.multigrid`): the same Krylov-Schur iteration with
-inexact shift-invert, each solve with K by conjugate gradients preconditioned by PETSc's
-algebraic multigrid (GAMG) with the six rigid-body modes as its near-null space
-(``MatNullSpace`` from the point coordinates), to 1e-12 relative: no factor is ever
-made. (SLEPc's LOBPCG with the GAMG preconditioner broke down on the cantilever: LAPACK's
-sygvd failed on the projected problem.)
+The factor-free path (``modes.method: multigrid``) is LOBPCG on the two-grid cycle
+(:mod:`pipeline.distributed.multigrid`), which uses this module for its coarse start
+block. (Before it, conjugate gradients on PETSc's algebraic multigrid, GAMG, with the
+rigid-body near-null space ran inside this Krylov-Schur iteration: 64 CG iterations a
+solve on the cantilever; SLEPc's own LOBPCG on GAMG broke down there, LAPACK's sygvd
+failing on its projected problem.)
 
 Either way the eigenvectors come back M-normalised, each rank holding its rows; the
 caller gathers them and makes the final Rayleigh-Ritz step exact on the replicated
@@ -33,10 +32,6 @@ from pipeline.errors import SolverError
 
 log = logging.getLogger(__name__)
 
-#: relative residual of each inner CG solve on the factor-free path
-SOLVE_RTOL = 1e-12
-
-
 def _max():
     from mpi4py import MPI
 
@@ -47,8 +42,8 @@ def petsc_matrix(PETSc, local, n: int):
     """An MPIAIJ (n, n) matrix from this rank's CSR rows (local: (n_loc, n), global
     column numbers), marked symmetric."""
     n_loc = local.shape[0]
-    # block size 3 (a point's three DOFs) where every rank holds whole points: GAMG then
-    # aggregates points, not scalar DOFs, and takes the rigid-body near-null space
+    # block size 3 (a point's three DOFs) where every rank holds whole points (PETSc's
+    # node-block routines; MUMPS' analysis by blocks stays off, MUMPS_BLOCK_ANALYSIS_OPTION)
     whole = int(PETSc.COMM_WORLD.tompi4py().allreduce(n_loc % 3, op=_max())) == 0
     A = PETSc.Mat().createAIJ(size=((n_loc, n), (n_loc, n)), bsize=3 if whole else None,
                               csr=(local.indptr, local.indices, local.data),
@@ -56,32 +51,6 @@ def petsc_matrix(PETSc, local, n: int):
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     A.assemble()
     return A
-
-
-def rigid_near_null_space(PETSc, A, points_local: np.ndarray):
-    """PETSc's rigid-body near-null space of A from the (n_loc/3, 3) coordinates of this
-    rank's rows (whole points: every point's three DOFs on one rank)."""
-    coords = A.createVecLeft()
-    coords.setBlockSize(3)
-    coords.getArray()[:] = points_local.reshape(-1)
-    return PETSc.NullSpace().createRigidBody(coords)
-
-
-def rigid_rows_near_null_space(PETSc, A, rows_rigid: np.ndarray):
-    """PETSc's near-null space of A from this rank's rows (n_loc, 6) of the six rigid-body
-    modes restricted to the free DOFs (a point may have only some of its DOFs free: a
-    component held), made orthonormal over all ranks (Cholesky of their Gram matrix)."""
-    comm = PETSc.COMM_WORLD.tompi4py()
-    local = np.ascontiguousarray(rows_rigid, dtype=float)
-    gram = comm.allreduce(local.T @ local)
-    L = np.linalg.cholesky(gram)
-    Q = np.linalg.solve(L, local.T).T  # local @ L^-T
-    vecs = []
-    for j in range(Q.shape[1]):
-        v = A.createVecLeft()
-        v.getArray()[:] = Q[:, j]
-        vecs.append(v)
-    return PETSc.NullSpace().create(vectors=vecs)
 
 
 #: PETSc option of MUMPS' workspace margin (ICNTL(14), percent above its analysis'
@@ -101,13 +70,12 @@ MUMPS_BLOCK_ANALYSIS_OPTION = "st_mat_mumps_icntl_15"
 RELIEF_PREFIX = "relief_"
 
 
-def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
-                near_null=None, shift: float = 0.0, prefix: str = ""
-                ) -> tuple[np.ndarray, np.ndarray, dict]:
+def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float = 0.0,
+                prefix: str = "") -> tuple[np.ndarray, np.ndarray, dict]:
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
     (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
-    below zero for a free body, whose K is singular). ``method``: ``factor`` or
-    ``multigrid`` (see the module); ``near_null``: PETSc NullSpace for GAMG.
+    below zero for a free body, whose K is singular): Krylov-Schur on MUMPS' factor of
+    K - shift M (the module).
 
     A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
     every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
@@ -115,10 +83,10 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
     (its ``eps_*``, ``st_*`` options; the two-grid start block's own,
     :mod:`pipeline.distributed.multigrid`)."""
     return _with_workspace_retries(
-        PETSc, prefix + MUMPS_WORKSPACE_OPTION, method == "factor",
-        lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, method,
-                                       near_null, shift, last=last, prefix=prefix),
-        prefix + MUMPS_BLOCK_ANALYSIS_OPTION if method == "factor" else None)
+        PETSc, prefix + MUMPS_WORKSPACE_OPTION, True,
+        lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, shift,
+                                       last=last, prefix=prefix),
+        prefix + MUMPS_BLOCK_ANALYSIS_OPTION)
 
 
 def _with_workspace_retries(PETSc, option: str, retry: bool, attempt,
@@ -175,8 +143,8 @@ class _WorkspaceShort(Exception):
     """MUMPS ran out of workspace (INFOG(1) = -9 or -8): worth another try."""
 
 
-def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: str,
-                      near_null, shift: float, last: bool, prefix: str = ""):
+def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float,
+                      last: bool, prefix: str = ""):
     """One attempt of :func:`solve_eigen`; ``last``: a workspace shortage raises the
     SolverError instead of _WorkspaceShort."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
@@ -194,21 +162,10 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     st.setType(SLEPc.ST.Type.SINVERT)
     st.setShift(shift)
-    if method == "multigrid":
-        # K x = b by conjugate gradients on GAMG, to well below the eigen tolerance (the
-        # Krylov-Schur recurrence assumes exact solves: 1e-12 relative keeps the modes'
-        # residuals at 1e-10)
-        ksp.setType(PETSc.KSP.Type.CG)
-        ksp.setTolerances(rtol=SOLVE_RTOL, atol=0.0, max_it=10000)
-        pc.setType(PETSc.PC.Type.GAMG)
-        if near_null is not None:
-            K.setNearNullSpace(near_null)
-        solver = "krylovschur-cg-gamg"
-    else:
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType("mumps")
-        solver = "krylovschur-mumps"
+    ksp.setType(PETSc.KSP.Type.PREONLY)
+    pc.setType(PETSc.PC.Type.CHOLESKY)
+    pc.setFactorSolverType("mumps")
+    solver = "krylovschur-mumps"
     try:
         eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
@@ -239,8 +196,6 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, method: 
              "converged": int(nconv)}
     log.info("SLEPc %s: %d modes converged in %d iterations", solver, nconv,
              stats["iterations"])
-    if method == "multigrid":
-        stats["inner_iterations"] = int(ksp.getIterationNumber())
     return values, rows, {**stats, "eps": eps, "ksp": ksp}
 
 

@@ -279,22 +279,6 @@ def two_grid_solver(PETSc, A, cycle: RankTwoGrid):
     return ksp
 
 
-def _by_columns(apply, A):
-    """X (n_loc, k) -> (n_loc, k): ``apply(x, y)`` (a PETSc product or the cycle) on each
-    column of this rank's rows; the work vectors, which the caller destroys."""
-    x, y = A.createVecs()
-
-    def op(X: np.ndarray) -> np.ndarray:
-        X = np.asarray(X, dtype=np.float64).reshape(X.shape[0], -1)
-        out = np.empty_like(X)
-        for c in range(X.shape[1]):
-            x.getArray()[:] = X[:, c]
-            apply(x, y)
-            out[:, c] = y.getArray()
-        return out
-    return op, (x, y)
-
-
 def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
                  target: float, start_tolerance: float, max_sweeps: int):
     """(omega2 (count,), this rank's rows (n_loc, count) of the M-orthonormal modes,
@@ -319,30 +303,17 @@ def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
     Kc, Mc = A.PtAP(P), M.PtAP(P)
     width = min(width, n_coarse // 2)
     _, coarse_rows, cstats = solve_eigen(PETSc, SLEPc, Kc, Mc, width, start_tolerance,
-                                         "factor", None, 0.0, prefix=COARSE_PREFIX)
+                                         prefix=COARSE_PREFIX)
     cstats.pop("eps").destroy()
     Kc.destroy()
     Mc.destroy()
-    xc, xf = P.createVecs()
-    X = np.empty((xf.getLocalSize(), width))
-    for c in range(width):
-        xc.getArray()[:] = coarse_rows[:, c]
-        P.mult(xc, xf)
-        X[:, c] = xf.getArray()
-    xc.destroy()
-    xf.destroy()
+    X = cycle.P(coarse_rows)
     del coarse_rows
     t1 = time.perf_counter()
-    times_K, kv = _by_columns(K.mult, K)
-    times_M, mv = _by_columns(M.mult, M)
-    precondition = cycle.apply_double
-    try:
-        result = lobpcg_module.lobpcg(
-            times_K, times_M, X, precondition, count, sigma=shift, target=target,
-            max_sweeps=max_sweeps, total=lambda a: allreduce_sum(comm, a))
-    finally:
-        for v in (*kv, *mv):
-            v.destroy()
+    result = lobpcg_module.lobpcg(
+        BlockProduct(PETSc, K), BlockProduct(PETSc, M), X, cycle.apply_double, count,
+        sigma=shift, target=target, max_sweeps=max_sweeps,
+        total=lambda a: allreduce_sum(comm, a))
     stats = {"method": "slepc-lobpcg-two-grid", "coarse_dofs": int(n_coarse),
              "setup_seconds": t1 - t0, "sweeps": result.sweeps,
              "history": list(result.history), "tolerance": target, "block": width,

@@ -53,8 +53,8 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
     order = np.argsort(key, kind="stable").astype(np.int64)
     n = order.size
     free = np.asarray(free)
-    # whole points (every point's three DOFs free) stay on one rank: PETSc's rigid-body
-    # near-null space needs a point's coordinates on the rank of its rows
+    # whole points (every point's three DOFs free) stay on one rank: K and M then go to
+    # PETSc with block size 3 (pipeline.distributed.eigen.petsc_matrix)
     step = 3 if n % 3 == 0 and np.array_equal(free[order] % 3, np.tile(np.arange(3), n // 3)) \
         else 1
     starts = np.array([step * (((n // step) * r) // size) for r in range(size + 1)],

@@ -11,7 +11,7 @@ term with the serial kernels on that part:
 - the centrifugal loads f_ij = (m (x) A_ij) r per unit W_ij (its rows) and the preload
   loads F_k of the force and moment inputs (rank 0's port matrices, its rows);
 - the static shapes u = K^-1 [f, F] by the eigen solve's solver of K (MUMPS' factor,
-  or, with ``modes.method: multigrid``, CG on its two-grid cycle (GAMG on linear elements);
+  or, with ``modes.method: multigrid``, CG on its two-grid cycle;
   :func:`pipeline.distributed.reduce.static_rows`, refined as the static correction);
 - the geometric stiffness K_G(sigma(u)) of its part's elements: sigma needs u on every
   node of its elements, its own rows and the halo the other ranks own
@@ -25,8 +25,7 @@ term with the serial kernels on that part:
   Omega^2 times the spin term's rows, MatAXPY), its lowest n_m modes by SLEPc
   (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS; with
   ``modes.method: multigrid`` LOBPCG on the two-grid cycle of K(Omega) made from the
-  modes stage's prolongation, :mod:`pipeline.distributed.multigrid`, or on linear
-  elements CG with GAMG and K's rigid-body near-null space) and the
+  modes stage's prolongation, :mod:`pipeline.distributed.multigrid`) and the
   exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
   K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
 
@@ -358,9 +357,7 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
                                  n_m, cfg.modes.tolerance or
                                  (MULTIGRID_TOLERANCE if prolongation is not None else 1e-10),
                                  rest_hz=np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi),
-                                 method="multigrid" if cfg.modes.method == "multigrid"
-                                 else "factor", prolongation=prolongation,
-                                 constraint=modes.constraint)
+                                 prolongation=prolongation, constraint=modes.constraint)
     return dataclasses.replace(model, frequencies_hz=full, frequencies_reduced_hz=reduced)
 
 
@@ -424,16 +421,14 @@ def inertia_loads_rows(halo: Halo, node_mass: sp.spmatrix, offsets: np.ndarray,
 
 def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, speeds,
                           count: int, tolerance: float, rest_hz: np.ndarray,
-                          method: str = "factor", prolongation=None,
-                          constraint=None) -> np.ndarray:
+                          prolongation=None, constraint=None) -> np.ndarray:
     """(n_speeds, count) Hz: the lowest prestressed frequencies of the full FE model at
     each speed (rad/s), K(Omega) = K + Omega^2 S (``spin_rows``: this rank's rows of
     S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
-    (count,): the frequencies at rest (a speed 0 is not solved again). ``method``:
-    ``factor`` (MUMPS) or ``multigrid`` (CG on GAMG with the near-null space the eigen
-    solve gave K: the rigid-body modes, still K(Omega)'s lowest-energy motions; with the
+    (count,): the frequencies at rest (a speed 0 is not solved again). With the
     factor-free path's ``prolongation`` P: LOBPCG on the two-grid cycle of K(Omega), as
-    the modes at rest, ``tolerance`` its preconditioned residual). ``constraint``: the
+    the modes at rest, ``tolerance`` its preconditioned residual; else shift-invert on
+    MUMPS' factor. ``constraint``: the
     :class:`~pipeline.distributed.constraints.DistributedConstraint` u = T q or None; the
     sweep then runs on q, T^T K(Omega) T = K_q + Omega^2 T^T S T (PETSc's PtAP) with M_q,
     and ``prolongation`` is already q's (T^T P, the modes stage's)."""
@@ -443,7 +438,6 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
         S_u, S = S, S.ptap(constraint.T)
         S_u.destroy()
         K, M = constraint.K, constraint.M
-    near_null = K.petsc.getNearNullSpace() if method == "multigrid" else None
     out = np.empty((len(speeds), count))
     try:
         for i, speed in enumerate(speeds):
@@ -465,7 +459,7 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
                         ksp.destroy()
                     else:
                         omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
-                                                          tolerance, method, near_null)
+                                                          tolerance)
                         stats.pop("eps").destroy()
                 except SolverError:
                     raise unstable(speed, "the full FE model") from None

@@ -28,13 +28,11 @@ import scipy.sparse as sp
 from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
-from pipeline.distributed.eigen import (petsc_matrix, rigid_near_null_space,
-                                        rigid_rows_near_null_space, solve_eigen)
+from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
-from pipeline.fe.assemble import whole_nodes
 from pipeline.fe.body import (body_properties, node_volume_weights,
                               properties_from_rigid_mass, rigid_body_modes)
 from pipeline.fe.ports import check_gauges, port_matrices
@@ -331,23 +329,9 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         raise ConfigError(f"modes.count: {count} modes of a body with {n} free DOFs; expected "
                           f"fewer than {n}", key="modes.count", value=count,
                           expected=f"< {n}")
-    method = "multigrid" if cfg.modes.method == "multigrid" else "factor"
-    near_null = None
-    two_grid = method == "multigrid" and fe.space.order == 2
-    if method == "multigrid" and not two_grid:
-        rows = np.asarray(fe.free)[fe.K.part.owned_free(world().rank)]
-        mesh = fe.space.local
-        if con is None and whole_nodes(fe.free, fe.space.n_nodes) is not None:
-            # whole points on every rank (the partition keeps them): their coordinates
-            # give GAMG the rigid-body modes
-            near_null = rigid_near_null_space(
-                PETSc, Kp, mesh.space.node_points[mesh.local_nodes(rows[::3] // 3)])
-        else:  # components held: the rigid-body modes' free rows (u = T q: their q)
-            points = mesh.space.node_points[mesh.local_nodes(rows // 3)]
-            null_rows = rigid_body_modes(points)[3 * np.arange(rows.size) + rows % 3]
-            if con is not None:
-                null_rows = con.coordinates(RowBlock(world(), fe.K.part, null_rows)).local
-            near_null = rigid_rows_near_null_space(PETSc, Kp, null_rows)
+    # the factor-free path: the config allows modes.method multigrid with quadratic
+    # elements only (the two-grid cycle's coarse space is the P1 space inside P2)
+    two_grid = cfg.modes.method == "multigrid"
     tolerance = cfg.modes.tolerance or 1e-10  # SLEPc's relative residual test
     # a partly held body (supports that leave rigid motions) is solved as a free one,
     # at the negative shift, its first fe.n_rigid modes those motions (the serial path)
@@ -367,8 +351,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
             MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
         owned = [ksp, P, *stats.pop("keep")]
     else:
-        omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, method,
-                                           near_null, shift)
+        omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, shift)
         eps, ksp = stats.pop("eps"), stats.pop("ksp")
         owned = [eps]  # SLEPc's solver owns its KSP
     comm = world()
@@ -400,7 +383,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
     # (every rank at the same point: PETSc's destroy is collective)
     factor: Any = KspSolve(ksp if supported else None, K,
-                           keep=[*owned] + ([near_null] if near_null else [])
+                           keep=[*owned]
                            + ([Kp, Mp] if con is None else [con, fe.K.petsc, fe.M.petsc]),
                            prolongation=P if two_grid else None)
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
