@@ -71,7 +71,7 @@ RELIEF_PREFIX = "relief_"
 
 
 def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float = 0.0,
-                prefix: str = "") -> tuple[np.ndarray, np.ndarray, dict]:
+                prefix: str = "", ksp=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
     (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
     below zero for a free body, whose K is singular): Krylov-Schur on MUMPS' factor of
@@ -81,11 +81,12 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float =
     every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
     unless the user set that option. ``prefix``: the PETSc options prefix of the solve
     (its ``eps_*``, ``st_*`` options; the two-grid start block's own,
-    :mod:`pipeline.distributed.multigrid`)."""
+    :mod:`pipeline.distributed.multigrid`). ``ksp``: a set-up solver of K - shift M to
+    use instead of a new factor (the two-grid cycle's coarse factor), or None."""
     return _with_workspace_retries(
-        PETSc, prefix + MUMPS_WORKSPACE_OPTION, True,
+        PETSc, prefix + MUMPS_WORKSPACE_OPTION, ksp is None,
         lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, shift,
-                                       last=last, prefix=prefix),
+                                       last=last, prefix=prefix, ksp=ksp),
         prefix + MUMPS_BLOCK_ANALYSIS_OPTION)
 
 
@@ -144,7 +145,7 @@ class _WorkspaceShort(Exception):
 
 
 def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float,
-                      last: bool, prefix: str = ""):
+                      last: bool, prefix: str = "", ksp=None):
     """One attempt of :func:`solve_eigen`; ``last``: a workspace shortage raises the
     SolverError instead of _WorkspaceShort."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
@@ -155,16 +156,19 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: f
     eps.setDimensions(nev=count)
     eps.setTolerances(tol=tolerance, max_it=10000)
     st = eps.getST()
-    ksp = st.getKSP()
-    pc = ksp.getPC()
     eps.setType(SLEPc.EPS.Type.KRYLOVSCHUR)
     eps.setTarget(shift)
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     st.setType(SLEPc.ST.Type.SINVERT)
     st.setShift(shift)
-    ksp.setType(PETSc.KSP.Type.PREONLY)
-    pc.setType(PETSc.PC.Type.CHOLESKY)
-    pc.setFactorSolverType("mumps")
+    if ksp is not None:  # a factor made already (its own options prefix)
+        st.setKSP(ksp)
+    else:
+        ksp = st.getKSP()
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
     solver = "krylovschur-mumps"
     try:
         eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override

@@ -33,9 +33,11 @@ Measured (the cantilever at mesh.size 0.005, 100,695 free DOFs, 20 modes, 2 rank
 factor-free 3.8 s with two MKL threads and the float32 cycle); conjugate gradients on
 GAMG inside Krylov-Schur's shift-invert, the path before, took 5 min 03 s.
 
-Options: PETSc's options with the prefix ``pipeline_mg_`` reach the static solves' CG
-and the coarse factor (``-pipeline_mg_mat_mumps_icntl_14 50``), ``pipeline_mg_coarse_``
-the start block's eigen solve. Every call is collective.
+Options: PETSc's options with the prefix ``pipeline_mg_`` reach the static solves' CG,
+``pipeline_mg_coarse_`` the coarse factor (``-pipeline_mg_coarse_mat_mumps_icntl_14
+50``), ``pipeline_mg_start_`` the start block's eigen solve, which uses the same coarse
+factor (one factorisation: at 1M DOFs on 2 ranks the coarse problem has 136k DOFs).
+Every call is collective.
 """
 
 from __future__ import annotations
@@ -54,10 +56,13 @@ from pipeline.solve.multigrid import PCG_RTOL, POWER_STEPS, TwoGrid
 
 log = logging.getLogger(__name__)
 
-#: the options prefix of the two-grid cycle's KSP (CG for static solves; its PC is the
-#: cycle) and of the start block's coarse eigen solve
+#: the options prefixes of the static solves' CG (its PC is the cycle), of the coarse
+#: factor (MUMPS' options: ``-pipeline_mg_coarse_mat_mumps_icntl_14 50``) and of the
+#: start block's coarse eigen solve (``-pipeline_mg_start_eps_*``), which shares the
+#: coarse factor
 PREFIX = "pipeline_mg_"
 COARSE_PREFIX = "pipeline_mg_coarse_"
+START_PREFIX = "pipeline_mg_start_"
 
 
 def coarse_numbering(is_vertex_row: np.ndarray) -> np.ndarray:
@@ -175,7 +180,7 @@ class CoarseFactor:
 
         self.PETSc, self.Ac = PETSc, Ac
         try:
-            self.ksp = mumps_cholesky(PETSc, Ac, PREFIX, "the coarse matrix P^T A P")
+            self.ksp = mumps_cholesky(PETSc, Ac, COARSE_PREFIX, "the coarse matrix P^T A P")
         except BaseException:
             Ac.destroy()
             raise
@@ -300,12 +305,12 @@ def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
     cycle = RankTwoGrid(PETSc, A, P)
     ksp = two_grid_solver(PETSc, A, cycle)
     n_coarse = cycle.coarse_n
-    Kc, Mc = A.PtAP(P), M.PtAP(P)
+    Mc = M.PtAP(P)
     width = min(width, n_coarse // 2)
-    _, coarse_rows, cstats = solve_eigen(PETSc, SLEPc, Kc, Mc, width, start_tolerance,
-                                         prefix=COARSE_PREFIX)
+    _, coarse_rows, cstats = solve_eigen(PETSc, SLEPc, cycle.coarse.Ac, Mc, width,
+                                         start_tolerance, prefix=START_PREFIX,
+                                         ksp=cycle.coarse.ksp)
     cstats.pop("eps").destroy()
-    Kc.destroy()
     Mc.destroy()
     X = cycle.P(coarse_rows)
     del coarse_rows
