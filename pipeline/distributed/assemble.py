@@ -3,11 +3,12 @@
 Rank r owns the PETSc rows ``lo:hi`` of :class:`~pipeline.distributed.partition.RowPartition`
 and holds only its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: the
 elements touching its points, local node numbers, the PETSc row of each local DOF).
-It computes the element matrices (the serial assembly's kernels,
-:mod:`pipeline.fe.kernels`: K_e[(a, i), (b, j)] = R[a nb + b, :] @ F_e[:, 3 i + j], M_e =
-rho |det J| M_ref[a, b] delta_ij) of every element with a node among its rows, keeps the
-entries whose row it owns and whose column is free, and sums them into a local CSR block
-(hi - lo, n_free) with PETSc's global column numbers. The elements of the slab's
+It assembles K and M on its part with the serial assembly
+(:func:`pipeline.fe.assemble.assemble_on_nodes`: the kernels of :mod:`pipeline.fe.kernels`,
+K_e[(a, i), (b, j)] = R[a nb + b, :] @ F_e[:, 3 i + j], M_e = rho |det J| M_ref[a, b]
+delta_ij, scattered into the part's node-block CSR pattern), keeps the rows it owns and
+the free columns, and renumbers them: a local CSR block (hi - lo, n_free) with PETSc's
+global column numbers. The elements of the slab's
 boundary layer are computed by both neighbours, which is all the communication the
 assembly needs; no rank holds another's rows.
 
@@ -29,9 +30,9 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.distributed.submesh import RankMesh
-from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
-                                 lame_parameters, reference_data)
-from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
+from pipeline.fe.assemble import assemble_on_nodes
+from pipeline.fe.kernels import inverse_jacobians, reference_data
+from pipeline.fe.materials import ElementMaterials
 
 
 @dataclass(frozen=True)
@@ -46,28 +47,6 @@ class LocalRows:
     n_elements: int
 
 
-class _Sum:
-    """Running sum of CSR blocks, merged pairwise (binary counter): O(nnz log n_blocks)."""
-
-    def __init__(self) -> None:
-        self.stack: list[tuple[int, sp.csr_matrix]] = []
-
-    def add(self, A: sp.csr_matrix) -> None:
-        level = 0
-        while self.stack and self.stack[-1][0] == level:
-            A = self.stack.pop()[1] + A
-            level += 1
-        self.stack.append((level, A))
-
-    def total(self, shape) -> sp.csr_matrix:
-        out = sp.csr_matrix(shape)
-        for _, A in self.stack:
-            out = out + A
-        out.sum_duplicates()
-        out.sort_indices()
-        return out
-
-
 def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
     """The one isotropic Material when every element has it (the fast path, bit for bit
     the single-material assembly), else the per-element materials."""
@@ -76,52 +55,48 @@ def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
     return material
 
 
-def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
+def local_rows(mesh: RankMesh) -> LocalRows:
     """This rank's rows of K (N/m) and M (kg) on the free DOFs (see the module), from
     its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: its elements
     in the whole mesh's order, their materials, the PETSc row of each local DOF, its rows
-    of the point and area masses, which go into M)."""
-    space, lo, hi = mesh.space, mesh.lo, mesh.hi
-    petsc_row = mesh.dof_rows
-    en = space.element_nodes
-    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
-    material = _law(mesh.materials)
-    if isinstance(material, Material):
-        lam, mu = lame_parameters(material)
-    else:
-        C_laws = voigt_to_tensor(material.D)
-    R, mass_ref = reference_data(space.order)
-    nb = en.shape[1]
-    comp = np.arange(3)
-    k_sum, m_sum = _Sum(), _Sum()
-    shape = (hi - lo, mesh.n_free)
-    for start in range(0, elements.size, chunk_size):
-        chunk = elements[start:start + chunk_size]
-        if isinstance(material, Material):
-            F, vol = element_factors(space, lam, mu, chunk)
-            rho = np.full(chunk.size, material.rho)
-        else:
-            F, vol = element_factors_general(space, C_laws[material.index[chunk]], chunk)
-            rho = material.rho[chunk]
-        block = np.matmul(R, F).reshape(-1, nb, nb, 3, 3)  # [e, a, b, i, j]
-        del F
-        dof = 3 * en[chunk][:, :, None] + comp  # (m, nb, 3): DOF of (node a, component i)
-        rows = petsc_row[dof]
-        rows_k = np.broadcast_to(rows[:, :, None, :, None], block.shape)
-        cols_k = np.broadcast_to(rows[:, None, :, None, :], block.shape)
-        keep = (rows_k >= lo) & (rows_k < hi) & (cols_k >= 0)
-        k_sum.add(sp.csr_matrix((block[keep], (rows_k[keep] - lo, cols_k[keep])), shape=shape))
-        del block, rows_k, cols_k, keep
-        mvals = (rho * vol)[:, None, None, None] * mass_ref[None, :, :, None]
-        mvals = np.broadcast_to(mvals, (chunk.size, nb, nb, 3))
-        rows_m = np.broadcast_to(rows[:, :, None, :], mvals.shape)
-        cols_m = np.broadcast_to(rows[:, None, :, :], mvals.shape)
-        keep = (rows_m >= lo) & (rows_m < hi) & (cols_m >= 0)
-        m_sum.add(sp.csr_matrix((mvals[keep], (rows_m[keep] - lo, cols_m[keep])), shape=shape))
+    of the point and area masses, which go into M).
+
+    The serial assembly (:func:`pipeline.fe.assemble.assemble_on_nodes`: the node-block
+    pattern, element values scattered into CSR) on the part's space, then the rows of
+    the DOFs this rank owns, in PETSc's order, with PETSc's column numbers and the held
+    columns dropped. The part's other rows (its one element layer of other ranks' nodes)
+    are summed too and dropped: their elements are computed here anyway. At 405k free
+    DOFs (one rank's half) 0.8 s against 6.1 s for the triplets of 512 elements summed
+    pairwise that it replaces."""
+    lo, hi = mesh.lo, mesh.hi
+    petsc_row = np.asarray(mesh.dof_rows, dtype=np.int64)
+    assembled = assemble_on_nodes(mesh.space, _law(mesh.materials))
+    owned = np.flatnonzero((petsc_row >= lo) & (petsc_row < hi))
+    owned = owned[np.argsort(petsc_row[owned], kind="stable")]
+    if owned.size != hi - lo:
+        raise AssertionError(f"rank's part holds {owned.size} of its {hi - lo} rows")
+    K = _petsc_columns(assembled.K[owned], petsc_row, mesh.n_free)
+    M = _petsc_columns(assembled.M[owned], petsc_row, mesh.n_free)
+    elements = int(np.count_nonzero(mesh.owned_nodes[mesh.space.element_nodes].any(axis=1)))
     if mesh.added is not None:  # its owned rows, PETSc's row and column numbers
-        m_sum.add(mesh.added)
-    K, M = with_int32_indices(k_sum.total(shape)), with_int32_indices(m_sum.total(shape))
-    return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
+        M = M + mesh.added
+    return LocalRows(K=with_int32_indices(K), M=with_int32_indices(M), lo=lo, hi=hi,
+                     n_elements=elements)
+
+
+def _petsc_columns(A: sp.csr_matrix, petsc_row: np.ndarray, n_free: int) -> sp.csr_matrix:
+    """Rows of a local-DOF matrix with their columns renumbered to PETSc's (a held DOF,
+    PETSc row -1, dropped), (rows, n_free) CSR."""
+    A = sp.csr_matrix(A)
+    cols = petsc_row[A.indices]
+    keep = cols >= 0
+    row_of = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(row_of[keep],
+                                                        minlength=A.shape[0]))])
+    out = sp.csr_matrix((A.data[keep], cols[keep], indptr), shape=(A.shape[0], n_free))
+    out.has_sorted_indices = False
+    out.sort_indices()
+    return out
 
 
 def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:
