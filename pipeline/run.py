@@ -218,6 +218,8 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
                          else distributed.stress_modes_tree)(cfg, space, free, models))
         if full is not None:
             models = build_connection_models(cfg, space, regions, *full, modes, shapes, models)
+        elif distributed is not None and cfg.connections:  # from the ranks' modes
+            models = distributed.connection_models(cfg, space, props, modes, models)
         if models is not None:
             model_tree, model_attrs = models_tree(models)
             tree.update(model_tree)

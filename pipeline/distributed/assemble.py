@@ -135,11 +135,13 @@ def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:
     return A
 
 
-def local_node_mass(mesh: RankMesh) -> sp.csr_matrix:
+def local_node_mass(mesh: RankMesh, elements: np.ndarray | None = None) -> sp.csr_matrix:
     """(n_loc, n_loc) node-level mass (kg) of the elements whose mass this rank sums
     (``mesh.mass_elements``, local node numbers); over the ranks every element once, so
-    the ranks' rigid masses R^T N R add up to the body's (M = N (x) I_3)."""
-    space, chunk = mesh.space, mesh.mass_elements
+    the ranks' rigid masses R^T N R add up to the body's (M = N (x) I_3). ``elements``:
+    other elements of the part instead (local numbers)."""
+    space = mesh.space
+    chunk = mesh.mass_elements if elements is None else elements
     _, mass_ref = reference_data(space.order)
     _, vol = inverse_jacobians(space, chunk)
     en = space.element_nodes[chunk]

@@ -101,6 +101,8 @@ class DistributedSpace:
     ports: Any = None
     node_weights: np.ndarray | None = None
     rotation_masses: Any = None
+    #: the parent interface of a connection model (:mod:`pipeline.distributed.connection`)
+    connection: Any = None
 
     @property
     def n_dofs(self) -> int:

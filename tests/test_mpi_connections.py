@@ -1,0 +1,115 @@
+"""Connection points on MPI ranks (``connections:`` with ``modes.solver: slepc``,
+:mod:`pipeline.distributed.connection`).
+
+The reference is the single-process run (PARDISO and scipy) in this interpreter; the
+2-rank file must equal it with test_mpi.py's tolerances (frequencies 1e-8 relative,
+every other float 1e-8 of its largest entry). Measured on 2 ranks (cantilever_connection
+with its parent point only, mesh.size 0.01): the clamped frequencies and omega 2e-12,
+L_P and B 3e-12, D_P0 2e-13, D_P and the mass properties 1e-15 to 1.5e-14 of each
+dataset's largest entry. The floating-frame invariants and the unsupported body's FE
+matrices are not written on ranks (the latter is the whole K and M): the serial file
+is compared without those two groups. Without MPI: each emulated rank's rows of M R_P
+are the serial ones, and the refusals of what is not distributed yet.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import h5py
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from conftest import ALUMINIUM, ROOT, build_model
+from pipeline.distributed.connection import check_connections, rigid_mass_rows
+from pipeline.distributed.partition import slab_partition
+from pipeline.distributed.submesh import split_mesh
+from pipeline.fe.assemble import assemble_on_nodes
+from pipeline.fe.body import rigid_body_modes
+from pipeline.fe.materials import assign_materials
+from test_mpi import MPI_PYTHON, _has_petsc, _same_file, _serial_and_two_ranks
+
+CONFIG = "configs/cantilever_connection.yaml"
+PARENT_ONLY = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
+               "coupling: rigid}]", "craig_bampton={modes: 0}")
+#: the groups the serial run writes beside a connection model and the ranks do not
+NOT_ON_RANKS = ("ffrf", "fe")
+
+
+def _without(path, groups, out):
+    """A copy of the file ``path`` at ``out`` without ``groups``."""
+    shutil.copy(path, out)
+    with h5py.File(out, "r+") as f:
+        for g in groups:
+            del f[g]
+    return out
+
+
+def test_each_ranks_rows_of_M_R_P_are_the_serial_rows(tmp_path):
+    """M R_P on the free rows couples to the held DOFs: each emulated rank sums it from
+    its part's elements; stacked, the rows equal the unsupported (N (x) I_3) R_P's free
+    rows (a different summation order: round-off of its scale)."""
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    P = np.array([0.0, 0.01, 0.025])
+    part = slab_partition(space.node_points, free, 3)
+    parts = split_mesh(space, assign_materials(space, ALUMINIUM), free, part, 3)
+    rows = np.vstack([rigid_mass_rows(p, P) for p in parts])
+    N = assemble_on_nodes(space, ALUMINIUM).node_mass
+    serial = (sp.kron(N, sp.identity(3)) @ rigid_body_modes(space.node_points, P))[free]
+    serial = serial[part.order]
+    assert np.abs(rows - serial).max() <= 1e-13 * np.abs(serial).max()
+    # the held DOFs matter: the supported M's rows alone give another answer
+    assert np.abs(model.M[part.order] @ rigid_body_modes(space.node_points, P)[free][
+        part.order] - serial).max() > 1e-3 * np.abs(serial).max()
+
+
+@pytest.mark.parametrize("overrides, key", [
+    ([], r"connections\[1\]"),
+    ([PARENT_ONLY[0]], r"craig_bampton\.modes"),
+    (["connections=[{name: root, region: root, point: [0, 0.01, 0.025], "
+      "coupling: distributing}]", PARENT_ONLY[1]], r"connections\[0\]\.coupling"),
+    (list(PARENT_ONLY) + ["supports=[{region: root, fix: [x, y]}]"], r"supports"),
+    (list(PARENT_ONLY) + ["supports=[]"], r"supports"),
+    (list(PARENT_ONLY) + ["masses=[{name: s, mass: 0.1, point: [0.5, 0.01, 0.025], region: tip, "
+                            "coupling: distributing}]"], r"masses"),
+])
+def test_what_is_not_distributed_yet_is_refused_in_one_line(overrides, key):
+    """Child points, Craig-Bampton data, a distributing parent, supports other than the
+    parent region held, added masses: one line naming the key, before any meshing."""
+    from pipeline.config import load_config
+    from pipeline.errors import ConfigError
+
+    cfg = load_config(ROOT / CONFIG, ["modes.solver=slepc"] + overrides)
+    with pytest.raises(ConfigError, match=rf"^{key}: [\w ()-:,\[\]{{}}]+ with modes.solver: "
+                                          r"slepc: not distributed yet; expected"):
+        check_connections(cfg)
+
+
+def test_the_shipped_config_is_refused_end_to_end_and_nothing_written(tmp_path):
+    """The CLI on the MPI interpreter (one process): exit code 2 (ConfigError), one line
+    naming the child point's key, no file."""
+    if not MPI_PYTHON.exists() or not _has_petsc(MPI_PYTHON):
+        pytest.skip("no MPI environment (make mpi-env)")
+    out = tmp_path / "x.h5"
+    proc = subprocess.run([str(MPI_PYTHON), "-m", "pipeline", "run", CONFIG, "--set",
+                           "modes.solver=slepc", "-o", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()
+    assert len(last) == 1 and last[0].count("connections[1]") >= 1, proc.stderr
+    assert not out.exists()
+
+
+@pytest.mark.mpi
+def test_parent_point_on_two_ranks(tmp_path):
+    """The hybrid-cantilever model at the clamped root on 2 ranks equals the
+    single-process one (module docstring's tolerances), /ffrf and /fe aside."""
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *PARENT_ONLY, "mesh.size=0.01")
+    with h5py.File(dist) as f:
+        assert "connections/root/statespace/D" in f
+        assert not any(g in f for g in NOT_ON_RANKS)
+    _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
