@@ -1,13 +1,24 @@
 """The connection-point (hybrid-cantilever) model of :mod:`pipeline.reduce.connection` on
-MPI ranks, for a parent point P whose region the supports clamp.
+MPI ranks, for a rigid parent point P whose region the supports clamp, with optional
+child points.
 
 Serially the model clamps the parent interface of the UNSUPPORTED body (K_c = T_c^T K
-T_c, M_c = T_c^T M T_c) and solves for its clamped modes Phi_c. With a rigid (RBE2)
-parent coupling, clamping q_P = 0 holds every DOF of the parent region and nothing
-else; when the supports hold exactly those DOFs (``supports: [{region: <parent
-region>, fix: all}]``) the clamped pencil IS the run's supported (K, M) and Phi_c are
-the run's modes, already on the ranks (a :class:`~pipeline.distributed.blocks.RowBlock`
-of each rank's rows). What remains are products summed over the ranks:
+T_c, M_c = T_c^T M T_c, s = T_c [z; q_C]: the interface change of coordinates without
+the parent's q_P) and solves for its clamped modes Phi_c. With a rigid (RBE2) parent
+coupling, q_P = 0 holds every DOF of the parent region and nothing else; when the
+supports hold exactly those DOFs (``supports: [{region: <parent region>, fix: all}]``)
+the clamped problem lives on the run's free DOFs, with the run's distributed K and M:
+
+- no child point: T_c is the identity, Phi_c are the run's modes, already on the ranks
+  (a :class:`~pipeline.distributed.blocks.RowBlock` of each rank's rows);
+- child points (RBE2 or RBE3): T_c is an exact constraint u = T_c q of the kind
+  :class:`~pipeline.distributed.constraints.DistributedConstraint` handles: rank 0
+  builds it with the serial :func:`~pipeline.reduce.interfaces.interface_transformation`
+  and sends each rank its own rows (its free DOFs; a column belongs to the rank of its
+  first row), PETSc's PtAP makes (K_c, M_c), SLEPc solves it on MUMPS, and
+  Phi_C (6 n_c x N) are the clamped modes' rows at the q_C coordinates.
+
+What remains are products summed over the ranks:
 
     L_P = Phi_c^T M R_P = sum_r Phi_r^T (M R_P)_r       (N x 6)   RowBlock.gram
     D_P = R_P^T M R_P   = tau^T D_O tau                  (6 x 6)
@@ -20,14 +31,14 @@ touch its nodes (M = N (x) I_3, N the node-level mass), with every column, held 
 free. D_O = R_O^T M R_O is the body's rigid mass about the origin that the FE stage
 sums over the ranks (``props.rigid_mass``) and tau = [[I, skew(P)], [0, I]] moves a
 twist from P to the origin (R_P = R_O tau). The small dense algebra (the residual-mass
-check, the state space, the tables) is the serial code's.
+check, the child transports, the state space, the tables) is the serial code's.
 
-Not distributed yet (refused by :func:`check_connections`, one line each): child
-points, Craig-Bampton data, a distributing (RBE3) parent coupling, a parent region that
-is not exactly what the supports hold, added masses, a rotating body. The
-floating-frame invariants (``/ffrf``) and the unsupported body's FE matrices (``/fe``)
-that the serial run writes beside a connection model are not written on ranks: the
-latter is the whole K and M.
+Not distributed yet (refused by :func:`check_connections`, one line each):
+Craig-Bampton data, a distributing (RBE3) parent coupling, a parent region that is not
+exactly what the supports hold, added masses, a rotating body. The floating-frame
+invariants (``/ffrf``) and the unsupported body's FE matrices (``/fe``) that the serial
+run writes beside a connection model are not written on ranks: the latter is the whole
+K and M.
 """
 
 from __future__ import annotations
@@ -37,20 +48,29 @@ from dataclasses import replace
 
 import numpy as np
 
+import scipy.sparse as sp
+
 from pipeline.config import Config
 from pipeline.distributed.assemble import local_node_mass
 from pipeline.distributed.blocks import RowBlock
+from pipeline.distributed.constraints import DistributedConstraint, from_entries
+from pipeline.distributed.eigen import solve_eigen
+from pipeline.distributed.mpi import petsc
+from pipeline.distributed.operators import RowMatrix
+from pipeline.distributed.partition import RowPartition
+from pipeline.distributed.reduce import rayleigh_ritz_rows
 from pipeline.errors import ConfigError, RegionError
 from pipeline.fe.body import rigid_body_modes
 from pipeline.reduce.build import connection_outputs
-from pipeline.reduce.connection import ConnectionModel, check_residual_mass
+from pipeline.reduce.connection import model_from_clamped
+from pipeline.reduce.interfaces import (Interface, interface_transformation, make_interfaces,
+                                        rigid_properties_from_mass, twist_transform)
 from pipeline.reduce.models import Models
-from pipeline.reduce.interfaces import (Interface, make_interface, rigid_properties_from_mass,
-                                        twist_transform)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_connections", "parent_interface", "rigid_mass_rows", "connection_models"]
+__all__ = ["check_connections", "connection_interfaces", "clamped_entries", "clamped_solve",
+           "rigid_mass_rows", "connection_models"]
 
 SOLVER = "with modes.solver: slepc"
 
@@ -66,9 +86,6 @@ def check_connections(cfg: Config) -> None:
     if not cfg.connections:
         return
     parent = cfg.connections[0]
-    if len(cfg.connections) > 1:
-        raise _refuse("connections[1]", "child points", cfg.connections[1].name,
-                      "the parent point only, or another modes.solver")
     if cfg.craig_bampton_modes > 0:
         raise _refuse("craig_bampton.modes", "Craig-Bampton data", cfg.craig_bampton_modes,
                       "0, or another modes.solver")
@@ -90,21 +107,69 @@ def check_connections(cfg: Config) -> None:
                       "no rotation, or another modes.solver")
 
 
-def parent_interface(cfg: Config, space, regions, fixed: np.ndarray) -> Interface | None:
-    """Rank 0, on the whole mesh: the parent interface of ``cfg.connections`` (None
-    without), checked to tie exactly the ``fixed`` DOFs (the clamped pencil is then the
+def connection_interfaces(cfg: Config, space, regions, fixed: np.ndarray
+                          ) -> tuple[Interface, ...] | None:
+    """Rank 0, on the whole mesh: the interfaces of ``cfg.connections``, parent first
+    (None without), checked (:func:`~pipeline.reduce.interfaces.make_interfaces`) and
+    the parent's to tie exactly the ``fixed`` DOFs (the clamped pencil is then the
     supported one; RegionError otherwise)."""
     if not cfg.connections:
         return None
-    c = cfg.connections[0]
-    iface = make_interface(space, regions, c.name, c.region, c.point, c.coupling,
-                           key="connections[0]")
-    dofs = (3 * iface.nodes[:, None] + np.arange(3)).ravel()
+    interfaces = tuple(make_interfaces(space, regions, cfg.connections))
+    parent = interfaces[0]
+    dofs = (3 * parent.nodes[:, None] + np.arange(3)).ravel()
     if not np.array_equal(np.sort(dofs), np.sort(np.asarray(fixed))):
-        raise RegionError(f"connections[0].region: region '{c.region}' ties {dofs.size} DOFs "
-                          f"but the supports hold {np.asarray(fixed).size} {SOLVER}; expected "
-                          "the supports to hold exactly the parent region")
-    return iface
+        raise RegionError(f"connections[0].region: region '{parent.region}' ties {dofs.size} "
+                          f"DOFs but the supports hold {np.asarray(fixed).size} {SOLVER}; "
+                          "expected the supports to hold exactly the parent region")
+    return interfaces
+
+
+def clamped_entries(interfaces: tuple[Interface, ...], node_points: np.ndarray,
+                    free: np.ndarray, part: RowPartition) -> tuple[list, int]:
+    """Rank 0: (per rank the entries of its rows of T_c, the (n_free, n_c) change of
+    coordinates s = T_c [z; q_C] of the body clamped at the parent with free child
+    points (the serial :func:`~pipeline.reduce.interfaces.interface_transformation`'s
+    columns but q_P, on the free rows: the parent's rows are the held DOFs), in
+    :func:`~pipeline.distributed.constraints.rank_entries`' form with each column's
+    serial index as its key; n_z, the interior coordinates). A column belongs to the
+    rank of its first free row."""
+    parent, children = interfaces[0], interfaces[1:]
+    free = np.asarray(free)
+    tr = interface_transformation(3 * node_points.shape[0], node_points,
+                                  children + (parent,))
+    T = tr.T[:, :tr.n_z + 6 * len(children)].tocsr()[free]
+    Tc = T.tocsc()
+    Tc.sort_indices()
+    size = part.starts.size - 1
+    owner = np.empty(free.size, dtype=np.int64)
+    for r in range(size):
+        owner[part.owned_free(r)] = r
+    column_owner = owner[Tc.indices[Tc.indptr[:-1]]]
+    out = []
+    for r in range(size):
+        own = part.owned_free(r)
+        rows = T[own].tocoo()
+        out.append((own[rows.row], rows.col.astype(float), rows.data,
+                    np.flatnonzero(column_owner == r).astype(float)))
+    return out, tr.n_z
+
+
+def clamped_solve(cfg: Config, con: DistributedConstraint, count: int):
+    """(omega2 (count,) rad^2/s^2, the clamped modes on the coordinates [z; q_C] (a
+    RowBlock on q's partition, M_c-orthonormal), residuals (count,)) of (K_c, M_c) =
+    (T_c^T K T_c, T_c^T M T_c) made by ``con.project``: SLEPc's shift-invert on MUMPS,
+    then the Rayleigh-Ritz step and sign convention of the modes stage."""
+    PETSc, SLEPc = petsc()
+    Kc, Mc = con.K, con.M
+    if count >= con.n_q:
+        raise ConfigError(f"modes.count: {count} clamped modes of a body with {con.n_q} "
+                          f"coordinates; expected fewer than {con.n_q}", key="modes.count",
+                          value=count, expected=f"< {con.n_q}")
+    omega2, local, stats = solve_eigen(PETSc, SLEPc, Kc.petsc, Mc.petsc, count,
+                                       cfg.modes.tolerance or 1e-10, "factor")
+    stats.pop("eps").destroy()
+    return rayleigh_ritz_rows(Kc, Mc, RowBlock(con.comm, Kc.part, local), 0.0)
 
 
 def rigid_mass_rows(mesh, point) -> np.ndarray:
@@ -125,26 +190,42 @@ def rigid_mass_rows(mesh, point) -> np.ndarray:
     return out
 
 
-def connection_models(cfg: Config, space, props, modes, models):
+def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
+                      M: RowMatrix, modes, models):
     """``models`` (a :class:`~pipeline.reduce.models.Models` record) with the connection
-    model at the parent point, its state space and summary lines, from the run's modes
-    on the ranks (module; collective). ``space``: the
-    :class:`~pipeline.distributed.submesh.DistributedSpace` with the parent interface;
-    ``props``: the body's properties (``rigid_mass`` about the origin)."""
-    parent = space.connection
-    shapes: RowBlock = modes.shapes
+    model at the parent point, its state space and summary lines (module; collective).
+    ``space``: the :class:`~pipeline.distributed.submesh.DistributedSpace` with the
+    interfaces (rank 0: the whole mesh's points); ``props``: the body's properties
+    (``rigid_mass`` about the origin); ``free`` (n_free,) the free DOFs; ``K``, ``M``:
+    the run's distributed matrices with their PETSc matrices; ``modes``: the run's."""
+    interfaces = space.connections
+    parent, children = interfaces[0], interfaces[1:]
+    comm = K.comm
+    if children:  # the clamped pencil of the free-floating children: its own solve
+        sources, n_z = (clamped_entries(interfaces, space.node_points, free, K.part)
+                        if comm.rank == 0 else (None, None))
+        n_z = comm.bcast(n_z, root=0)
+        con = from_entries(comm, comm.scatter(sources, root=0), K.part, "clamped interfaces")
+        PETSc, _ = petsc()
+        con.project(PETSc, K, M)
+        try:
+            omega2, coords, residuals = clamped_solve(cfg, con, cfg.modes.count)
+            shapes = con.from_q(coords)
+        finally:
+            con.destroy()
+        pick = np.arange(6 * len(children))
+        Phi_C = coords.sensor_product(sp.csr_matrix(
+            (np.ones(pick.size), (pick, n_z + pick)), shape=(pick.size, con.n_q)))
+    else:  # the clamped pencil is the run's: its modes
+        omega2, shapes, residuals = modes.omega2, modes.shapes, modes.residuals
+        Phi_C = np.zeros((0, omega2.size))
     P = parent.point
     L_P = shapes.gram(shapes.like(rigid_mass_rows(space.local, P)))
     tau = twist_transform(P, np.zeros(3))
     rigid = rigid_properties_from_mass(tau.T @ props.rigid_mass @ tau, P)
-    D_P0 = check_residual_mass(rigid.D_P - L_P.T @ L_P, parent.name)
-    omega2 = np.asarray(modes.omega2, dtype=float)
-    model = ConnectionModel(parent, (), rigid, omega2, L_P, D_P0, shapes,
-                            np.zeros((0, omega2.size)), np.zeros((0, 6)),
-                            np.asarray(modes.residuals))
+    model = model_from_clamped(parent, children, rigid, np.asarray(omega2, dtype=float), L_P,
+                               shapes, Phi_C, np.asarray(residuals))
     ss, lines = connection_outputs(cfg, model)
-    log.info("connection '%s': %d clamped modes (the run's), %d rank(s)", parent.name,
-             omega2.size, shapes.comm.size)
     models = models if models is not None else Models()
     return replace(models, connection=model, connection_statespace=ss,
                    summary=models.summary + tuple(lines))

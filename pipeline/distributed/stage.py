@@ -48,7 +48,7 @@ from pipeline.distributed.prestress import (check_rotation, preload_ports,  # no
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
-from pipeline.distributed.connection import (check_connections, parent_interface,
+from pipeline.distributed.connection import (check_connections, connection_interfaces,
                                              connection_models)  # noqa: F401 (run.py's)
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
@@ -238,7 +238,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
         spin_masses = comm.bcast(None if whole is None else
                                  rotation_masses(cfg, whole.space, whole.regions), root=0)
-        parent = comm.bcast(None if whole is None else parent_interface(
+        interfaces = comm.bcast(None if whole is None else connection_interfaces(
             cfg, whole.space, whole.regions, whole.fixed), root=0)
         # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
         constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
@@ -268,13 +268,13 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
                 whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
-                rotation_masses=spin_masses, connection=parent)
+                rotation_masses=spin_masses, connections=interfaces)
             regions, materials = whole.regions, whole.materials
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
                                      np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses, connection=parent)
+                                     rotation_masses=spin_masses, connections=interfaces)
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
