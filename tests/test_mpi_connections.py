@@ -7,9 +7,10 @@ every other float 1e-8 of its largest entry). Measured on 2 ranks (cantilever_co
 without Craig-Bampton, mesh.size 0.01): with its parent point only, the clamped
 frequencies and omega 2e-12, L_P and B 3e-12, D_P0 2e-13; with the distributing tip
 child, frequencies 3e-12, Phi_C and the state space's B, C, D 5e-12; D_P and the mass
-properties 1e-15 to 1.5e-14 of each dataset's largest entry. The floating-frame invariants and the unsupported body's FE
-matrices are not written on ranks (the latter is the whole K and M): the serial file
-is compared without those two groups. Without MPI: each emulated rank's rows of M R_P
+properties 1e-15 to 1.5e-14 of each dataset's largest entry. The floating-frame invariants of the run's modes
+(sums over each rank's points): 1e-11 (J2, G, the couplings), modal stiffness 2e-13,
+mass properties 3e-15. The unsupported body's FE matrices (``/fe``, the whole K and M)
+are not written on ranks: the serial file is compared without that group. Without MPI: each emulated rank's rows of M R_P
 are the serial ones, and the refusals of what is not distributed yet.
 """
 
@@ -24,7 +25,8 @@ import pytest
 import scipy.sparse as sp
 
 from conftest import ALUMINIUM, ROOT, build_model
-from pipeline.distributed.connection import check_connections, rigid_mass_rows
+from pipeline.distributed.assemble import rigid_mass_rows
+from pipeline.distributed.connection import check_connections
 from pipeline.distributed.partition import slab_partition
 from pipeline.distributed.submesh import split_mesh
 from pipeline.fe.assemble import assemble_on_nodes
@@ -35,8 +37,9 @@ from test_mpi import MPI_PYTHON, _has_petsc, _same_file, _serial_and_two_ranks
 CONFIG = "configs/cantilever_connection.yaml"
 PARENT_ONLY = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
                "coupling: rigid}]", "craig_bampton={modes: 0}")
-#: the groups the serial run writes beside a connection model and the ranks do not
-NOT_ON_RANKS = ("ffrf", "fe")
+#: the group the serial run writes beside a connection model and the ranks do not (the
+#: unsupported body's whole K and M)
+NOT_ON_RANKS = ("fe",)
 
 
 def _without(path, groups, out):
@@ -107,10 +110,11 @@ def test_the_shipped_config_is_refused_end_to_end_and_nothing_written(tmp_path):
 @pytest.mark.mpi
 def test_parent_point_on_two_ranks(tmp_path):
     """The hybrid-cantilever model at the clamped root on 2 ranks equals the
-    single-process one (module docstring's tolerances), /ffrf and /fe aside."""
+    single-process one (module docstring's tolerances) with the floating-frame
+    invariants, /fe aside."""
     serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *PARENT_ONLY, "mesh.size=0.01")
     with h5py.File(dist) as f:
-        assert "connections/root/statespace/D" in f
+        assert "connections/root/statespace/D" in f and "ffrf/inertia_second_order" in f
         assert not any(g in f for g in NOT_ON_RANKS)
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
 

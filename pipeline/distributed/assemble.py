@@ -29,6 +29,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Material
 from pipeline.distributed.submesh import RankMesh
+from pipeline.fe.body import rigid_body_modes
 from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
                                  lame_parameters, reference_data)
 from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
@@ -153,3 +154,28 @@ def local_node_mass(mesh: RankMesh, elements: np.ndarray | None = None) -> sp.cs
     cols = np.broadcast_to(en[:, None, :], (chunk.size, nb, nb))
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())),
                          shape=(space.n_nodes, space.n_nodes))
+
+
+def full_mass_rows(mesh, fields: np.ndarray) -> np.ndarray:
+    """(hi - lo, k) this rank's rows (PETSc order) of M F, M the unsupported body's
+    consistent mass (kg) and F (n_dofs, k) nodal fields given on the part's local nodes
+    as ``fields`` (n_loc, 3, k). ``mesh``: the rank's
+    :class:`~pipeline.distributed.submesh.RankMesh`; its elements that touch an owned
+    node give those nodes' whole rows of N (M = N (x) I_3), held columns included."""
+    en = mesh.space.element_nodes
+    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
+    N = local_node_mass(mesh, elements)
+    n_loc, _, k = fields.shape
+    rows = (N @ fields.reshape(n_loc, 3 * k)).reshape(3 * n_loc, k)  # local DOF 3 i + c
+    owned = (mesh.dof_rows >= mesh.lo) & (mesh.dof_rows < mesh.hi)
+    out = np.zeros((mesh.hi - mesh.lo, k))
+    out[mesh.dof_rows[owned] - mesh.lo] = rows[owned]
+    return out
+
+
+def rigid_mass_rows(mesh, point) -> np.ndarray:
+    """(hi - lo, 6) this rank's rows (PETSc order) of M R_P (kg | kg m), R_P the
+    rigid-body modes about ``point`` (3,) m (:func:`full_mass_rows`)."""
+    points = mesh.space.node_points
+    R = rigid_body_modes(points, np.asarray(point, dtype=float))
+    return full_mass_rows(mesh, R.reshape(points.shape[0], 3, 6))

@@ -28,7 +28,7 @@ with R_P the rigid-body modes about P (node x_j gets [I, -skew(x_j - P)]). (M R_
 are rank r's rows (its free DOFs) of the unsupported M times R_P: the free rows of M
 couple to the clamped DOFs too, so they are summed from the elements of r's part that
 touch its nodes (M = N (x) I_3, N the node-level mass), with every column, held or
-free. D_O = R_O^T M R_O is the body's rigid mass about the origin that the FE stage
+free (:func:`~pipeline.distributed.assemble.rigid_mass_rows`). D_O = R_O^T M R_O is the body's rigid mass about the origin that the FE stage
 sums over the ranks (``props.rigid_mass``) and tau = [[I, skew(P)], [0, I]] moves a
 twist from P to the origin (R_P = R_O tau). The small dense algebra (the residual-mass
 check, the child transports, the state space, the tables) is the serial code's.
@@ -36,9 +36,9 @@ check, the child transports, the state space, the tables) is the serial code's.
 Not distributed yet (refused by :func:`check_connections`, one line each):
 Craig-Bampton data, a distributing (RBE3) parent coupling, a parent region that is not
 exactly what the supports hold, added masses, a rotating body. The floating-frame
-invariants (``/ffrf``) and the unsupported body's FE matrices (``/fe``) that the serial
-run writes beside a connection model are not written on ranks: the latter is the whole
-K and M.
+invariants of the run's modes (``/ffrf``) are :mod:`pipeline.distributed.ffrf`'s; the
+unsupported body's FE matrices (``/fe``) that the serial run writes beside a connection
+model are not written on ranks: they are the whole K and M.
 """
 
 from __future__ import annotations
@@ -51,16 +51,16 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.distributed.assemble import local_node_mass
+from pipeline.distributed.assemble import rigid_mass_rows
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.constraints import DistributedConstraint, from_entries
 from pipeline.distributed.eigen import solve_eigen
+from pipeline.distributed.ffrf import modes_invariants
 from pipeline.distributed.mpi import petsc
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.partition import RowPartition
 from pipeline.distributed.reduce import rayleigh_ritz_rows
 from pipeline.errors import ConfigError, RegionError
-from pipeline.fe.body import rigid_body_modes
 from pipeline.reduce.build import connection_outputs
 from pipeline.reduce.connection import model_from_clamped
 from pipeline.reduce.interfaces import (Interface, interface_transformation, make_interfaces,
@@ -70,7 +70,7 @@ from pipeline.reduce.models import Models
 log = logging.getLogger(__name__)
 
 __all__ = ["check_connections", "connection_interfaces", "clamped_entries", "clamped_solve",
-           "rigid_mass_rows", "connection_models"]
+           "connection_models"]
 
 SOLVER = "with modes.solver: slepc"
 
@@ -172,24 +172,6 @@ def clamped_solve(cfg: Config, con: DistributedConstraint, count: int):
     return rayleigh_ritz_rows(Kc, Mc, RowBlock(con.comm, Kc.part, local), 0.0)
 
 
-def rigid_mass_rows(mesh, point) -> np.ndarray:
-    """(hi - lo, 6) this rank's rows (PETSc order) of M R_P, M the unsupported body's
-    consistent mass (kg) and R_P its rigid-body modes about ``point`` (3,) m: kg | kg m.
-
-    ``mesh``: the rank's :class:`~pipeline.distributed.submesh.RankMesh`; its elements
-    that touch an owned node give those nodes' whole rows of N (module)."""
-    en = mesh.space.element_nodes
-    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
-    N = local_node_mass(mesh, elements)
-    points = mesh.space.node_points
-    R = rigid_body_modes(points, np.asarray(point, dtype=float)).reshape(points.shape[0], 18)
-    rows = (N @ R).reshape(-1, 6)  # local DOF 3 i + c
-    owned = (mesh.dof_rows >= mesh.lo) & (mesh.dof_rows < mesh.hi)
-    out = np.zeros((mesh.hi - mesh.lo, 6))
-    out[mesh.dof_rows[owned] - mesh.lo] = rows[owned]
-    return out
-
-
 def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
                       M: RowMatrix, modes, models):
     """``models`` (a :class:`~pipeline.reduce.models.Models` record) with the connection
@@ -226,6 +208,7 @@ def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
     model = model_from_clamped(parent, children, rigid, np.asarray(omega2, dtype=float), L_P,
                                shapes, Phi_C, np.asarray(residuals))
     ss, lines = connection_outputs(cfg, model)
+    inv = modes_invariants(space, free, K, M, modes.shapes, props.rigid_mass)
     models = models if models is not None else Models()
-    return replace(models, connection=model, connection_statespace=ss,
+    return replace(models, connection=model, connection_statespace=ss, ffrf=inv,
                    summary=models.summary + tuple(lines))
