@@ -33,12 +33,15 @@ sums over the ranks (``props.rigid_mass``) and tau = [[I, skew(P)], [0, I]] move
 twist from P to the origin (R_P = R_O tau). The small dense algebra (the residual-mass
 check, the child transports, the state space, the tables) is the serial code's.
 
-Not distributed yet (refused by :func:`check_connections`, one line each):
-Craig-Bampton data, a distributing (RBE3) parent coupling, a parent region that is not
-exactly what the supports hold, added masses, a rotating body. The floating-frame
-invariants of the run's modes (``/ffrf``) are :mod:`pipeline.distributed.ffrf`'s; the
-unsupported body's FE matrices (``/fe``) that the serial run writes beside a connection
-model are not written on ranks: they are the whole K and M.
+Craig-Bampton data (``craig_bampton.modes`` > 0) are
+:mod:`pipeline.distributed.craig_bampton`'s, the floating-frame invariants (``/ffrf``)
+of the run's modes or of the Craig-Bampton basis :mod:`pipeline.distributed.ffrf`'s.
+
+Not distributed yet (refused by :func:`check_connections`, one line each): a
+distributing (RBE3) parent coupling, a parent region that is not exactly what the
+supports hold, added masses, a rotating body. The unsupported body's FE matrices
+(``/fe``) that the serial run writes beside a connection model are not written on
+ranks: they are the whole K and M.
 """
 
 from __future__ import annotations
@@ -52,25 +55,23 @@ import scipy.sparse as sp
 
 from pipeline.config import Config
 from pipeline.distributed.assemble import rigid_mass_rows
-from pipeline.distributed.blocks import RowBlock
-from pipeline.distributed.constraints import DistributedConstraint, from_entries
-from pipeline.distributed.eigen import solve_eigen
+from pipeline.distributed.constraints import from_entries
+from pipeline.distributed.craig_bampton import clamped_solve, craig_bampton_on_ranks
 from pipeline.distributed.ffrf import modes_invariants
 from pipeline.distributed.mpi import petsc
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.partition import RowPartition
-from pipeline.distributed.reduce import rayleigh_ritz_rows
 from pipeline.errors import ConfigError, RegionError
-from pipeline.reduce.build import connection_outputs
+from pipeline.reduce.build import connection_outputs, craig_bampton_line
 from pipeline.reduce.connection import model_from_clamped
+from pipeline.reduce.ffrf import craig_bampton_columns, craig_bampton_kind
 from pipeline.reduce.interfaces import (Interface, interface_transformation, make_interfaces,
                                         rigid_properties_from_mass, twist_transform)
 from pipeline.reduce.models import Models
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_connections", "connection_interfaces", "clamped_entries", "clamped_solve",
-           "connection_models"]
+__all__ = ["check_connections", "connection_interfaces", "clamped_entries", "connection_models"]
 
 SOLVER = "with modes.solver: slepc"
 
@@ -86,9 +87,6 @@ def check_connections(cfg: Config) -> None:
     if not cfg.connections:
         return
     parent = cfg.connections[0]
-    if cfg.craig_bampton_modes > 0:
-        raise _refuse("craig_bampton.modes", "Craig-Bampton data", cfg.craig_bampton_modes,
-                      "0, or another modes.solver")
     if parent.coupling != "rigid":
         raise _refuse("connections[0].coupling", f"a {parent.coupling} parent coupling",
                       parent.coupling, "rigid, or another modes.solver")
@@ -155,23 +153,6 @@ def clamped_entries(interfaces: tuple[Interface, ...], node_points: np.ndarray,
     return out, tr.n_z
 
 
-def clamped_solve(cfg: Config, con: DistributedConstraint, count: int):
-    """(omega2 (count,) rad^2/s^2, the clamped modes on the coordinates [z; q_C] (a
-    RowBlock on q's partition, M_c-orthonormal), residuals (count,)) of (K_c, M_c) =
-    (T_c^T K T_c, T_c^T M T_c) made by ``con.project``: SLEPc's shift-invert on MUMPS,
-    then the Rayleigh-Ritz step and sign convention of the modes stage."""
-    PETSc, SLEPc = petsc()
-    Kc, Mc = con.K, con.M
-    if count >= con.n_q:
-        raise ConfigError(f"modes.count: {count} clamped modes of a body with {con.n_q} "
-                          f"coordinates; expected fewer than {con.n_q}", key="modes.count",
-                          value=count, expected=f"< {con.n_q}")
-    omega2, local, stats = solve_eigen(PETSc, SLEPc, Kc.petsc, Mc.petsc, count,
-                                       cfg.modes.tolerance or 1e-10, "factor")
-    stats.pop("eps").destroy()
-    return rayleigh_ritz_rows(Kc, Mc, RowBlock(con.comm, Kc.part, local), 0.0)
-
-
 def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
                       M: RowMatrix, modes, models):
     """``models`` (a :class:`~pipeline.reduce.models.Models` record) with the connection
@@ -183,15 +164,19 @@ def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
     interfaces = space.connections
     parent, children = interfaces[0], interfaces[1:]
     comm = K.comm
-    if children:  # the clamped pencil of the free-floating children: its own solve
+    entries = n_z = None
+    if children or cfg.craig_bampton_modes > 0:  # rank 0 sends each rank its rows of T_c
         sources, n_z = (clamped_entries(interfaces, space.node_points, free, K.part)
                         if comm.rank == 0 else (None, None))
         n_z = comm.bcast(n_z, root=0)
-        con = from_entries(comm, comm.scatter(sources, root=0), K.part, "clamped interfaces")
+        entries = comm.scatter(sources, root=0)
+    if children:  # the clamped pencil of the free-floating children: its own solve
+        con = from_entries(comm, entries, K.part, "clamped interfaces")
         PETSc, _ = petsc()
         con.project(PETSc, K, M)
         try:
-            omega2, coords, residuals = clamped_solve(cfg, con, cfg.modes.count)
+            omega2, coords, residuals, eps = clamped_solve(cfg, con, cfg.modes.count)
+            eps.destroy()
             shapes = con.from_q(coords)
         finally:
             con.destroy()
@@ -208,7 +193,15 @@ def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
     model = model_from_clamped(parent, children, rigid, np.asarray(omega2, dtype=float), L_P,
                                shapes, Phi_C, np.asarray(residuals))
     ss, lines = connection_outputs(cfg, model)
-    inv = modes_invariants(space, free, K, M, modes.shapes, props.rigid_mass)
+    cb = None
+    if cfg.craig_bampton_modes > 0:
+        cb, basis = craig_bampton_on_ranks(cfg, space, free, K, M, entries, n_z, rigid.D_P)
+        keep, names, units = craig_bampton_columns(cb, 0)
+        inv = modes_invariants(space, free, K, M, basis.columns(keep), props.rigid_mass,
+                               (craig_bampton_kind(cb), names, units))
+        lines.append(craig_bampton_line(cfg))
+    else:
+        inv = modes_invariants(space, free, K, M, modes.shapes, props.rigid_mass)
     models = models if models is not None else Models()
-    return replace(models, connection=model, connection_statespace=ss, ffrf=inv,
-                   summary=models.summary + tuple(lines))
+    return replace(models, connection=model, connection_statespace=ss, craig_bampton=cb,
+                   ffrf=inv, summary=models.summary + tuple(lines))

@@ -42,14 +42,15 @@ def _node_major(block: RowBlock, free: np.ndarray) -> np.ndarray:
 
 
 def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes: RowBlock,
-                     rigid_mass: np.ndarray) -> FFRFInvariants:
+                     rigid_mass: np.ndarray, labels: tuple | None = None) -> FFRFInvariants:
     """The invariants about the origin of the basis ``shapes`` (the run's modes of a
     body clamped on a region, (n_free, n) rows on the ranks; module), as
     :func:`pipeline.reduce.ffrf.build_ffrf` makes them serially for a supported body
     without Craig-Bampton. ``space``: the DistributedSpace (its ``local`` part);
     ``free`` (n_free,) the free DOFs; ``K``, ``M``: the run's distributed matrices with
-    their PETSc matrices; ``rigid_mass`` (6, 6) R_O^T M R_O. ``basis`` of the record is
-    the RowBlock itself. Collective."""
+    their PETSc matrices; ``rigid_mass`` (6, 6) R_O^T M R_O; ``labels``: (basis kind,
+    coordinate names, units) of another basis zero on the held points (default: the
+    run's modes). ``basis`` of the record is the RowBlock itself. Collective."""
     mesh = space.local
     n = shapes.shape[1]
     comm = shapes.comm
@@ -64,4 +65,5 @@ def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes
     psi_m_psi = allreduce_sum(comm, psi_t.T @ m_psi)
     return invariants_from_products(
         np.zeros(3), rigid_mass, coupling, shapes.gram(M_psi), shapes.gram(K.apply(shapes)),
-        x_psi, psi_psi, psi_m_psi, shapes, *modes_basis_labels(np.arange(n), True))
+        x_psi, psi_psi, psi_m_psi, shapes,
+        *(labels or modes_basis_labels(np.arange(n), True)))

@@ -34,7 +34,7 @@ from pipeline.solve.factorization import factorize
 log = logging.getLogger(__name__)
 
 __all__ = ["Models", "build_models", "build_statespace", "build_lumped",
-           "build_connection_models", "connection_lines", "connection_outputs"]
+           "build_connection_models", "connection_lines", "connection_outputs", "craig_bampton_line"]
 
 
 def _damping_spec(cfg: Config) -> DampingSpec:
@@ -203,6 +203,12 @@ def connection_lines(cfg: Config, model: ConnectionModel) -> list[str]:
     return lines + ["  " + line for line in effective_mass_table(model, cfg.modes.count)]
 
 
+def craig_bampton_line(cfg: Config) -> str:
+    """The summary line of the Craig-Bampton data of ``cfg.connections``."""
+    return (f"Craig-Bampton: {len(cfg.connections)} interface(s), "
+            f"{cfg.craig_bampton_modes} fixed-interface modes")
+
+
 def connection_outputs(cfg: Config, model: ConnectionModel) -> tuple[StateSpace, list[str]]:
     """The state space of ``model`` with the config's damping at its clamped frequencies
     (:func:`pipeline.reduce.connection.connection_statespace`) and its summary lines."""
@@ -228,8 +234,7 @@ def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, 
     if cfg.craig_bampton_modes > 0:
         cb = build_craig_bampton(space, regions, K_full, M_full, cfg.connections,
                                  cfg.craig_bampton_modes, backend=cfg.modes.solver)
-        lines.append(f"Craig-Bampton: {len(cfg.connections)} interface(s), "
-                     f"{cfg.craig_bampton_modes} fixed-interface modes")
+        lines.append(craig_bampton_line(cfg))
     inv = build_ffrf(M_full, K_full, space.node_points, cb=cb, shapes=shapes,
                      omega2=modes.omega2, n_rigid=modes.n_rigid, supported=bool(cfg.supports))
     return replace(models, connection=model, connection_statespace=ss, craig_bampton=cb,

@@ -59,7 +59,8 @@ from pipeline.fe.body import rigid_body_modes
 MODAL_UNIT = "m kg^1/2"
 
 __all__ = ["FFRFInvariants", "ffrf_invariants", "invariants_from_products", "free_free_basis",
-           "craig_bampton_basis", "modes_basis_labels", "skew_columns", "build_ffrf"]
+           "craig_bampton_basis", "craig_bampton_columns", "craig_bampton_kind",
+           "modes_basis_labels", "skew_columns", "build_ffrf"]
 
 
 @dataclass(frozen=True)
@@ -190,11 +191,23 @@ def craig_bampton_basis(cb, reference: int | str = 0
     """The Craig-Bampton basis without the six static modes of the reference interface
     (index or name): the floating frame follows that interface. Returns (basis, names,
     units)."""
+    keep, names, units = craig_bampton_columns(cb, reference)
+    return cb.shapes[:, keep], names, units
+
+
+def craig_bampton_columns(cb, reference: int | str = 0
+                          ) -> tuple[list[int], list[str], list[str]]:
+    """(kept column indices, names, units) of :func:`craig_bampton_basis`."""
     sl = (cb.interface_columns(reference) if isinstance(reference, str)
           else slice(6 * reference, 6 * reference + 6))
-    keep = [i for i in range(cb.shapes.shape[1]) if not sl.start <= i < sl.stop]
-    return (cb.shapes[:, keep], [cb.coordinate_names[i] for i in keep],
+    keep = [i for i in range(len(cb.coordinate_names)) if not sl.start <= i < sl.stop]
+    return (keep, [cb.coordinate_names[i] for i in keep],
             [cb.coordinate_units[i] for i in keep])
+
+
+def craig_bampton_kind(cb, reference: int = 0) -> str:
+    """The basis kind of :func:`craig_bampton_basis` (the frame follows the reference)."""
+    return f"craig_bampton (frame follows interface '{cb.interfaces[reference].name}')"
 
 
 def modes_basis_labels(keep: np.ndarray, supported: bool) -> tuple[str, list[str]]:
@@ -219,8 +232,8 @@ def build_ffrf(M_full: sp.spmatrix, K_full: sp.spmatrix | None, node_points: np.
     """
     if cb is not None:
         Psi, names, units = craig_bampton_basis(cb, 0)
-        kind = f"craig_bampton (frame follows interface '{cb.interfaces[0].name}')"
-        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind, names, units)
+        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin,
+                              craig_bampton_kind(cb), names, units)
     else:
         if shapes is None or omega2 is None:
             raise ValueError("build_ffrf: give cb, or shapes and omega2")

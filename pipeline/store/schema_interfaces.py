@@ -125,10 +125,11 @@ def craig_bampton_datasets(cb: CraigBamptonModel, group: str = CRAIG_BAMPTON.pat
         f"{group}/free_frequencies_hz": Dataset(
             w_free, "Hz", "eigenfrequencies of (K, M), the free reduced body (6 rigid zeros)"),
     }
-    if include_shapes:
-        n_nodes = cb.shapes.shape[0] // 3
+    if include_shapes:  # (n_dofs, n) or, from MPI ranks, a block-written (n_points, 3, n)
+        shapes = (cb.shapes if hasattr(cb.shapes, "blocks")
+                  else cb.shapes.reshape(cb.shapes.shape[0] // 3, 3, -1))
         tree[f"{group}/shapes"] = Dataset(
-            cb.shapes.reshape(n_nodes, 3, -1), "mixed",
+            shapes, "mixed",
             "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
             "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
     return tree
