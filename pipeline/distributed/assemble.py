@@ -77,15 +77,12 @@ def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
     return material
 
 
-def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
-    """This rank's rows of K (N/m) and M (kg) on the free DOFs (see the module), from
-    its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: its elements
-    in the whole mesh's order, their materials, the PETSc row of each local DOF, its rows
-    of the point and area masses, which go into M)."""
-    space, lo, hi = mesh.space, mesh.lo, mesh.hi
-    petsc_row = mesh.dof_rows
+def element_blocks(mesh: RankMesh, elements: np.ndarray, chunk_size: int = 512):
+    """Per chunk of ``elements`` (local numbers) of the part: (local DOFs (m, nb, 3) of
+    (node a, component i), K_e[e, a, b, i, j] (N/m), M_e[e, a, b, i] (kg, the i-i entries:
+    M_e is diagonal in the components)), with each element's own law."""
+    space = mesh.space
     en = space.element_nodes
-    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
     material = _law(mesh.materials)
     if isinstance(material, Material):
         lam, mu = lame_parameters(material)
@@ -94,8 +91,6 @@ def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
     R, mass_ref = reference_data(space.order)
     nb = en.shape[1]
     comp = np.arange(3)
-    k_sum, m_sum = _Sum(), _Sum()
-    shape = (hi - lo, mesh.n_free)
     for start in range(0, elements.size, chunk_size):
         chunk = elements[start:start + chunk_size]
         if isinstance(material, Material):
@@ -106,15 +101,28 @@ def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
             rho = material.rho[chunk]
         block = np.matmul(R, F).reshape(-1, nb, nb, 3, 3)  # [e, a, b, i, j]
         del F
-        dof = 3 * en[chunk][:, :, None] + comp  # (m, nb, 3): DOF of (node a, component i)
+        mvals = (rho * vol)[:, None, None, None] * mass_ref[None, :, :, None]
+        yield (3 * en[chunk][:, :, None] + comp, block,
+               np.broadcast_to(mvals, (chunk.size, nb, nb, 3)))
+
+
+def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
+    """This rank's rows of K (N/m) and M (kg) on the free DOFs (see the module), from
+    its part of the mesh (:class:`~pipeline.distributed.submesh.RankMesh`: its elements
+    in the whole mesh's order, their materials, the PETSc row of each local DOF, its rows
+    of the point and area masses, which go into M)."""
+    lo, hi = mesh.lo, mesh.hi
+    petsc_row = mesh.dof_rows
+    elements = np.flatnonzero(mesh.owned_nodes[mesh.space.element_nodes].any(axis=1))
+    k_sum, m_sum = _Sum(), _Sum()
+    shape = (hi - lo, mesh.n_free)
+    for dof, block, mvals in element_blocks(mesh, elements, chunk_size):
         rows = petsc_row[dof]
         rows_k = np.broadcast_to(rows[:, :, None, :, None], block.shape)
         cols_k = np.broadcast_to(rows[:, None, :, None, :], block.shape)
         keep = (rows_k >= lo) & (rows_k < hi) & (cols_k >= 0)
         k_sum.add(sp.csr_matrix((block[keep], (rows_k[keep] - lo, cols_k[keep])), shape=shape))
         del block, rows_k, cols_k, keep
-        mvals = (rho * vol)[:, None, None, None] * mass_ref[None, :, :, None]
-        mvals = np.broadcast_to(mvals, (chunk.size, nb, nb, 3))
         rows_m = np.broadcast_to(rows[:, :, None, :], mvals.shape)
         cols_m = np.broadcast_to(rows[:, None, :, :], mvals.shape)
         keep = (rows_m >= lo) & (rows_m < hi) & (cols_m >= 0)
@@ -123,6 +131,27 @@ def local_rows(mesh: RankMesh, chunk_size: int = 512) -> LocalRows:
         m_sum.add(mesh.added)
     K, M = with_int32_indices(k_sum.total(shape)), with_int32_indices(m_sum.total(shape))
     return LocalRows(K=K, M=M, lo=lo, hi=hi, n_elements=int(elements.size))
+
+
+def element_share(mesh: RankMesh, n_dofs: int, chunk_size: int = 512
+                  ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """(K_r, M_r): the upper triangles (n_dofs, n_dofs, DOF 3 p + c of mesh point p, N/m
+    and kg) of the elements whose mass this rank sums (``mesh.mass_elements``: every
+    element on exactly one rank), so that sum_r K_r is the unsupported body's K (its
+    upper triangle) and sum_r M_r its M; each holds 1/size of the entries."""
+    k_sum, m_sum = _Sum(), _Sum()
+    shape = (n_dofs, n_dofs)
+    for dof, block, mvals in element_blocks(mesh, mesh.mass_elements, chunk_size):
+        dofs = 3 * mesh.points[dof // 3] + dof % 3  # global DOF numbers
+        rows = np.broadcast_to(dofs[:, :, None, :, None], block.shape)
+        cols = np.broadcast_to(dofs[:, None, :, None, :], block.shape)
+        up = rows <= cols
+        k_sum.add(sp.csr_matrix((block[up], (rows[up], cols[up])), shape=shape))
+        rows = np.broadcast_to(dofs[:, :, None, :], mvals.shape)
+        cols = np.broadcast_to(dofs[:, None, :, :], mvals.shape)
+        up = rows <= cols
+        m_sum.add(sp.csr_matrix((mvals[up], (rows[up], cols[up])), shape=shape))
+    return k_sum.total(shape), m_sum.total(shape)
 
 
 def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:

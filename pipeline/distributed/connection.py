@@ -40,8 +40,8 @@ of the run's modes or of the Craig-Bampton basis :mod:`pipeline.distributed.ffrf
 Not distributed yet (refused by :func:`check_connections`, one line each): a
 distributing (RBE3) parent coupling, a parent region that is not exactly what the
 supports hold, added masses, a rotating body. The unsupported body's FE matrices
-(``/fe``) that the serial run writes beside a connection model are not written on
-ranks: they are the whole K and M.
+(``/fe``) are summed from each rank's elements and written by rank 0 block by block
+(:mod:`pipeline.distributed.fe_matrices`).
 """
 
 from __future__ import annotations
@@ -54,9 +54,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.distributed.assemble import rigid_mass_rows
+from pipeline.distributed.assemble import element_share, rigid_mass_rows
 from pipeline.distributed.constraints import from_entries
 from pipeline.distributed.craig_bampton import clamped_solve, craig_bampton_on_ranks
+from pipeline.distributed.fe_matrices import SummedCsr
 from pipeline.distributed.ffrf import modes_invariants
 from pipeline.distributed.mpi import petsc
 from pipeline.distributed.operators import RowMatrix
@@ -202,6 +203,7 @@ def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
         lines.append(craig_bampton_line(cfg))
     else:
         inv = modes_invariants(space, free, K, M, modes.shapes, props.rigid_mass)
+    fe = tuple(SummedCsr(comm, A) for A in element_share(space.local, space.n_dofs))
     models = models if models is not None else Models()
     return replace(models, connection=model, connection_statespace=ss, craig_bampton=cb,
-                   ffrf=inv, summary=models.summary + tuple(lines))
+                   ffrf=inv, fe_matrices=fe, summary=models.summary + tuple(lines))
