@@ -212,6 +212,9 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
             models = build_models(cfg, space, regions, K, M, free, modes, props, labels,
                                   solve=modes.solve, statespace=None if distributed is None
                                   else distributed.build_statespace)
+        if distributed is not None and cfg.connections:  # from the ranks' K, M and modes
+            models = distributed.connection_models(cfg, space, props, free, K, M, modes,
+                                                   models)
         del K, M
         if models is not None and models.reduced is not None:
             tree.update((_stress_modes_tree if distributed is None

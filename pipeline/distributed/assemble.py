@@ -31,8 +31,10 @@ import scipy.sparse as sp
 from pipeline.config import Material
 from pipeline.distributed.submesh import RankMesh
 from pipeline.fe.assemble import assemble_on_nodes
-from pipeline.fe.kernels import inverse_jacobians, reference_data
-from pipeline.fe.materials import ElementMaterials
+from pipeline.fe.body import rigid_body_modes
+from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
+                                 lame_parameters, reference_data)
+from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,35 @@ def _law(material: Material | ElementMaterials) -> Material | ElementMaterials:
     if isinstance(material, ElementMaterials) and material.uniform is not None:
         return material.uniform
     return material
+
+
+def element_blocks(mesh: RankMesh, elements: np.ndarray, chunk_size: int = 512):
+    """Per chunk of ``elements`` (local numbers) of the part: (local DOFs (m, nb, 3) of
+    (node a, component i), K_e[e, a, b, i, j] (N/m), M_e[e, a, b, i] (kg, the i-i entries:
+    M_e is diagonal in the components)), with each element's own law."""
+    space = mesh.space
+    en = space.element_nodes
+    material = _law(mesh.materials)
+    if isinstance(material, Material):
+        lam, mu = lame_parameters(material)
+    else:
+        C_laws = voigt_to_tensor(material.D)
+    R, mass_ref = reference_data(space.order)
+    nb = en.shape[1]
+    comp = np.arange(3)
+    for start in range(0, elements.size, chunk_size):
+        chunk = elements[start:start + chunk_size]
+        if isinstance(material, Material):
+            F, vol = element_factors(space, lam, mu, chunk)
+            rho = np.full(chunk.size, material.rho)
+        else:
+            F, vol = element_factors_general(space, C_laws[material.index[chunk]], chunk)
+            rho = material.rho[chunk]
+        block = np.matmul(R, F).reshape(-1, nb, nb, 3, 3)  # [e, a, b, i, j]
+        del F
+        mvals = (rho * vol)[:, None, None, None] * mass_ref[None, :, :, None]
+        yield (3 * en[chunk][:, :, None] + comp, block,
+               np.broadcast_to(mvals, (chunk.size, nb, nb, 3)))
 
 
 def local_rows(mesh: RankMesh) -> LocalRows:
@@ -86,10 +117,13 @@ def local_rows(mesh: RankMesh) -> LocalRows:
 
 def _petsc_columns(A: sp.csr_matrix, petsc_row: np.ndarray, n_free: int) -> sp.csr_matrix:
     """Rows of a local-DOF matrix with their columns renumbered to PETSc's (a held DOF,
-    PETSc row -1, dropped), (rows, n_free) CSR."""
+    PETSc row -1, dropped), (rows, n_free) CSR. Entries that sum to exactly zero are
+    dropped too, as the serial K's sparse products drop them: MUMPS' PORD ordering of
+    the slender beam took minutes on the pattern with its 11k exact zeros (3x3 node
+    blocks of axis-aligned elements), 1 s without."""
     A = sp.csr_matrix(A)
     cols = petsc_row[A.indices]
-    keep = cols >= 0
+    keep = (cols >= 0) & (A.data != 0)
     row_of = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(row_of[keep],
                                                         minlength=A.shape[0]))])
@@ -97,6 +131,49 @@ def _petsc_columns(A: sp.csr_matrix, petsc_row: np.ndarray, n_free: int) -> sp.c
     out.has_sorted_indices = False
     out.sort_indices()
     return out
+
+
+class _Sum:
+    """Running sum of CSR blocks, merged pairwise (binary counter): O(nnz log n_blocks)."""
+
+    def __init__(self) -> None:
+        self.stack: list[tuple[int, sp.csr_matrix]] = []
+
+    def add(self, A: sp.csr_matrix) -> None:
+        level = 0
+        while self.stack and self.stack[-1][0] == level:
+            A = self.stack.pop()[1] + A
+            level += 1
+        self.stack.append((level, A))
+
+    def total(self, shape) -> sp.csr_matrix:
+        out = sp.csr_matrix(shape)
+        for _, A in self.stack:
+            out = out + A
+        out.sum_duplicates()
+        out.sort_indices()
+        return out
+
+
+def element_share(mesh: RankMesh, n_dofs: int, chunk_size: int = 512
+                  ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """(K_r, M_r) (the connection models' unsupported ``/fe`` matrices): the upper triangles (n_dofs, n_dofs, DOF 3 p + c of mesh point p, N/m
+    and kg) of the elements whose mass this rank sums (``mesh.mass_elements``: every
+    element on exactly one rank), so that sum_r K_r is the unsupported body's K (its
+    upper triangle) and sum_r M_r its M; each holds 1/size of the entries."""
+    k_sum, m_sum = _Sum(), _Sum()
+    shape = (n_dofs, n_dofs)
+    for dof, block, mvals in element_blocks(mesh, mesh.mass_elements, chunk_size):
+        dofs = 3 * mesh.points[dof // 3] + dof % 3  # global DOF numbers
+        rows = np.broadcast_to(dofs[:, :, None, :, None], block.shape)
+        cols = np.broadcast_to(dofs[:, None, :, None, :], block.shape)
+        up = rows <= cols
+        k_sum.add(sp.csr_matrix((block[up], (rows[up], cols[up])), shape=shape))
+        rows = np.broadcast_to(dofs[:, :, None, :], mvals.shape)
+        cols = np.broadcast_to(dofs[:, None, :, :], mvals.shape)
+        up = rows <= cols
+        m_sum.add(sp.csr_matrix((mvals[up], (rows[up], cols[up])), shape=shape))
+    return k_sum.total(shape), m_sum.total(shape)
 
 
 def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:
@@ -110,11 +187,13 @@ def with_int32_indices(A: sp.spmatrix) -> sp.csr_matrix:
     return A
 
 
-def local_node_mass(mesh: RankMesh) -> sp.csr_matrix:
+def local_node_mass(mesh: RankMesh, elements: np.ndarray | None = None) -> sp.csr_matrix:
     """(n_loc, n_loc) node-level mass (kg) of the elements whose mass this rank sums
     (``mesh.mass_elements``, local node numbers); over the ranks every element once, so
-    the ranks' rigid masses R^T N R add up to the body's (M = N (x) I_3)."""
-    space, chunk = mesh.space, mesh.mass_elements
+    the ranks' rigid masses R^T N R add up to the body's (M = N (x) I_3). ``elements``:
+    other elements of the part instead (local numbers)."""
+    space = mesh.space
+    chunk = mesh.mass_elements if elements is None else elements
     _, mass_ref = reference_data(space.order)
     _, vol = inverse_jacobians(space, chunk)
     en = space.element_nodes[chunk]
@@ -126,3 +205,28 @@ def local_node_mass(mesh: RankMesh) -> sp.csr_matrix:
     cols = np.broadcast_to(en[:, None, :], (chunk.size, nb, nb))
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())),
                          shape=(space.n_nodes, space.n_nodes))
+
+
+def full_mass_rows(mesh, fields: np.ndarray) -> np.ndarray:
+    """(hi - lo, k) this rank's rows (PETSc order) of M F, M the unsupported body's
+    consistent mass (kg) and F (n_dofs, k) nodal fields given on the part's local nodes
+    as ``fields`` (n_loc, 3, k). ``mesh``: the rank's
+    :class:`~pipeline.distributed.submesh.RankMesh`; its elements that touch an owned
+    node give those nodes' whole rows of N (M = N (x) I_3), held columns included."""
+    en = mesh.space.element_nodes
+    elements = np.flatnonzero(mesh.owned_nodes[en].any(axis=1))
+    N = local_node_mass(mesh, elements)
+    n_loc, _, k = fields.shape
+    rows = (N @ fields.reshape(n_loc, 3 * k)).reshape(3 * n_loc, k)  # local DOF 3 i + c
+    owned = (mesh.dof_rows >= mesh.lo) & (mesh.dof_rows < mesh.hi)
+    out = np.zeros((mesh.hi - mesh.lo, k))
+    out[mesh.dof_rows[owned] - mesh.lo] = rows[owned]
+    return out
+
+
+def rigid_mass_rows(mesh, point) -> np.ndarray:
+    """(hi - lo, 6) this rank's rows (PETSc order) of M R_P (kg | kg m), R_P the
+    rigid-body modes about ``point`` (3,) m (:func:`full_mass_rows`)."""
+    points = mesh.space.node_points
+    R = rigid_body_modes(points, np.asarray(point, dtype=float))
+    return full_mass_rows(mesh, R.reshape(points.shape[0], 3, 6))

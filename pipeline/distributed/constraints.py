@@ -256,12 +256,19 @@ def build_rows(comm, source: ConstraintSource, free: np.ndarray, part: RowPartit
     """This rank's rows of T and q's partition (collective: the column keys are gathered
     on every rank) from its ``source`` (:func:`constraint_sources`), the sorted ``free``
     DOFs and u's partition ``part``."""
-    rows, keys, values, mine = rank_entries(source, free, part, comm.rank)
+    return from_entries(comm, rank_entries(source, free, part, comm.rank), part, source.what)
+
+
+def from_entries(comm, entries, part: RowPartition, what: str) -> DistributedConstraint:
+    """The :class:`DistributedConstraint` of this rank's ``entries`` (rows, keys, values,
+    anchored keys: :func:`rank_entries`' answer) on u's partition ``part`` (collective:
+    the anchored keys are gathered on every rank)."""
+    rows, keys, values, mine = entries
     gathered = comm.allgather(mine)
     T, order = rows_of_T(rows, keys, values, part.owned_free(comm.rank),
                          np.concatenate(gathered))
     starts = np.concatenate([[0], np.cumsum([g.size for g in gathered])]).astype(np.int64)
-    return DistributedConstraint(comm, part, RowPartition(order, starts), T, source.what)
+    return DistributedConstraint(comm, part, RowPartition(order, starts), T, what)
 
 
 def distribute_constraint(comm, inputs, n_dofs: int, free: np.ndarray,

@@ -39,13 +39,15 @@ from pipeline.fe.ports import check_gauges, port_matrices
 from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
 from pipeline.fe.regions import fixed_dofs, free_dofs
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
-from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
                                           split_mesh)
 from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
+from pipeline.distributed.connection import (check_connections, connection_interfaces,
+                                             connection_models)  # noqa: F401 (run.py's)
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
@@ -64,11 +66,7 @@ BACKEND = "slepc"
 
 def check_supported(cfg: Config) -> None:
     """One line for what the distributed path does not do yet (before any work)."""
-    if cfg.connections:
-        raise ConfigError("connections with modes.solver: slepc: connection models need the "
-                          "unsupported K on one process; expected no connections, or another "
-                          "modes.solver", key="connections", value=len(cfg.connections),
-                          expected="no connections with modes.solver: slepc")
+    check_connections(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -236,6 +234,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
         spin_masses = comm.bcast(None if whole is None else
                                  rotation_masses(cfg, whole.space, whole.regions), root=0)
+        interfaces = comm.bcast(None if whole is None else connection_interfaces(
+            cfg, whole.space, whole.regions, whole.fixed), root=0)
         # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
         constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
                                            3 * n_nodes, free, part)
@@ -264,13 +264,13 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
                 whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
-                rotation_masses=spin_masses)
+                rotation_masses=spin_masses, connections=interfaces)
             regions, materials = whole.regions, whole.materials
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
                                      np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses)
+                                     rotation_masses=spin_masses, connections=interfaces)
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
@@ -411,5 +411,5 @@ def drain_blocks(tree: dict) -> None:
     of ``tree``, in the writer's (sorted) order."""
     for name in sorted(tree):
         data = tree[name].data
-        if isinstance(data, PointBlocks):
+        if hasattr(data, "drain"):  # PointBlocks, the /fe matrices' CSR arrays
             data.drain()

@@ -101,6 +101,9 @@ class DistributedSpace:
     ports: Any = None
     node_weights: np.ndarray | None = None
     rotation_masses: Any = None
+    #: the interfaces of a connection model, parent first
+    #: (:mod:`pipeline.distributed.connection`), or None
+    connections: Any = None
 
     @property
     def n_dofs(self) -> int:

@@ -19,7 +19,8 @@ from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.fe.materials import config_materials
 from pipeline.fe.ports import port_matrices
-from pipeline.reduce.connection import build_connection_model, effective_mass_table
+from pipeline.reduce.connection import (ConnectionModel, build_connection_model,
+                                        connection_statespace, effective_mass_table)
 from pipeline.reduce.craig_bampton import build_craig_bampton
 from pipeline.reduce.ffrf import build_ffrf
 from pipeline.reduce.filters import filtered_model
@@ -27,12 +28,13 @@ from pipeline.reduce.lumped import (box_section, comparison_table, format_compar
                                     lumped_model)
 from pipeline.reduce.modal import DampingSpec, reduce_model
 from pipeline.reduce.models import Models
+from pipeline.reduce.statespace import StateSpace
 from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Models", "build_models", "build_statespace", "build_lumped",
-           "build_connection_models"]
+           "build_connection_models", "connection_lines", "connection_outputs", "craig_bampton_line"]
 
 
 def _damping_spec(cfg: Config) -> DampingSpec:
@@ -192,6 +194,28 @@ def build_lumped(cfg: Config, modes, labels, fe_deflection):
     return model, rows, lines
 
 
+def connection_lines(cfg: Config, model: ConnectionModel) -> list[str]:
+    """The summary lines of the connection model at ``cfg.connections[0]``: its effective
+    modal masses (kg, kg m^2) and their cumulative fractions."""
+    parent = cfg.connections[0]
+    lines = [f"connection point '{parent.name}' at {list(parent.point)} ({parent.coupling}): "
+             "effective modal masses (kg, kg m^2) and cumulative fractions"]
+    return lines + ["  " + line for line in effective_mass_table(model, cfg.modes.count)]
+
+
+def craig_bampton_line(cfg: Config) -> str:
+    """The summary line of the Craig-Bampton data of ``cfg.connections``."""
+    return (f"Craig-Bampton: {len(cfg.connections)} interface(s), "
+            f"{cfg.craig_bampton_modes} fixed-interface modes")
+
+
+def connection_outputs(cfg: Config, model: ConnectionModel) -> tuple[StateSpace, list[str]]:
+    """The state space of ``model`` with the config's damping at its clamped frequencies
+    (:func:`pipeline.reduce.connection.connection_statespace`) and its summary lines."""
+    xi = _damping_spec(cfg).ratios_for(np.sqrt(np.maximum(model.omega2, 0.0)))
+    return connection_statespace(model, xi), connection_lines(cfg, model)
+
+
 def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, shapes,
                             models: Models | None = None) -> Models:
     """Connection-point (6x6) model, Craig-Bampton (``craig_bampton.modes`` > 0), the
@@ -205,16 +229,12 @@ def build_connection_models(cfg: Config, space, regions, K_full, M_full, modes, 
     model, ss = build_connection_model(
         space, regions, K_full, M_full, cfg.connections, cfg.modes.count,
         damping=_damping_spec(cfg), backend=cfg.modes.solver)
-    parent = cfg.connections[0]
-    lines = [f"connection point '{parent.name}' at {list(parent.point)} ({parent.coupling}): "
-             "effective modal masses (kg, kg m^2) and cumulative fractions"]
-    lines += ["  " + line for line in effective_mass_table(model, cfg.modes.count)]
+    lines = connection_lines(cfg, model)
     cb = None
     if cfg.craig_bampton_modes > 0:
         cb = build_craig_bampton(space, regions, K_full, M_full, cfg.connections,
                                  cfg.craig_bampton_modes, backend=cfg.modes.solver)
-        lines.append(f"Craig-Bampton: {len(cfg.connections)} interface(s), "
-                     f"{cfg.craig_bampton_modes} fixed-interface modes")
+        lines.append(craig_bampton_line(cfg))
     inv = build_ffrf(M_full, K_full, space.node_points, cb=cb, shapes=shapes,
                      omega2=modes.omega2, n_rigid=modes.n_rigid, supported=bool(cfg.supports))
     return replace(models, connection=model, connection_statespace=ss, craig_bampton=cb,

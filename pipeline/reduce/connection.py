@@ -63,6 +63,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "clamped_modes",
     "connection_model_from_modes",
+    "model_from_clamped",
     "check_residual_mass",
     "ConnectionModel",
     "connection_model",
@@ -194,8 +195,17 @@ def connection_model(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     rigid = rigid_properties_at(M_full, node_points, parent.point)
     R_P = rigid_body_modes(node_points, parent.point)
     L_P = shapes.T @ (M_full @ R_P)
+    return model_from_clamped(parent, children, rigid, omega2, L_P, shapes,
+                              Phi_x[tr.n_z:n_c], residuals)
+
+
+def model_from_clamped(parent: Interface, children: tuple[Interface, ...],
+                       rigid: RigidProperties, omega2: np.ndarray, L_P: np.ndarray, shapes,
+                       Phi_C: np.ndarray, residuals: np.ndarray) -> ConnectionModel:
+    """The :class:`ConnectionModel` from its clamped solve's results (the fields' units
+    and shapes are the record's): the residual mass checked, the child transports
+    tau_C made."""
     D_P0 = check_residual_mass(rigid.D_P - L_P.T @ L_P, parent.name)
-    Phi_C = Phi_x[tr.n_z:n_c]
     tau_C = (np.vstack([twist_transform(parent.point, c.point) for c in children])
              if children else np.zeros((0, 6)))
     f = np.sqrt(np.maximum(omega2, 0.0)) / (2 * np.pi)

@@ -45,7 +45,7 @@ from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CraigBamptonModel", "craig_bampton", "build_craig_bampton"]
+__all__ = ["CraigBamptonModel", "craig_bampton", "build_craig_bampton", "coordinate_labels"]
 
 COORD_UNITS = {"x": "m", "y": "m", "z": "m", "rx": "rad", "ry": "rad", "rz": "rad"}
 MODAL_UNITS = "m kg^1/2"
@@ -152,16 +152,22 @@ def craig_bampton(space, K_full: sp.spmatrix, M_full: sp.spmatrix,
     Mr = B.T @ (Mt @ B)
     Kr, Mr = 0.5 * (Kr + Kr.T), 0.5 * (Mr + Mr.T)
     shapes = np.asarray(tr.T @ B)
+    names, units = coordinate_labels(interfaces, n_modes)
+    log.info("Craig-Bampton: %d interface(s), %d boundary + %d modal coordinates",
+             len(interfaces), nb, n_modes)
+    return CraigBamptonModel(interfaces, Mr, Kr, names, units, shapes, omega2, residuals)
+
+
+def coordinate_labels(interfaces: Sequence[Interface], n_modes: int
+                      ) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(names, units) of the reduced coordinates [q_1; ...; q_k; eta_1 .. eta_N]."""
     names, units = [], []
     for iface in interfaces:
         names += [f"{iface.name}.{d}" for d in DIRECTIONS]
         units += [COORD_UNITS[d] for d in DIRECTIONS]
     names += [f"mode_{i + 1}" for i in range(n_modes)]
     units += [MODAL_UNITS] * n_modes
-    log.info("Craig-Bampton: %d interface(s), %d boundary + %d modal coordinates",
-             len(interfaces), nb, n_modes)
-    return CraigBamptonModel(interfaces, Mr, Kr, tuple(names), tuple(units), shapes,
-                             omega2, residuals)
+    return tuple(names), tuple(units)
 
 
 def build_craig_bampton(space, regions, K_full: sp.spmatrix, M_full: sp.spmatrix,

@@ -58,8 +58,9 @@ from pipeline.fe.body import rigid_body_modes
 
 MODAL_UNIT = "m kg^1/2"
 
-__all__ = ["FFRFInvariants", "ffrf_invariants", "free_free_basis", "craig_bampton_basis",
-           "skew_columns", "build_ffrf"]
+__all__ = ["FFRFInvariants", "ffrf_invariants", "invariants_from_products", "free_free_basis",
+           "craig_bampton_basis", "craig_bampton_columns", "craig_bampton_kind",
+           "modes_basis_labels", "skew_columns", "build_ffrf"]
 
 
 @dataclass(frozen=True)
@@ -121,40 +122,52 @@ def ffrf_invariants(M_full: sp.spmatrix, node_points: np.ndarray, basis: np.ndar
     O = np.asarray(origin, dtype=float).reshape(3)
     x = np.asarray(node_points, dtype=float) - O
     Psi = np.asarray(basis, dtype=float)
-    n = Psi.shape[1]
     R = rigid_body_modes(x)  # rows [I, -skew(x_j)]
-    MR = M_full @ R
-    D = R.T @ MR
+    D = R.T @ (M_full @ R)
+    MPsi = np.asarray(M_full @ Psi)
+    modal_stiffness = None if K_full is None else Psi.T @ np.asarray(K_full @ Psi)
+    PsiT = skew_columns(Psi)  # (3 n_nodes, 3 n)
+    MPsiT = np.asarray(M_full @ PsiT)
+    XT = skew_columns(x.reshape(-1, 1))  # (3 n_nodes, 3): skew(x_j) blocks
+    return invariants_from_products(
+        O, D, R.T @ MPsi, Psi.T @ MPsi, modal_stiffness, XT.T @ MPsiT, PsiT.T @ MPsiT,
+        PsiT.T @ MPsi, Psi, basis_kind, coordinate_names, coordinate_units)
+
+
+def invariants_from_products(O: np.ndarray, D: np.ndarray, coupling: np.ndarray,
+                             modal_mass: np.ndarray, modal_stiffness: np.ndarray | None,
+                             x_psi: np.ndarray, psi_psi: np.ndarray, psi_m_psi: np.ndarray,
+                             basis, basis_kind: str = "",
+                             coordinate_names: Sequence[str] | None = None,
+                             coordinate_units: Sequence[str] | None = None) -> FFRFInvariants:
+    """The :class:`FFRFInvariants` from the bilinear forms they are made of (n basis
+    columns, x~ and Psi~ the :func:`skew_columns` of the node positions about ``O`` and of
+    Psi): D = R_O^T M R_O (6, 6); coupling = R_O^T M Psi (6, n); modal_mass Psi^T M Psi
+    and modal_stiffness Psi^T K Psi (n, n; None: no K); x_psi = x~^T M Psi~ (3, 3 n);
+    psi_psi = Psi~^T M Psi~ (3 n, 3 n); psi_m_psi = Psi~^T M Psi (3 n, n)."""
+    n = modal_mass.shape[0]
     D = 0.5 * (D + D.T)
     m = float(D[0, 0])
     S = -D[0:3, 3:6]  # R_t^T M R_r = -skew(m c)
     first = np.array([S[2, 1], S[0, 2], S[1, 0]])
     J0 = D[3:6, 3:6]
-    MPsi = np.asarray(M_full @ Psi)
-    coupling = R.T @ MPsi  # (6, n): [C_t; C_r]
-    modal_mass = Psi.T @ MPsi
-    modal_stiffness = None
-    if K_full is not None:
-        modal_stiffness = Psi.T @ np.asarray(K_full @ Psi)
+    if modal_stiffness is not None:
         modal_stiffness = 0.5 * (modal_stiffness + modal_stiffness.T)
-    PsiT = skew_columns(Psi)  # (3 n_nodes, 3 n)
-    MPsiT = np.asarray(M_full @ PsiT)
-    XT = skew_columns(x.reshape(-1, 1))  # (3 n_nodes, 3): skew(x_j) blocks
     # skew(a)^T = -skew(a), so a block of A~^T M B~ is -int rho a~ b~:
     # X_k = -int rho x~ psi_k~  (3 x 3 per k)
-    Xk = (XT.T @ MPsiT).reshape(3, n, 3).transpose(1, 0, 2)
+    Xk = x_psi.reshape(3, n, 3).transpose(1, 0, 2)
     J1 = Xk + Xk.transpose(0, 2, 1)
     # J2_kl = -int rho psi_k~ psi_l~
-    J2 = (PsiT.T @ MPsiT).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    J2 = psi_psi.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
     # G_kl = int rho psi_k x psi_l = int rho psi_k~ psi_l = -(psi_k~^T M psi_l)
-    G = -(PsiT.T @ MPsi).reshape(n, 3, n).transpose(0, 2, 1)
+    G = -psi_m_psi.reshape(n, 3, n).transpose(0, 2, 1)
     names = tuple(coordinate_names) if coordinate_names is not None else tuple(
         f"q_{i + 1}" for i in range(n))
     units = (tuple(coordinate_units) if coordinate_units is not None
              else (MODAL_UNIT,) * n)
     return FFRFInvariants(O, m, first, first / m, 0.5 * (J0 + J0.T), coupling[0:3],
                           coupling[3:6], 0.5 * (modal_mass + modal_mass.T), modal_stiffness,
-                          J1, J2, G, Psi, basis_kind, names, units)
+                          J1, J2, G, basis, basis_kind, names, units)
 
 
 def free_free_basis(shapes: np.ndarray, omega2: np.ndarray, n_rigid: int | None = None
@@ -178,11 +191,29 @@ def craig_bampton_basis(cb, reference: int | str = 0
     """The Craig-Bampton basis without the six static modes of the reference interface
     (index or name): the floating frame follows that interface. Returns (basis, names,
     units)."""
+    keep, names, units = craig_bampton_columns(cb, reference)
+    return cb.shapes[:, keep], names, units
+
+
+def craig_bampton_columns(cb, reference: int | str = 0
+                          ) -> tuple[list[int], list[str], list[str]]:
+    """(kept column indices, names, units) of :func:`craig_bampton_basis`."""
     sl = (cb.interface_columns(reference) if isinstance(reference, str)
           else slice(6 * reference, 6 * reference + 6))
-    keep = [i for i in range(cb.shapes.shape[1]) if not sl.start <= i < sl.stop]
-    return (cb.shapes[:, keep], [cb.coordinate_names[i] for i in keep],
+    keep = [i for i in range(len(cb.coordinate_names)) if not sl.start <= i < sl.stop]
+    return (keep, [cb.coordinate_names[i] for i in keep],
             [cb.coordinate_units[i] for i in keep])
+
+
+def craig_bampton_kind(cb, reference: int = 0) -> str:
+    """The basis kind of :func:`craig_bampton_basis` (the frame follows the reference)."""
+    return f"craig_bampton (frame follows interface '{cb.interfaces[reference].name}')"
+
+
+def modes_basis_labels(keep: np.ndarray, supported: bool) -> tuple[str, list[str]]:
+    """(basis kind, coordinate names) of a basis of the run's modes ``keep`` (indices)."""
+    kind = "supported modes (frame = support)" if supported else "free-free elastic modes"
+    return kind, [f"mode_{i + 1}" for i in keep]
 
 
 #: units of each invariant for M-orthonormal modal coordinates (u = m kg^1/2), and the
@@ -201,13 +232,12 @@ def build_ffrf(M_full: sp.spmatrix, K_full: sp.spmatrix | None, node_points: np.
     """
     if cb is not None:
         Psi, names, units = craig_bampton_basis(cb, 0)
-        kind = f"craig_bampton (frame follows interface '{cb.interfaces[0].name}')"
-        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind, names, units)
+        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin,
+                              craig_bampton_kind(cb), names, units)
     else:
         if shapes is None or omega2 is None:
             raise ValueError("build_ffrf: give cb, or shapes and omega2")
         Psi, keep = free_free_basis(shapes, omega2, n_rigid)
-        kind = "supported modes (frame = support)" if supported else "free-free elastic modes"
-        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin, kind,
-                              [f"mode_{i + 1}" for i in keep])
+        inv = ffrf_invariants(M_full, node_points, Psi, K_full, origin,
+                              *modes_basis_labels(keep, supported))
     return inv

@@ -54,6 +54,7 @@ __all__ = [
     "TWIST_UNITS_BLOCKS",
     "RigidProperties",
     "rigid_properties_at",
+    "rigid_properties_from_mass",
     "twist_transform",
     "Interface",
     "make_interface",
@@ -116,7 +117,14 @@ def rigid_properties_at(M_full: sp.spmatrix, node_points: np.ndarray, point) -> 
     """
     P = np.asarray(point, dtype=float).reshape(3)
     R = rigid_body_modes(node_points, P)
-    D = R.T @ (M_full @ R)
+    return rigid_properties_from_mass(R.T @ (M_full @ R), P)
+
+
+def rigid_properties_from_mass(D_P: np.ndarray, point) -> RigidProperties:
+    """Mass, centre of mass, inertia at G and at ``point`` P (3,) m from the rigid-body
+    mass matrix D_P = R_P^T M R_P (6, 6) at P (symmetrised here)."""
+    P = np.asarray(point, dtype=float).reshape(3)
+    D = np.asarray(D_P, dtype=float)
     D = 0.5 * (D + D.T)
     m = float(D[0, 0])
     if not m > 0:

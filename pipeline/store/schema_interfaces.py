@@ -125,10 +125,11 @@ def craig_bampton_datasets(cb: CraigBamptonModel, group: str = CRAIG_BAMPTON.pat
         f"{group}/free_frequencies_hz": Dataset(
             w_free, "Hz", "eigenfrequencies of (K, M), the free reduced body (6 rigid zeros)"),
     }
-    if include_shapes:
-        n_nodes = cb.shapes.shape[0] // 3
+    if include_shapes:  # (n_dofs, n) or, from MPI ranks, a block-written (n_points, 3, n)
+        shapes = (cb.shapes if hasattr(cb.shapes, "blocks")
+                  else cb.shapes.reshape(cb.shapes.shape[0] // 3, 3, -1))
         tree[f"{group}/shapes"] = Dataset(
-            cb.shapes.reshape(n_nodes, 3, -1), "mixed",
+            shapes, "mixed",
             "basis on every mesh point (n_points, 3, n_coordinates): constraint modes "
             "(m/m, m/rad), then fixed-interface modes (kg^-1/2)", note)
     return tree
@@ -211,16 +212,21 @@ def csr_datasets(A: sp.spmatrix, group: str, units: str, description: str,
     included); the ``data`` dataset then carries ``storage = "upper"`` (else ``"full"``).
     :func:`pipeline.store.read.read_csr` restores the full matrix.
     """
-    A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
-    A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
-    A.sort_indices()
-    itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
+    if hasattr(A, "csr_parts"):  # from MPI ranks: the (upper) arrays, block-written
+        data, indices, indptr = A.csr_parts()
+    else:
+        A = sp.triu(A, format="csr") if symmetric else sp.csr_matrix(A, copy=True)
+        A.eliminate_zeros()  # the assembled M stores the zero off-diagonals of its 3x3 blocks
+        A.sort_indices()
+        itype = np.int32 if A.nnz < 2**31 - 1 else np.int64
+        data, indices, indptr = (A.data.astype(np.float64), A.indices.astype(itype),
+                                 A.indptr.astype(np.int64))
     storage = "upper" if symmetric else "full"
     return {
-        f"{group}/data": Dataset(A.data.astype(np.float64), units, description,
+        f"{group}/data": Dataset(data, units, description,
                                  {"storage": storage, "format": "csr"}),
-        f"{group}/indices": Dataset(A.indices.astype(itype), "1", "CSR column indices"),
-        f"{group}/indptr": Dataset(A.indptr.astype(np.int64), "1", "CSR row pointers"),
+        f"{group}/indices": Dataset(indices, "1", "CSR column indices"),
+        f"{group}/indptr": Dataset(indptr, "1", "CSR row pointers"),
         f"{group}/shape": Dataset(np.array(A.shape, dtype=np.int64), "1", "(rows, columns)"),
     }
 

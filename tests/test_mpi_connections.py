@@ -1,0 +1,187 @@
+"""Connection points on MPI ranks (``connections:`` with ``modes.solver: slepc``,
+:mod:`pipeline.distributed.connection`).
+
+The reference is the single-process run (PARDISO and scipy) in this interpreter; the
+2-rank file must equal it with test_mpi.py's tolerances (frequencies 1e-8 relative,
+every other float 1e-8 of its largest entry). Measured on 2 ranks (cantilever_connection
+without Craig-Bampton, mesh.size 0.01): with its parent point only, the clamped
+frequencies and omega 2e-12, L_P and B 3e-12, D_P0 2e-13; with the distributing tip
+child, frequencies 3e-12, Phi_C and the state space's B, C, D 5e-12; D_P and the mass
+properties 1e-15 to 1.5e-14 of each dataset's largest entry. The floating-frame invariants of the run's modes
+(sums over each rank's points): 1e-11 (J2, G, the couplings), modal stiffness 2e-13,
+mass properties 3e-15. The shipped config with Craig-Bampton (20 fixed-interface
+modes): fixed-interface frequencies 1.4e-13, K 1.4e-14, M 1.5e-11, the basis on every
+point 1.7e-11, the free frequencies 2e-11, the invariants of its basis 3e-12. The unsupported body's FE matrices (``/fe``) are summed from
+each rank's elements and written by rank 0 a block of rows at a time: M equal to 5e-16
+of its largest entry with the same stored pattern; K to 3e-16, but entries that cancel
+(1e-10 N/m against 4e9 N/m, 1e-19 of the largest) are exact zeros in one summation
+order and not in the other (929 and 90 of 591514 entries), so /fe is compared as
+matrices and the rest of the file with _same_file. Without MPI: each emulated rank's rows of M R_P
+are the serial ones, and the refusals of what is not distributed yet.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import h5py
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from conftest import ALUMINIUM, ROOT, build_model
+from pipeline.distributed.assemble import rigid_mass_rows
+from pipeline.distributed.connection import check_connections
+from pipeline.distributed.partition import slab_partition
+from pipeline.distributed.submesh import split_mesh
+from pipeline.fe.assemble import assemble_on_nodes
+from pipeline.fe.body import rigid_body_modes
+from pipeline.fe.materials import assign_materials
+from test_mpi import MPI_PYTHON, _has_petsc, _same_file, _serial_and_two_ranks
+
+CONFIG = "configs/cantilever_connection.yaml"
+PARENT_ONLY = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
+               "coupling: rigid}]", "craig_bampton={modes: 0}")
+#: the unsupported body's K and M: compared as matrices (:func:`_same_matrices`), their
+#: stored patterns differ where entries cancel to round-off (module docstring)
+NOT_ON_RANKS = ("fe",)
+FE_TOL = 1e-12  # measured 5e-16 (M) and 3e-16 (K) of the largest entry
+
+
+def _without(path, groups, out):
+    """A copy of the file ``path`` at ``out`` without ``groups``."""
+    shutil.copy(path, out)
+    with h5py.File(out, "r+") as f:
+        for g in groups:
+            del f[g]
+    return out
+
+
+def _same_matrices(serial, dist) -> None:
+    """/fe's K and M of ``dist`` equal ``serial``'s to FE_TOL of their largest entry."""
+    from pipeline.store.layout import FE
+    from pipeline.store.read import read_csr
+
+    with h5py.File(serial) as a, h5py.File(dist) as b:
+        for group in (FE.mass_matrix, FE.stiffness_matrix):
+            A, B = read_csr(a, group), read_csr(b, group)
+            assert A.shape == B.shape
+            assert abs(A - B).max() <= FE_TOL * abs(A).max(), group
+
+
+def test_each_ranks_rows_of_M_R_P_are_the_serial_rows(tmp_path):
+    """M R_P on the free rows couples to the held DOFs: each emulated rank sums it from
+    its part's elements; stacked, the rows equal the unsupported (N (x) I_3) R_P's free
+    rows (a different summation order: round-off of its scale)."""
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    P = np.array([0.0, 0.01, 0.025])
+    part = slab_partition(space.node_points, free, 3)
+    parts = split_mesh(space, assign_materials(space, ALUMINIUM), free, part, 3)
+    rows = np.vstack([rigid_mass_rows(p, P) for p in parts])
+    N = assemble_on_nodes(space, ALUMINIUM).node_mass
+    serial = (sp.kron(N, sp.identity(3)) @ rigid_body_modes(space.node_points, P))[free]
+    serial = serial[part.order]
+    assert np.abs(rows - serial).max() <= 1e-13 * np.abs(serial).max()
+    # the held DOFs matter: the supported M's rows alone give another answer
+    assert np.abs(model.M[part.order] @ rigid_body_modes(space.node_points, P)[free][
+        part.order] - serial).max() > 1e-3 * np.abs(serial).max()
+
+
+def test_the_ranks_element_shares_add_up_to_the_unsupported_matrices(tmp_path):
+    """Each emulated rank's upper triangle of its own elements (every element on one
+    rank) holds part of the entries; summed they are the serial unsupported K and M's
+    upper triangles (a different summation order: round-off of their scale)."""
+    from pipeline.distributed.assemble import element_share
+    from pipeline.fe.assemble import assemble_stiffness_mass
+
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    part = slab_partition(space.node_points, free, 3)
+    parts = split_mesh(space, assign_materials(space, ALUMINIUM), free, part, 3)
+    shares = [element_share(p, space.n_dofs) for p in parts]
+    for i, A in enumerate(assemble_stiffness_mass(space, ALUMINIUM)):
+        upper = sp.triu(A, format="csr")
+        assert all(s[i].nnz < upper.nnz for s in shares)
+        total = sum(s[i] for s in shares)
+        assert abs(total - upper).max() <= 1e-13 * abs(upper).max()
+
+
+@pytest.mark.parametrize("overrides, key", [
+    (["connections=[{name: root, region: root, point: [0, 0.01, 0.025], "
+      "coupling: distributing}]", PARENT_ONLY[1]], r"connections\[0\]\.coupling"),
+    (list(PARENT_ONLY) + ["supports=[{region: root, fix: [x, y]}]"], r"supports"),
+    (list(PARENT_ONLY) + ["supports=[]"], r"supports"),
+    (list(PARENT_ONLY) + ["masses=[{name: s, mass: 0.1, point: [0.5, 0.01, 0.025], region: tip, "
+                            "coupling: distributing}]"], r"masses"),
+])
+def test_what_is_not_distributed_yet_is_refused_in_one_line(overrides, key):
+    """A distributing parent, supports other than the parent region held, added masses:
+    one line naming the key, before any meshing."""
+    from pipeline.config import load_config
+    from pipeline.errors import ConfigError
+
+    cfg = load_config(ROOT / CONFIG, ["modes.solver=slepc"] + overrides)
+    with pytest.raises(ConfigError, match=rf"^{key}: [\w ()-:,\[\]{{}}]+ with modes.solver: "
+                                          r"slepc: not distributed yet; expected"):
+        check_connections(cfg)
+
+
+def test_other_supports_are_refused_end_to_end_and_nothing_written(tmp_path):
+    """The CLI on the MPI interpreter (one process), the shipped config held along x and
+    y only: exit code 2 (ConfigError), one line naming the supports key, no file."""
+    if not MPI_PYTHON.exists() or not _has_petsc(MPI_PYTHON):
+        pytest.skip("no MPI environment (make mpi-env)")
+    out = tmp_path / "x.h5"
+    proc = subprocess.run([str(MPI_PYTHON), "-m", "pipeline", "run", CONFIG, "--set",
+                           "modes.solver=slepc", "--set", "supports=[{region: root, fix: [x, y]}]",
+                           "-o", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()
+    assert len(last) == 1 and last[0].startswith("error: supports: "), proc.stderr
+    assert not out.exists()
+
+
+@pytest.mark.mpi
+def test_parent_point_on_two_ranks(tmp_path):
+    """The hybrid-cantilever model at the clamped root on 2 ranks equals the
+    single-process one (module docstring's tolerances) with the floating-frame
+    invariants and the unsupported body's K and M."""
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *PARENT_ONLY, "mesh.size=0.01")
+    with h5py.File(dist) as f:
+        assert "connections/root/statespace/D" in f and "ffrf/inertia_second_order" in f
+    _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
+    _same_matrices(serial, dist)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("child, ranks", [("distributing", 2), ("rigid", 3)])
+def test_child_point_on_ranks(tmp_path, child, ranks):
+    """A child point at the tip, a distributing (RBE3) or rigid (RBE2) coupling: the
+    clamped pencil (K_c, M_c) = T_c^T (K, M) T_c by PETSc's PtAP on each rank's rows of
+    T_c, its own MUMPS solve; the model (Phi_C, the 12 x 12 state space) equals the
+    single-process one."""
+    tip = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
+           "coupling: rigid}, {name: tip, region: tip, point: [0.5, 0.01, 0.025], "
+           f"coupling: {child}}}]")
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, tip, PARENT_ONLY[1],
+                                         "mesh.size=0.01", ranks=ranks)
+    with h5py.File(dist) as f:
+        assert f["connections/root/Phi_C"].shape == (6, 10)
+    _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist, ranks)
+    _same_matrices(serial, dist)
+
+
+@pytest.mark.mpi
+def test_shipped_config_with_craig_bampton_on_two_ranks(tmp_path):
+    """configs/cantilever_connection.yaml as shipped (a rigid root, a distributing tip
+    child, 20 fixed-interface modes): the Craig-Bampton K, M and basis on every point,
+    and the floating-frame invariants of that basis, equal the single-process ones."""
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, "mesh.size=0.01")
+    with h5py.File(dist) as f:
+        assert f["craig_bampton/shapes"].shape[2] == 32 and "ffrf/modal_mass" in f
+    _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
+    _same_matrices(serial, dist)
