@@ -52,6 +52,7 @@ from pipeline.distributed.mpi import allreduce_sum
 from pipeline.fe.space import TET_EDGES
 from pipeline.solve import lobpcg as lobpcg_module
 from pipeline.errors import SolverError
+from pipeline.solve.eigen import MULTIGRID_ACCEPT
 from pipeline.solve.multigrid import PCG_RTOL, POWER_STEPS, TwoGrid
 
 log = logging.getLogger(__name__)
@@ -285,14 +286,16 @@ def two_grid_solver(PETSc, A, cycle: RankTwoGrid):
 
 
 def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
-                 target: float, start_tolerance: float, max_sweeps: int):
+                 target: float, start_tolerance: float, max_sweeps: int,
+                 accept: float = MULTIGRID_ACCEPT):
     """(omega2 (count,), this rank's rows (n_loc, count) of the M-orthonormal modes,
     stats, ksp): two-grid preconditioned LOBPCG on the PETSc pair (K, M) with the
     prolongation P (module doc); ``width`` >= count columns (the rest guard columns),
     ``shift`` sigma (0, or below zero for a body free to move), ``target`` LOBPCG's
-    preconditioned residual. ``ksp``: conjugate gradients on the cycle for A = K - sigma
-    M (the static correction's solver when sigma = 0); the caller destroys it and
-    ``stats["keep"]``."""
+    preconditioned residual; a LOBPCG that stops above ``accept`` is refused
+    (SolverError, as on one process). ``ksp``: conjugate gradients on the cycle for
+    A = K - sigma M (the static correction's solver when sigma = 0); the caller destroys
+    it and ``stats["keep"]``."""
     from pipeline.distributed.eigen import solve_eigen
 
     comm = PETSc.COMM_WORLD.tompi4py()
@@ -315,15 +318,33 @@ def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
     X = cycle.P(coarse_rows)
     del coarse_rows
     t1 = time.perf_counter()
-    result = lobpcg_module.lobpcg(
-        BlockProduct(PETSc, K), BlockProduct(PETSc, M), X, cycle.apply_double, count,
-        sigma=shift, target=target, max_sweeps=max_sweeps,
-        total=lambda a: allreduce_sum(comm, a))
+    # PETSc's objects the caller destroys, on every rank at the same point (MUMPS'
+    # termination is collective: never left to the garbage collector)
+    keep = [cycle.coarse.ksp, cycle.coarse.Ac] + ([A] if A is not K else [])
+    try:
+        result = lobpcg_module.lobpcg(
+            BlockProduct(PETSc, K), BlockProduct(PETSc, M), X, cycle.apply_double, count,
+            sigma=shift, target=target, max_sweeps=max_sweeps,
+            total=lambda a: allreduce_sum(comm, a))
+        # the serial path's acceptance (the same history on every rank: its sums are)
+        if not result.converged and min(result.history) > accept:
+            raise SolverError(
+                f"multigrid eigensolver did not converge for {count} modes in "
+                f"{result.sweeps} sweeps (worst preconditioned residual "
+                f"{min(result.history):.1e}, tolerance {target:.1e}); try modes.method: "
+                "factor, or a coarser mesh.size", key="modes.method", value="multigrid",
+                expected="a body the two-grid cycle converges on")
+    except BaseException:
+        for obj in (ksp, *keep):
+            obj.destroy()
+        raise
+    if not result.converged and comm.rank == 0:
+        log.warning("multigrid eigensolver stopped at a preconditioned residual of %.1e "
+                    "(tolerance %.1e): round-off floor", min(result.history), target)
     stats = {"method": "slepc-lobpcg-two-grid", "coarse_dofs": int(n_coarse),
              "setup_seconds": t1 - t0, "sweeps": result.sweeps,
              "history": list(result.history), "tolerance": target, "block": width,
-             "converged": bool(result.converged),
-             "keep": [A] if A is not K else []}
+             "converged": bool(result.converged), "keep": keep}
     log.info("two-grid LOBPCG on %d ranks: %d sweeps of %d vectors in %.1f s (set-up "
              "%.1f s, coarse %d DOFs), preconditioned residual %.1e", comm.size,
              result.sweeps, width, result.seconds, t1 - t0, n_coarse,

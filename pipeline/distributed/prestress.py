@@ -456,7 +456,8 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
                             PETSc, SLEPc, A, M.petsc, prolongation, count,
                             count + lobpcg_guard(count), 0.0, tolerance,
                             MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
-                        ksp.destroy()
+                        for obj in (ksp, *stats.pop("keep")):
+                            obj.destroy()
                     else:
                         omega2, rows, stats = solve_eigen(PETSc, SLEPc, A, M.petsc, count,
                                                           tolerance)
