@@ -124,7 +124,7 @@ class ModesConfig:
 
     count: int = 10
     solver: Solver = "auto"
-    tolerance: float = 0.0  # relative residual of the shift-inverted problem; 0: 1e-10 for block Lanczos (1e-8 from 100k free DOFs), machine precision for ARPACK
+    tolerance: float = 0.0  # relative residual of the shift-inverted problem; 0: 1e-10 for block Lanczos (1e-8 from 100k free DOFs), machine precision for ARPACK; method multigrid (one process or ranks): LOBPCG's preconditioned residual, 0: 1e-6
     precision: Precision = "auto"  # factor precision: double; mixed (float32 factor, double refinement); auto: mixed only when a double factor does not fit
     method: EigenMethod = "auto"  # factor: shift-invert with a sparse factor of K; multigrid: factor-free LOBPCG with a two-grid preconditioner (mesh.order 2); auto: multigrid from 500k free DOFs (a factor instead when it converges slowly) or when no factor fits in memory
 
