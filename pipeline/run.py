@@ -23,7 +23,7 @@ from pipeline._util import resources
 from pipeline.fe.added_mass import refuse_rigid_couplings
 from pipeline.fe.model import build_fe_model
 from pipeline.fe.supports import refuse_grounded_supports, support_summary
-from pipeline.reduce.build import build_connection_models, build_models
+from pipeline.reduce.build import build_connection_models, build_models, static_loads
 from pipeline.solve.backends.pardiso import PatternAnalysis
 from pipeline.solve.factorization import resolve_backend
 from pipeline.solve.stage import ModesInput, compute_modes, expects_factor
@@ -175,7 +175,9 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
                 modes = distributed.compute_modes(fe, cfg)
             else:
                 modes = compute_modes(
-                    ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports)),
+                    ModesInput.from_fe(fe, cfg.modes, supported=bool(cfg.supports),
+                                       loads=static_loads(cfg, fe.space, fe.regions,
+                                                          fe.free)),
                     cfg.modes, keep=cfg.reduction is not None or cfg.rotation is not None,
                     analysis=ahead[0] if ahead else None)
     finally:

@@ -211,6 +211,57 @@ def test_float32_cycle_preconditions_lobpcg_to_the_same_eigenpairs(beam):
     assert err <= bound
 
 
+def test_static_solves_ride_along_in_lobpcg_sweeps(beam):
+    """The static correction's conjugate gradients started by ``ride`` advance one
+    iteration per LOBPCG sweep in the sweep's own cycle (``precondition``) and are
+    finished by ``solve`` when it is asked for exactly those loads: the same recurrence
+    (pcg.Pcg) with the same cycle, so the solution meets the same bounds as a PCG of
+    its own (true residual PCG_RTOL + cond eps; the two differ by at most cond(K) times
+    the sum of their residuals) and the eigenpairs are those of LOBPCG without riders
+    (bound of test_float32_cycle_preconditions_lobpcg_to_the_same_eigenpairs). The
+    riding solve is handed out once: other loads, or the same loads again, get a PCG of
+    their own."""
+    P = p1_prolongation(beam.space, beam.free)
+    n = beam.K.shape[0]
+    F = np.random.default_rng(12).standard_normal((n, 2))
+    X0 = np.random.default_rng(4).standard_normal((n, 11))
+    target = eigen.MULTIGRID_TOLERANCE
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        alone = tg.solve(F)
+        its_alone = tg.iterations
+        plain = lobpcg(beam.K, beam.M, X0, tg.apply_single, COUNT, target=target)
+        tg.ride(F)
+        assert tg.solve(F[:, :1]).shape == (n, 1)  # other loads: not the riding solve
+        riding = lobpcg(beam.K, beam.M, X0, tg.precondition, COUNT, target=target)
+        rode = tg._riding[1].iterations
+        X = tg.solve(np.asfortranarray(F))  # refined_solve hands F over in column order
+        its = tg.iterations
+        again = tg.solve(F)
+        its_again = tg.iterations
+    finally:
+        tg.release()
+    assert plain.converged and riding.converged
+    assert rode == min(riding.sweeps + 1, its)  # one iteration per cycle
+    assert its_again == its_alone and np.array_equal(again, alone)
+    assert its <= its_alone + 2  # the same recurrence: the same count, to round-off
+    residual = float((np.linalg.norm(F - beam.K @ X, axis=0)
+                      / np.linalg.norm(F, axis=0)).max())
+    res_bound = multigrid.PCG_RTOL + cond_eps(beam.K)
+    record_tolerance("riding PCG true residual", residual, res_bound)
+    assert residual <= res_bound
+    bound = condition_number(beam.K) * 2 * res_bound
+    err = float(np.linalg.norm(X - alone) / np.linalg.norm(alone))
+    record_tolerance("riding PCG vs its own PCG", err, bound)
+    assert err <= bound
+    w = plain.omega2[:COUNT]
+    rel_gap = float(np.min(np.diff(w) / w[1:]))
+    ev_bound = 2 * 2 * target ** 2 / rel_gap + eigenvalue_rtol(beam.K, beam.M)
+    ev_err = float(np.abs(riding.omega2[:COUNT] / w - 1).max())
+    record_tolerance("LOBPCG with riding PCG: eigenvalues", ev_err, ev_bound)
+    assert ev_err <= ev_bound
+
+
 def test_lobpcg_converges_without_plateaus(beam):
     """With the two-grid cycle, every sweep cuts the worst preconditioned residual by at
     least 2 until it nears the target (measured: 4-8 per sweep). Without the column

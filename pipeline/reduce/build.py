@@ -33,7 +33,7 @@ from pipeline.solve.factorization import factorize
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Models", "build_models", "build_statespace", "build_lumped",
+__all__ = ["Models", "build_models", "build_statespace", "static_loads", "build_lumped",
            "build_connection_models", "connection_lines", "connection_outputs", "craig_bampton_line"]
 
 
@@ -87,6 +87,17 @@ def check_ports_act(cfg: Config, ports, F_free: np.ndarray, T_free) -> None:
             + ("loads" if side == "input" else "measures") + f" nothing ({why}); put it on "
             "a region that can move, along a direction the supports and constraints leave "
             "free", key=f"ports.{side}s", value=name)
+
+
+def static_loads(cfg: Config, space, regions, free) -> np.ndarray | None:
+    """The loads F (n_free, n_u) of the input ports, whose static shapes K^-1 F
+    :func:`build_statespace` will solve for, or None without a reduced model: the modes
+    stage can start that solve early (:class:`pipeline.solve.stage.ModesInput`'s
+    ``loads``). The same array :func:`build_statespace` makes."""
+    if cfg.reduction is None or not cfg.ports.inputs:
+        return None
+    ports = port_matrices(space, regions, cfg.ports, material=config_materials(space, cfg))
+    return ports.F[free].toarray()
 
 
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):

@@ -58,6 +58,9 @@ log = logging.getLogger(__name__)
 DEFAULT_TOLERANCE = 1e-10
 LARGE_TOLERANCE = 1e-8
 LARGE_SYSTEM = 100_000  # free DOFs from which LARGE_TOLERANCE is the default
+# multigrid: at most this many static solves ride along in LOBPCG's sweeps (their
+# conjugate gradients hold 6 (n, k) blocks beside LOBPCG's 9 (n, 25))
+RIDING_COLUMNS = 4
 # multigrid LOBPCG: stop when every wanted mode's preconditioned residual
 # sqrt(r^T T r / omega^2) (r = K x - omega^2 M x, T the two-grid cycle) is below this;
 # the frequency error goes as its square (on the cantilever: 1.5e-3 -> 1.7e-6,
@@ -137,7 +140,8 @@ def factor_expected(n: int, count: int, *, supported: bool = True, backend: str 
 def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool = True,
                 backend: str = "auto", shift: float | None = None,
                 coarse: sp.spmatrix | None = None, analysis=None, progress=None,
-                expected_rigid: int = 0, **options) -> Modes:
+                expected_rigid: int = 0, loads: np.ndarray | None = None,
+                **options) -> Modes:
     """The ``count`` lowest modes of (K, M), both (n x n) on the free DOFs.
 
     ``supported``: False for a free body (then the shift is negative, see
@@ -149,7 +153,9 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
     releases what is left (its ``with`` block). ``progress``, if given, is called with
     the number of right-hand sides of every solve. ``expected_rigid``: the rigid-body
     modes the supports leave (:func:`pipeline.fe.supports.rigid_freedoms`, exact null
-    vectors of K): the first that many count as rigid.
+    vectors of K): the first that many count as rigid. ``loads``: (n, k) right-hand sides
+    of static solves with the kept solver to come (the factor-free path starts them in
+    its sweeps, :meth:`pipeline.solve.multigrid.TwoGrid.ride`), or None.
 
     ``options``: the fields of :class:`pipeline.solve.plan.EigenProblem`: ``method``
     (auto, lanczos, arpack, dense, factor, multigrid), ``precision`` (double, mixed,
@@ -174,7 +180,7 @@ def solve_modes(K: sp.spmatrix, M: sp.spmatrix, count: int, *, supported: bool =
         plan = planning.plan_modes(problem, _machine(backend))
         try:
             v, run_stats, kept, name = _RUNNERS[plan.method](K, M, count, plan, coarse,
-                                                             analysis, progress)
+                                                             analysis, progress, loads)
             break
         except (ResourceError, _SlowMultigrid) as exc:
             slow = isinstance(exc, _SlowMultigrid)
@@ -220,9 +226,9 @@ _GIVING_UP = {"mixed": "a float32 factor does not fit either: the factor-free mu
 
 
 # --------------------------------------------------------------------------- the methods
-# each: (K, M, count, plan, coarse, analysis, progress) -> (eigenvectors (n, count),
+# each: (K, M, count, plan, coarse, analysis, progress, loads) -> (eigenvectors (n, count),
 # statistics, the kept factorisation of K or None, the backend's name for the result)
-def _run_factor(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+def _run_factor(K, M, count, plan: EigenPlan, coarse, analysis, progress, loads):
     """Shift-invert with a factor of K - shift M: block Lanczos or ARPACK."""
     sigma = plan.shift
     shifted = K - sigma * M if sigma != 0.0 else K
@@ -258,22 +264,22 @@ def _run_factor(K, M, count, plan: EigenPlan, coarse, analysis, progress):
     return v, stats, kept, fact.backend
 
 
-def _run_dense(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+def _run_dense(K, M, count, plan: EigenPlan, coarse, analysis, progress, loads):
     """A dense generalized eigh (small problems)."""
     v = _dense_modes(K, M, count, plan.shift)
     return v, {"method": "dense"}, None, f"dense ({plan.backend} not needed)"
 
 
-def _run_mixed(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+def _run_mixed(K, M, count, plan: EigenPlan, coarse, analysis, progress, loads):
     """Block Lanczos on a float32 factor, refined in double."""
     v, stats = _mixed_modes(K, M, count, plan, progress)
     kept = stats.pop("kept", None)
     return v, stats, kept, "pardiso (float32 factor, double refinement)"
 
 
-def _run_multigrid(K, M, count, plan: EigenPlan, coarse, analysis, progress):
+def _run_multigrid(K, M, count, plan: EigenPlan, coarse, analysis, progress, loads):
     """Factor-free LOBPCG with the two-grid preconditioner (a trial under a budget)."""
-    v, stats = _multigrid_modes(K, M, coarse, count, plan, progress)
+    v, stats = _multigrid_modes(K, M, coarse, count, plan, progress, loads)
     kept = stats.pop("kept", None)
     return v, stats, kept, f"multigrid (coarse factor: {stats['backend']})"
 
@@ -318,7 +324,7 @@ def _mixed_modes(K, M, count, plan: EigenPlan, progress=None):
     return v, stats
 
 
-def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
+def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None):
     """Eigenvectors (n, count) by two-grid preconditioned LOBPCG (no factor of K), and the
     statistics; with ``plan.keep_factor``, ``stats["kept"]`` is the PCG solver of K as a
     :class:`~pipeline.solve.factorization.Factorization` for the static correction (the
@@ -326,12 +332,21 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
 
     ``plan.multigrid_budget``: the trial of ``method: auto``
     (:mod:`pipeline.solve.plan`): raises :class:`_SlowMultigrid` when LOBPCG projects more
-    sweeps than this or stalls above the target."""
+    sweeps than this or stalls above the target.
+
+    ``loads`` (n, k), kept solver only: the static solves K X = loads to come ride along
+    in the sweeps' cycles (:meth:`~pipeline.solve.multigrid.TwoGrid.ride`; up to
+    :data:`RIDING_COLUMNS` of them, which add a tenth to the sweeps' memory): each
+    sweep makes one of their PCG iterations for the price of k more columns in one
+    cycle, about a tenth of what a PCG iteration of its own costs at 1M DOFs."""
     sigma, tolerance, budget = plan.shift, plan.tolerance, plan.multigrid_budget
     t1 = time.perf_counter()
     A = K - sigma * M if sigma != 0.0 else K
     tg = multigrid.TwoGrid(A, P, plan.backend)
     try:
+        if (loads is not None and plan.keep_factor and sigma == 0.0
+                and 0 < np.shape(loads)[1] <= RIDING_COLUMNS):
+            tg.ride(loads)
         Mc = multigrid.coarse_matrix(tg, M)
         width = min(count + lobpcg_guard(count), tg.coarse_n // 2)
         # start block: the coarse problem's own modes, through the coarse factor
@@ -360,7 +375,7 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None):
                     progress(width)
             # the sweeps free and allocate (n x width) blocks: keep them in the heap
             with retained_heap(LOBPCG_BLOCKS * 8.0 * K.shape[0] * (batch + guard)):
-                result = batched_lobpcg(K, M, start, tg.apply_single, count, batch, guard,
+                result = batched_lobpcg(K, M, start, tg.precondition, count, batch, guard,
                                         sigma=sigma, target=target,
                                         max_sweeps=MULTIGRID_MAX_SWEEPS,
                                         on_sweep=on_sweep, budget=budget)

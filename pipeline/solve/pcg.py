@@ -46,6 +46,89 @@ RTOL = 1e-12
 MAX_ITER = 500
 
 
+class Pcg:
+    """The recurrence of :func:`pcg` as a state that advances one iteration per
+    application of T, for a caller that applies T to a larger block anyway: the
+    factor-free eigensolver rides the static solves' columns along in LOBPCG's cycles
+    (:meth:`pipeline.solve.multigrid.TwoGrid.ride`) and finishes them later.
+
+    ``residual`` is the (n, k) block to precondition next (the recursive residual R),
+    ``advance(Z)`` takes Z = T R and makes the next iteration; ``finished`` once every
+    column has stopped (module doc), ``solution()`` is then X (the shape of B).
+    :func:`pcg` is ``Pcg(A, B, rtol).run(precondition, max_iter)``, with the same
+    arithmetic in the same order.
+    """
+
+    def __init__(self, A: sp.spmatrix, B: np.ndarray, rtol: float = RTOL,
+                 max_iter: int = MAX_ITER):
+        B = np.asarray(B, dtype=np.float64)
+        self.vector = B.ndim == 1
+        self.A, self.rtol, self.max_iter = A, rtol, max_iter
+        B = np.ascontiguousarray(B.reshape(B.shape[0], -1))
+        self.X = np.zeros_like(B)
+        bnorm = column_norms(B)
+        self.goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
+        self.norm_A = scaled_inf_norm(A)
+        self.b_inf = np.abs(B).max(axis=0)
+        self.residual = B.copy()
+        self.iterations = 0
+        self.finished = False
+        self._P = self._AP = self._rz = self._alpha = None
+
+    def _done(self) -> np.ndarray:
+        R, eps = self.residual, np.finfo(np.float64).eps
+        floor = np.abs(R).max(axis=0) <= eps * (self.norm_A * np.abs(self.X).max(axis=0)
+                                                + self.b_inf)
+        return (column_norms(R) <= self.goal) | floor
+
+    def advance(self, Z: np.ndarray) -> None:
+        """Take Z = T R (n, k) and make the next iteration (or set ``finished``);
+        SolverError after ``max_iter`` iterations."""
+        R = self.residual
+        Z = np.asarray(Z, dtype=np.float64).reshape(R.shape)
+        if self._P is None:  # Z = T B: the first search directions
+            self._P = Z.copy()
+            self._rz = np.einsum("ij,ij->j", R, Z)
+        else:
+            rz_new = np.einsum("ij,ij->j", R, Z)
+            z_dr = -self._alpha * np.einsum("ij,ij->j", Z, self._AP)  # z_new^T (r_new - r_old)
+            self._AP = None
+            rz = self._rz
+            beta = np.where(rz != 0, z_dr / np.where(rz != 0, rz, 1.0), 0.0)
+            self._P *= beta
+            self._P += Z
+            self._rz = rz_new
+        del Z
+        done = self._done()
+        if np.all(done):
+            self.finished = True
+            return
+        if self.iterations >= self.max_iter:
+            rnorm = column_norms(R)
+            raise SolverError(f"conjugate gradients did not reach a relative residual of "
+                              f"{self.rtol:g} in {self.max_iter} iterations (now "
+                              f"{float((rnorm / self.goal).max() * self.rtol):.1e}): K is "
+                              "singular or nearly so (a rigid-body motion or mechanism the "
+                              "supports leave free?)")
+        self.iterations += 1
+        P = self._P
+        AP = sparse_times_dense(self.A, P)
+        pap = np.einsum("ij,ij->j", P, AP)
+        alpha = np.where(~done & (pap > 0), self._rz / np.where(pap > 0, pap, 1.0), 0.0)
+        self.X += P * alpha
+        R -= AP * alpha
+        self._AP, self._alpha = AP, alpha
+
+    def solution(self) -> np.ndarray:
+        return self.X[:, 0] if self.vector else self.X
+
+    def run(self, precondition: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, int]:
+        """Iterate to the end: (X, iterations)."""
+        while not self.finished:
+            self.advance(precondition(self.residual))
+        return self.solution(), self.iterations
+
+
 def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.ndarray],
         rtol: float = RTOL, max_iter: int = MAX_ITER) -> tuple[np.ndarray, int]:
     """(X, iterations) with A X = B for symmetric positive definite A (n x n), B (n,) or
@@ -58,45 +141,4 @@ def pcg(A: sp.spmatrix, B: np.ndarray, precondition: Callable[[np.ndarray], np.n
     >>> np.allclose(X, [0.25, 1 / 3, 0.5]), its
     (True, 1)
     """
-    B = np.asarray(B, dtype=np.float64)
-    vector = B.ndim == 1
-    B = np.ascontiguousarray(B.reshape(B.shape[0], -1))
-    X = np.zeros_like(B)
-    bnorm = column_norms(B)
-    goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
-    norm_A = scaled_inf_norm(A)
-    b_inf = np.abs(B).max(axis=0)
-    eps = np.finfo(np.float64).eps
-    R = B.copy()
-    Z = np.asarray(precondition(R), dtype=np.float64).reshape(R.shape)
-    P = Z.copy()
-    rz = np.einsum("ij,ij->j", R, Z)
-    it = 0
-    while True:
-        rnorm = column_norms(R)
-        floor = np.abs(R).max(axis=0) <= eps * (norm_A * np.abs(X).max(axis=0) + b_inf)
-        done = (rnorm <= goal) | floor
-        if np.all(done):
-            break
-        if it >= max_iter:
-            raise SolverError(f"conjugate gradients did not reach a relative residual of "
-                              f"{rtol:g} in {max_iter} iterations (now "
-                              f"{float((rnorm / goal).max() * rtol):.1e}): K is singular or "
-                              "nearly so (a rigid-body motion or mechanism the supports "
-                              "leave free?)")
-        it += 1
-        AP = sparse_times_dense(A, P)
-        pap = np.einsum("ij,ij->j", P, AP)
-        live = ~done
-        alpha = np.where(live & (pap > 0), rz / np.where(pap > 0, pap, 1.0), 0.0)
-        X += P * alpha
-        R -= AP * alpha
-        Z = np.asarray(precondition(R), dtype=np.float64).reshape(R.shape)
-        rz_new = np.einsum("ij,ij->j", R, Z)
-        z_dr = -alpha * np.einsum("ij,ij->j", Z, AP)  # z_new^T (r_new - r_old)
-        del AP
-        beta = np.where(rz != 0, z_dr / np.where(rz != 0, rz, 1.0), 0.0)
-        P *= beta
-        P += Z
-        rz = rz_new
-    return (X[:, 0] if vector else X), it
+    return Pcg(A, B, rtol, max_iter).run(precondition)

@@ -64,6 +64,10 @@ class ModesInput:
     constraint: (n_free, n_q) T of an exact constraint u = T q
     (:mod:`pipeline.fe.constraints`), or None: the eigensolver then
     runs on T^T K T, T^T M T and the shapes are mapped back, phi = T psi.
+    loads: (n_free, n_u) the right-hand sides F of the static solves K X = F that will
+    follow with the kept solver (the reduce stage's input loads), or None: the
+    factor-free solver runs their conjugate gradients inside its LOBPCG sweeps
+    (:meth:`pipeline.solve.multigrid.TwoGrid.ride`).
     """
 
     K: sp.spmatrix
@@ -76,15 +80,18 @@ class ModesInput:
     rigid: np.ndarray | None = None
     rigid_names: tuple[str, ...] = ()
     constraint: sp.spmatrix | None = None
+    loads: np.ndarray | None = None
 
     @classmethod
-    def from_fe(cls, fe: FEModel, config: ModesConfig, *, supported: bool) -> ModesInput:
+    def from_fe(cls, fe: FEModel, config: ModesConfig, *, supported: bool,
+                loads: np.ndarray | None = None) -> ModesInput:
         """The input of the modes stage for ``fe``: the volume weights of its points and,
         unless ``config.method`` is ``factor``, the P1 prolongation of a P2 space.
 
         ``supported``: whether the config names supports (``bool(cfg.supports)``); the
         body is solved as a free one when they leave rigid-body modes (``fe.n_rigid``),
-        and a partly held body's rigid motions are passed on (``rigid``).
+        and a partly held body's rigid motions are passed on (``rigid``). ``loads``: see
+        the class.
         Hold the record no longer than the call it is built for: it keeps K alive.
         """
         partly = supported and fe.n_rigid > 0 and fe.rigid is not None
@@ -95,7 +102,8 @@ class ModesInput:
                    else p1_prolongation(fe.space, fe.free),
                    rigid=fe.rigid.fields[fe.free] if partly else None,
                    rigid_names=fe.rigid.names if partly else (),
-                   constraint=None if fe.constraint is None else fe.constraint.T)
+                   constraint=None if fe.constraint is None else fe.constraint.T,
+                   loads=loads)
 
 
 def expects_factor(n_free: int, config: ModesConfig, *, supported: bool) -> bool:
@@ -139,7 +147,8 @@ def compute_modes(body: ModesInput, config: ModesConfig, *, keep: bool = True,
                         backend=config.solver, tolerance=config.tolerance,
                         progress=progress, keep=keep, precision=config.precision,
                         method=config.method, coarse=coarse, analysis=analysis,
-                        expected_rigid=0 if rigid is None else rigid.shape[1])
+                        expected_rigid=0 if rigid is None else rigid.shape[1],
+                        loads=body.loads if T is None and rigid is None else None)
     try:
         names = ()
         if rigid is not None:
