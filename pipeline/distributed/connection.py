@@ -46,13 +46,14 @@ twist from P to the origin (R_P = R_O tau). The small dense algebra (the residua
 check, the child transports, the state space, the tables) is the serial code's.
 
 Craig-Bampton data (``craig_bampton.modes`` > 0) are
-:mod:`pipeline.distributed.craig_bampton`'s, the floating-frame invariants (``/ffrf``)
-of the run's modes or of the Craig-Bampton basis :mod:`pipeline.distributed.ffrf`'s.
+:mod:`pipeline.distributed.craig_bampton`'s (case 1 on the run's pair with the parent
+held, case 2 on the unsupported pair), the floating-frame invariants (``/ffrf``) of the
+run's modes or of the Craig-Bampton basis :mod:`pipeline.distributed.ffrf`'s.
 
-Not distributed yet (refused by :func:`check_connections`, one line each):
-Craig-Bampton data beside a pencil of case 2, a rotating body. The unsupported body's
-FE matrices (``/fe``) are summed from each rank's elements (and its rows of the added
-masses) and written by rank 0 block by block (:mod:`pipeline.distributed.fe_matrices`).
+A rotating body's connection model is its model at rest, as serially (the rotation
+stage works from the run's K, M and modes). The unsupported body's FE matrices
+(``/fe``) are summed from each rank's elements (and its rows of the added masses) and
+written by rank 0 block by block (:mod:`pipeline.distributed.fe_matrices`).
 """
 
 from __future__ import annotations
@@ -75,7 +76,6 @@ from pipeline.distributed.mpi import petsc
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.partition import RowPartition
 from pipeline.distributed.unsupported import assemble_pair, padded
-from pipeline.errors import ConfigError
 from pipeline.reduce.build import connection_outputs, craig_bampton_line
 from pipeline.reduce.connection import model_from_clamped
 from pipeline.reduce.ffrf import (craig_bampton_columns, craig_bampton_kind,
@@ -86,41 +86,19 @@ from pipeline.reduce.models import Models
 
 log = logging.getLogger(__name__)
 
-__all__ = ["clamped_by_supports", "check_connections", "connection_interfaces", "clamped_entries", "connection_models"]
-
-SOLVER = "with modes.solver: slepc"
-
-
-def _refuse(key: str, what: str, value, expected: str) -> ConfigError:
-    return ConfigError(f"{key}: {what} {SOLVER}: not distributed yet; expected {expected}",
-                       key=key, value=value, expected=expected)
+__all__ = ["clamped_by_supports", "connection_interfaces", "clamped_entries", "connection_models"]
 
 
 def clamped_by_supports(cfg: Config) -> bool:
-    """Whether the clamped pencil of the connection model is the run's (module): a rigid
-    parent whose region the supports alone hold (fix: all), nothing else held, no spring,
-    no in-plane constraint, no added mass (config only: the same region gives the same
-    DOFs)."""
+    """Whether the clamped pencil of the connection model is the run's (module, case 1):
+    a rigid parent whose region the supports alone hold (fix: all), nothing else held,
+    no spring, no in-plane constraint, no added mass (config only: the same region gives
+    the same DOFs)."""
     parent = cfg.connections[0]
     held = [(s.region, tuple(sorted(s.fix)), s.frame, s.spring, s.bushing)
             for s in cfg.supports]
     return (parent.coupling == "rigid" and not cfg.constraints.in_plane and not cfg.masses
             and held == [(parent.region, ("x", "y", "z"), None, None, None)])
-
-
-def check_connections(cfg: Config) -> None:
-    """Refuse, before any work, the connection configs the ranks do not handle yet
-    (module): one line naming the key."""
-    if not cfg.connections:
-        return
-    if cfg.craig_bampton_modes > 0 and not clamped_by_supports(cfg):
-        raise _refuse("craig_bampton.modes", "Craig-Bampton modes beside a distributing "
-                      "parent, other supports or added masses", cfg.craig_bampton_modes,
-                      "0, a rigid parent whose region the supports alone hold (fix: all), "
-                      "or another modes.solver")
-    if cfg.rotation is not None:
-        raise _refuse("rotation", "a rotating body with connections", "rotation",
-                      "no rotation, or another modes.solver")
 
 
 def connection_interfaces(cfg: Config, space, regions) -> tuple[Interface, ...] | None:
@@ -280,14 +258,23 @@ def _unsupported_models(cfg: Config, space, props, free: np.ndarray, K: RowMatri
                                                                  len(children), K, M)
         R_P = shapes.like(interface_rows(space.local, free, shapes, parent, every=True))
         L_P = shapes.gram(M.apply(R_P))  # M R_P: M holds every DOF, the added masses too
-        run = padded(modes.shapes, un.part) if own else modes.shapes
-        keep = np.arange(modes.n_rigid, run.shape[1])  # the elastic modes (serial /ffrf)
-        inv = modes_invariants(space, free, K, M, run.columns(keep), props.rigid_mass,
-                               modes_basis_labels(keep, bool(cfg.supports)))
+        model, ss, lines = _model(cfg, interfaces, props, omega2, L_P, shapes, Phi_C,
+                                  residuals)
+        cb = None
+        if cfg.craig_bampton_modes > 0:  # on the same pair, nothing held
+            cb, basis = craig_bampton_on_ranks(cfg, space, free, K, M, entries, n_z, None)
+            keep, names, units = craig_bampton_columns(cb, 0)
+            inv = modes_invariants(space, free, K, M, basis.columns(keep), props.rigid_mass,
+                                   (craig_bampton_kind(cb), names, units))
+            lines.append(craig_bampton_line(cfg))
+        else:  # of the run's elastic modes (serial /ffrf), zero on the held DOFs
+            run = padded(modes.shapes, un.part) if own else modes.shapes
+            keep = np.arange(modes.n_rigid, run.shape[1])
+            inv = modes_invariants(space, free, K, M, run.columns(keep), props.rigid_mass,
+                                   modes_basis_labels(keep, bool(cfg.supports)))
     finally:
         if own:
             K.petsc.destroy()
             M.petsc.destroy()
-    model, ss, lines = _model(cfg, interfaces, props, omega2, L_P, shapes, Phi_C, residuals)
-    return _with(models, model, ss, None, inv, _fe_shares(comm, space, free, K.part),
+    return _with(models, model, ss, cb, inv, _fe_shares(comm, space, free, K.part),
                  lines)

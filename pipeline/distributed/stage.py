@@ -46,8 +46,7 @@ from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
-from pipeline.distributed.connection import (check_connections, clamped_by_supports,
-                                             connection_interfaces,
+from pipeline.distributed.connection import (clamped_by_supports, connection_interfaces,
                                              connection_models)  # noqa: F401 (run.py's)
 from pipeline.distributed.unsupported import pair_bytes, unsupported_parts
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
@@ -68,7 +67,6 @@ BACKEND = "slepc"
 
 def check_supported(cfg: Config) -> None:
     """One line for what the distributed path does not do yet (before any work)."""
-    check_connections(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
