@@ -17,28 +17,34 @@ of its largest entry with the same stored pattern; K to 3e-16, but entries that 
 (1e-10 N/m against 4e9 N/m, 1e-19 of the largest) are exact zeros in one summation
 order and not in the other (929 and 90 of 591514 entries), so /fe is compared as
 matrices and the rest of the file with _same_file. Without MPI: each emulated rank's rows of M R_P
-are the serial ones, and the refusals of what is not distributed yet.
+are the serial ones, and the partition of every DOF keeps each rank's run rows.
+
+When the clamped pencil is not the run's (a distributing parent, other supports, added
+masses: the unsupported pair of pipeline.distributed.unsupported), measured on 2 ranks
+at mesh.size 0.01: a distributing parent with a point mass, L_P and B 1.1e-11, the
+invariants 1e-11, /fe 6e-16; with a distributing tip child, 20 Craig-Bampton modes and
+the rotation beside it, K 1.3e-14, M 8e-12, the basis 3.5e-11, the invariants 8e-12,
+the rotation's datasets 1.5e-9 (the geometric stiffness); a bushing at the root and the tip held along x, L_P 6e-12; no supports
+on 3 ranks, Phi_C and the state space 3e-12.
 """
 
 from __future__ import annotations
 
 import shutil
-import subprocess
 
 import h5py
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from conftest import ALUMINIUM, ROOT, build_model
+from conftest import ALUMINIUM, build_model
 from pipeline.distributed.assemble import rigid_mass_rows
-from pipeline.distributed.connection import check_connections
 from pipeline.distributed.partition import slab_partition
 from pipeline.distributed.submesh import split_mesh
 from pipeline.fe.assemble import assemble_on_nodes
 from pipeline.fe.body import rigid_body_modes
 from pipeline.fe.materials import assign_materials
-from test_mpi import MPI_PYTHON, _has_petsc, _same_file, _serial_and_two_ranks
+from test_mpi import _same_file, _serial_and_two_ranks
 
 CONFIG = "configs/cantilever_connection.yaml"
 PARENT_ONLY = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
@@ -108,41 +114,22 @@ def test_the_ranks_element_shares_add_up_to_the_unsupported_matrices(tmp_path):
         assert abs(total - upper).max() <= 1e-13 * abs(upper).max()
 
 
-@pytest.mark.parametrize("overrides, key", [
-    (["connections=[{name: root, region: root, point: [0, 0.01, 0.025], "
-      "coupling: distributing}]", PARENT_ONLY[1]], r"connections\[0\]\.coupling"),
-    (list(PARENT_ONLY) + ["supports=[{region: root, fix: [x, y]}]"], r"supports"),
-    (list(PARENT_ONLY) + ["supports=[]"], r"supports"),
-    (list(PARENT_ONLY) + ["masses=[{name: s, mass: 0.1, point: [0.5, 0.01, 0.025], region: tip, "
-                            "coupling: distributing}]"], r"masses"),
-])
-def test_what_is_not_distributed_yet_is_refused_in_one_line(overrides, key):
-    """A distributing parent, supports other than the parent region held, added masses:
-    one line naming the key, before any meshing."""
-    from pipeline.config import load_config
-    from pipeline.errors import ConfigError
+def test_held_partition_appends_each_ranks_held_dofs_to_its_run_rows(tmp_path):
+    """The partition of every DOF keeps each rank's run rows first, in their order, then
+    the held DOFs of its points: whole points per rank, every DOF once."""
+    from pipeline.distributed.unsupported import held_partition
 
-    cfg = load_config(ROOT / CONFIG, ["modes.solver=slepc"] + overrides)
-    with pytest.raises(ConfigError, match=rf"^{key}: [\w ()-:,\[\]{{}}]+ with modes.solver: "
-                                          r"slepc: not distributed yet; expected"):
-        check_connections(cfg)
-
-
-def test_other_supports_are_refused_end_to_end_and_nothing_written(tmp_path):
-    """The CLI on the MPI interpreter (one process), the shipped config held along x and
-    y only: exit code 2 (ConfigError), one line naming the supports key, no file."""
-    if not MPI_PYTHON.exists() or not _has_petsc(MPI_PYTHON):
-        pytest.skip("no MPI environment (make mpi-env)")
-    out = tmp_path / "x.h5"
-    proc = subprocess.run([str(MPI_PYTHON), "-m", "pipeline", "run", CONFIG, "--set",
-                           "modes.solver=slepc", "--set", "supports=[{region: root, fix: [x, y]}]",
-                           "-o", str(out)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120,
-                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
-    assert proc.returncode == 2, proc.stderr[-2000:]
-    last = proc.stderr.strip().splitlines()
-    assert len(last) == 1 and last[0].startswith("error: supports: "), proc.stderr
-    assert not out.exists()
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    part = slab_partition(space.node_points, free, 3)
+    full = held_partition(part, free, space.n_dofs, space.element_nodes, 3)
+    assert np.array_equal(np.sort(full.order), np.arange(space.n_dofs))
+    for r in range(3):
+        lo, hi = full.rows(r)
+        run = free[part.owned_free(r)]
+        assert np.array_equal(full.order[lo:lo + run.size], run)
+        points = np.unique(full.order[lo:hi] // 3)
+        assert hi - lo == 3 * points.size  # whole points
 
 
 @pytest.mark.mpi
@@ -185,3 +172,55 @@ def test_shipped_config_with_craig_bampton_on_two_ranks(tmp_path):
         assert f["craig_bampton/shapes"].shape[2] == 32 and "ffrf/modal_mass" in f
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
     _same_matrices(serial, dist)
+
+
+#: a distributing (RBE3) parent at the root, a child at the tip
+RBE3_ROOT = "{name: root, region: root, point: [0.0, 0.01, 0.025], coupling: distributing}"
+RIGID_TIP = "{name: tip, region: tip, point: [0.5, 0.01, 0.025], coupling: rigid}"
+DISTRIBUTING_TIP = RIGID_TIP.replace("rigid", "distributing")
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("overrides", [
+    (f"connections=[{RBE3_ROOT}, {DISTRIBUTING_TIP}]",
+     "masses=[{name: s, mass: 0.1, point: [0.5, 0.01, 0.025], region: tip, "
+     "coupling: distributing}]",
+     "rotation={axis: [1, 0, 0], point: [0, 0.01, 0.025], speeds_rad_s: [0, 100, 300], "
+     "static_shape: true, correction_shapes: 2}"),
+    (*PARENT_ONLY, "supports=[{region: tip, fix: [x]}, {region: root, bushing: "
+     "{stiffness: [0, 2.0e9, 2.0e9, 1.0e6, 1.0e6, 1.0e6]}}]"),
+], ids=["distributing-parent-mass-rotation-craig-bampton", "held-elsewhere-and-bushing"])
+def test_unsupported_pair_on_two_ranks(tmp_path, overrides):
+    """The clamped pencil is not the run's (a distributing parent; supports elsewhere,
+    partial and elastic; an added mass): each rank assembles its rows of the unsupported
+    K and M on the partition of every DOF, PETSc's PtAP clamps the parent, MUMPS solves
+    it; Craig-Bampton (the shipped 20 modes) on the same pair, nothing lifted; a
+    rotating body's connection model is the one at rest. The model, the Craig-Bampton
+    data, the invariants and /fe equal the single-process ones (module docstring)."""
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *overrides, "mesh.size=0.01")
+    _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
+    _same_matrices(serial, dist)
+
+
+@pytest.mark.mpi
+def test_free_body_with_a_distributing_parent_on_three_ranks(tmp_path):
+    """No supports: the run's K and M are the unsupported pair (no second assembly).
+    The run's six rigid-body modes are any basis of their subspace (test_mpi.py's free
+    body), so the shapes are compared from the seventh on; the free-free modes'
+    couplings R^T M psi are zero to round-off, judged against their bound sqrt(m) and
+    sqrt(I_max) (|r^T M psi| <= sqrt(r^T M r) for M-orthonormal psi)."""
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, f"connections=[{RBE3_ROOT}, "
+                                         f"{RIGID_TIP}]", "supports=[]", PARENT_ONLY[1],
+                                         "mesh.size=0.01", ranks=3)
+    couplings = ("ffrf/translational_coupling", "ffrf/rotational_coupling")
+    _same_file(_without(serial, NOT_ON_RANKS + ("modes/shapes",) + couplings,
+                        tmp_path / "serial_part.h5"), dist, 3)
+    _same_matrices(serial, dist)
+    with h5py.File(serial) as a, h5py.File(dist) as b:
+        assert b["modes"].attrs["n_rigid"] == 6 and b["connections/root/Phi_C"].shape == (6, 10)
+        x, y = a["modes/shapes"][()][..., 6:], b["modes/shapes"][()][..., 6:]
+        np.testing.assert_allclose(y, x, rtol=0, atol=1e-8 * np.abs(x).max())
+        D = a["body/rigid_mass_matrix"][()]
+        for name, bound in zip(couplings, (D[0, 0], np.diag(D)[3:].max())):
+            np.testing.assert_allclose(b[name][()], a[name][()], rtol=0,
+                                       atol=1e-8 * np.sqrt(bound), err_msg=name)

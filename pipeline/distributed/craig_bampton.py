@@ -21,6 +21,11 @@ about P (K R_P = 0 for the unsupported K) and E_P = R_P on the x rows, 0 elsewhe
 
       a^T M b = a~^T M_ff b~ + a~^T W c_b + c_a^T W^T b~ + c_a^T D_P c_b.
 
+When the parent is not what the run holds (a distributing parent, other supports,
+added masses: :mod:`pipeline.distributed.unsupported`), K and M are the unsupported
+pair on every DOF: nothing is lifted (c = 0), E_P = R_P on the parent region's rows,
+and the products are the pair's own.
+
 The basis on every point (``/craig_bampton/shapes``) is b~ + R_P c on the free points
 (each rank's own) and R_P c on the held ones (rank 0, which has their coordinates),
 written block by block. The floating-frame invariants of the basis without the
@@ -81,14 +86,18 @@ def interface_rows(mesh, free: np.ndarray, rows: RowBlock, iface, every: bool = 
 
 
 def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMatrix,
-                           entries, n_z: int, D_P: np.ndarray
+                           entries, n_z: int, D_P: np.ndarray | None
                            ) -> tuple[CraigBamptonModel, RowBlock]:
     """The :class:`CraigBamptonModel` with ``cfg.craig_bampton_modes`` fixed-interface
     modes (module; collective); its ``shapes`` are a PointBlocks dataset (n_points, 3,
     n_b + N) written by rank 0. ``entries``: this rank's entries of T_c's rows
     (:func:`~pipeline.distributed.connection.clamped_entries`, the z columns are the
-    first ``n_z`` keys); ``D_P`` (6, 6) the rigid mass at the parent point. Also
-    returns the lifted basis b~ (n_free, n_b + N) on the ranks."""
+    first ``n_z`` keys); ``D_P`` (6, 6) the rigid mass at the parent point, whose
+    region the run holds, or None: ``K``, ``M`` are the unsupported pair on every DOF
+    (:mod:`pipeline.distributed.unsupported`), the parent's rows among them, and no
+    vector is lifted (b~ = b, E_P = R_P on the parent region's rows). Also returns the
+    lifted basis b~ (n_free, n_b + N) on the ranks."""
+    held = D_P is not None
     PETSc, _ = petsc()
     comm = K.comm
     interfaces = space.connections
@@ -102,9 +111,10 @@ def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMat
     try:
         omega2, phi_z, residuals, eps = clamped_solve(cfg, con, cfg.craig_bampton_modes)
         u = RowBlock(comm, K.part, np.zeros((K.hi - K.lo, 0)))  # u's rows
-        R_f = interface_rows(space.local, free, u, parent, every=True)
-        E = u.like(np.hstack([-R_f] + [interface_rows(space.local, free, u, c)
-                                       for c in children]))
+        E_P = (-interface_rows(space.local, free, u, parent, every=True) if held
+               else interface_rows(space.local, free, u, parent))
+        E = u.like(np.hstack([E_P] + [interface_rows(space.local, free, u, c)
+                                      for c in children]))
         rhs = con.to_q(K.apply(E))
         X = rhs.like(-KspSolve(eps.getST().getKSP(), con.K).solve_rows(rhs.local))
         static = con.from_q(X)
@@ -114,26 +124,26 @@ def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMat
             eps.destroy()
         con.destroy()
     nb, n = 6 * len(interfaces), omega2.size
-    c = np.zeros((6, nb + n))
-    c[:, :6] = np.eye(6)
-    W = B.like(rigid_mass_rows(space.local, parent.point))
-    BW = B.gram(W) @ c
-    Kr = B.gram(K.apply(B))
-    Mr = B.gram(M.apply(B)) + BW + BW.T + c.T @ D_P @ c
+    c = np.zeros((6, nb + n))  # the parent coefficients of the lifted vectors
+    Kr, Mr = B.gram(K.apply(B)), B.gram(M.apply(B))
+    if held:
+        c[:, :6] = np.eye(6)
+        BW = B.gram(B.like(rigid_mass_rows(space.local, parent.point))) @ c
+        Mr = Mr + BW + BW.T + c.T @ D_P @ c
     names, units = coordinate_labels(interfaces, n)
     log.info("Craig-Bampton: %d interface(s), %d boundary + %d modal coordinates on %d "
              "rank(s)", len(interfaces), nb, n, comm.size)
     return CraigBamptonModel(interfaces, 0.5 * (Mr + Mr.T), 0.5 * (Kr + Kr.T), names,
-                             units, _shapes(space, free, B, c, parent), omega2,
+                             units, _shapes(space, free, B, c, parent, held), omega2,
                              residuals), B
 
 
-def _shapes(space, free, B: RowBlock, c: np.ndarray, parent) -> PointBlocks:
+def _shapes(space, free, B: RowBlock, c: np.ndarray, parent, held: bool) -> PointBlocks:
     """The basis on every point: b~ + R_P c on each rank's free points, R_P c on the
-    held points (rank 0)."""
+    held points (rank 0; ``held`` False: B holds every point)."""
     full = B.like(B.local + interface_rows(space.local, free, B, parent, every=True) @ c)
     points, values = full.on_points(free)
-    if B.comm.rank == 0:
+    if held and B.comm.rank == 0:
         held = parent.nodes
         R = rigid_body_modes(space.node_points[held], parent.point) @ c
         points = np.concatenate([points, held])

@@ -17,6 +17,8 @@ partition keep them) and MPI_Allreduce adds up:
 Psi is zero on the held points, so (M Psi)_j at a free point is the supported M's
 product (PETSc's), but (M x)_j and (M R_O)_j couple to the held points: they are summed
 from the elements of the rank's part (:func:`~pipeline.distributed.assemble.full_mass_rows`).
+On the unsupported pair (M on every DOF, :mod:`pipeline.distributed.unsupported`, the
+added masses in it) they are M's own products.
 D = R_O^T M R_O is the rigid mass the FE stage summed. The record is then the serial
 :func:`~pipeline.reduce.ffrf.invariants_from_products`.
 """
@@ -26,9 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.distributed.blocks import RowBlock
-from pipeline.distributed.assemble import full_mass_rows, rigid_mass_rows
+from pipeline.distributed.assemble import full_mass_rows
 from pipeline.distributed.mpi import allreduce_sum
 from pipeline.distributed.operators import RowMatrix
+from pipeline.fe.body import rigid_body_modes
 from pipeline.reduce.ffrf import (FFRFInvariants, invariants_from_products, modes_basis_labels,
                                  skew_columns)
 
@@ -39,6 +42,13 @@ def _node_major(block: RowBlock, free: np.ndarray) -> np.ndarray:
     """(3 p, k) this rank's rows of ``block`` as node-major fields on its points."""
     _, values = block.on_points(free)
     return values.reshape(-1, values.shape[2])
+
+
+def _field_rows(mesh, free: np.ndarray, block: RowBlock, fields: np.ndarray) -> np.ndarray:
+    """(hi - lo, k) this rank's rows (PETSc order) of nodal ``fields`` (n_loc, 3, k)
+    given on the part's local nodes."""
+    dofs = np.asarray(free)[block.free_rows()]
+    return fields[mesh.local_nodes(dofs // 3), dofs % 3]
 
 
 def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes: RowBlock,
@@ -56,10 +66,14 @@ def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes
     comm = shapes.comm
     M_psi = M.apply(shapes)
     x = mesh.space.node_points[:, :, None]  # positions about the origin, (n_loc, 3, 1)
-    Mx = shapes.like(full_mass_rows(mesh, x))
+    R_O = rigid_body_modes(mesh.space.node_points).reshape(-1, 3, 6)
+    if M.shape[0] == space.n_dofs:  # the unsupported M itself (added masses too)
+        Mx, MR = (M.apply(shapes.like(_field_rows(mesh, free, shapes, f))) for f in (x, R_O))
+    else:  # the rows of M that couple to the held points, from the part's elements
+        Mx, MR = (shapes.like(full_mass_rows(mesh, f)) for f in (x, R_O))
     psi, m_psi = _node_major(shapes, free), _node_major(M_psi, free)
     psi_t = skew_columns(psi)
-    coupling = shapes.like(rigid_mass_rows(mesh, np.zeros(3))).gram(shapes)
+    coupling = MR.gram(shapes)
     x_psi = allreduce_sum(comm, skew_columns(_node_major(Mx, free)).T @ psi_t)
     psi_psi = allreduce_sum(comm, psi_t.T @ skew_columns(m_psi))
     psi_m_psi = allreduce_sum(comm, psi_t.T @ m_psi)

@@ -46,8 +46,9 @@ from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
-from pipeline.distributed.connection import (check_connections, connection_interfaces,
+from pipeline.distributed.connection import (clamped_by_supports, connection_interfaces,
                                              connection_models)  # noqa: F401 (run.py's)
+from pipeline.distributed.unsupported import pair_bytes, unsupported_parts
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
                                          stress_blocks)
@@ -66,7 +67,6 @@ BACKEND = "slepc"
 
 def check_supported(cfg: Config) -> None:
     """One line for what the distributed path does not do yet (before any work)."""
-    check_connections(cfg)
     if cfg.modes.precision == "mixed":
         raise ConfigError("modes.precision: mixed with modes.solver: slepc: expected auto or "
                           "double", key="modes.precision", value="mixed",
@@ -119,6 +119,8 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
                                       solver="pardiso")
     shapes = 3 * 8.0 * n_dofs * count
     divided = (whole - res.BASELINE_BYTES + shapes) / comm.size
+    if cfg.connections and not clamped_by_supports(cfg):  # the connection model's own K, M
+        divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
     per_rank = int(res.BASELINE_BYTES + divided + (mesh if comm.rank == 0 else 0))
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     node_ranks = node.size
@@ -235,7 +237,10 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         spin_masses = comm.bcast(None if whole is None else
                                  rotation_masses(cfg, whole.space, whole.regions), root=0)
         interfaces = comm.bcast(None if whole is None else connection_interfaces(
-            cfg, whole.space, whole.regions, whole.fixed), root=0)
+            cfg, whole.space, whole.regions), root=0)
+        unsupported = None  # the connection model's own pair (K, M): its part
+        if cfg.connections and not clamped_by_supports(cfg):
+            unsupported = unsupported_parts(comm, whole, part)
         # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
         constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
                                            3 * n_nodes, free, part)
@@ -264,13 +269,15 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
                 whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
-                rotation_masses=spin_masses, connections=interfaces)
+                rotation_masses=spin_masses, connections=interfaces,
+                unsupported=unsupported)
             regions, materials = whole.regions, whole.materials
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
                                      np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses, connections=interfaces)
+                                     rotation_masses=spin_masses, connections=interfaces,
+                unsupported=unsupported)
             regions, materials = {}, mesh.materials
         del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,

@@ -104,6 +104,9 @@ class DistributedSpace:
     #: the interfaces of a connection model, parent first
     #: (:mod:`pipeline.distributed.connection`), or None
     connections: Any = None
+    #: the unsupported body's part when the connection model's clamped pencil is not the
+    #: run's (:class:`~pipeline.distributed.unsupported.Unsupported`), or None
+    unsupported: Any = None
 
     @property
     def n_dofs(self) -> int:
