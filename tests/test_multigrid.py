@@ -265,6 +265,34 @@ def test_static_solves_ride_along_in_lobpcg_sweeps(beam):
                                     "LOBPCG with riding PCG: eigenvalues")
 
 
+def test_static_loads_ride_only_where_lobpcg_keeps_its_layout(beam, monkeypatch):
+    """solve_modes with ``loads`` and a kept solver rides them along (stats), and its
+    kept solver returns the solution of those loads (true residual as a PCG of its
+    own, test_static_solves_ride_along_in_lobpcg_sweeps); where memory would hold
+    LOBPCG's whole layout but not the rider's 6 (n, k) blocks beside it, no rider."""
+    from pipeline._util.resources import LOBPCG_BLOCKS
+
+    P = p1_prolongation(beam.space, beam.free)
+    n = beam.K.shape[0]
+    F = np.random.default_rng(13).standard_normal((n, 2))
+    modes = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P, keep=True,
+                        loads=F)
+    try:
+        assert modes.stats["riding_columns"] == 2
+        X = modes.factorization.solve(F)
+    finally:
+        modes.release_factorization()
+    residual = float((np.linalg.norm(F - beam.K @ X, axis=0)
+                      / np.linalg.norm(F, axis=0)).max())
+    assert residual <= multigrid.PCG_RTOL + cond_eps(beam.K)
+    block = modes.stats["block"]
+    monkeypatch.setattr(eigen, "_usable_bytes", lambda: 8.0 * n * LOBPCG_BLOCKS * block)
+    tight = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P, keep=True,
+                        loads=F)
+    tight.release_factorization()
+    assert tight.stats["riding_columns"] == 0 and tight.stats["block"] == block
+
+
 def test_lobpcg_converges_without_plateaus(beam):
     """With the two-grid cycle, every sweep cuts the worst preconditioned residual by at
     least 2 until it nears the target (measured: 4-8 per sweep). Without the column

@@ -336,7 +336,8 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
 
     ``loads`` (n, k), kept solver only: the static solves K X = loads to come ride along
     in the sweeps' cycles (:meth:`~pipeline.solve.multigrid.TwoGrid.ride`; up to
-    :data:`RIDING_COLUMNS` of them, which add a tenth to the sweeps' memory): each
+    :data:`RIDING_COLUMNS` of them, which add a tenth to the sweeps' memory, and only
+    where LOBPCG keeps one batch with every guard column beside them): each
     sweep makes one of their PCG iterations for the price of k more columns in one
     cycle, about a tenth of what a PCG iteration of its own costs at 1M DOFs."""
     sigma, tolerance, budget = plan.shift, plan.tolerance, plan.multigrid_budget
@@ -344,9 +345,6 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
     A = K - sigma * M if sigma != 0.0 else K
     tg = multigrid.TwoGrid(A, P, plan.backend)
     try:
-        if (loads is not None and plan.keep_factor and sigma == 0.0
-                and 0 < np.shape(loads)[1] <= RIDING_COLUMNS):
-            tg.ride(loads)
         Mc = multigrid.coarse_matrix(tg, M)
         width = min(count + lobpcg_guard(count), tg.coarse_n // 2)
         # start block: the coarse problem's own modes, through the coarse factor
@@ -359,8 +357,17 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
         del Mc
         # the modes per LOBPCG batch and its guard columns: what fits beside K, M and the
         # preconditioner (all of them in one batch unless memory is short)
-        batch, guard = lobpcg_layout(K.shape[0], count, width - count,
-                                     _usable_bytes())
+        usable, riding = _usable_bytes(), 0
+        if (loads is not None and plan.keep_factor and sigma == 0.0
+                and 0 < np.shape(loads)[1] <= RIDING_COLUMNS):
+            # only where the rider leaves LOBPCG's layout (one batch, every guard) as is
+            rider = multigrid.RIDER_BLOCKS * 8.0 * K.shape[0] * np.shape(loads)[1]
+            whole = (count, width - count)
+            if lobpcg_layout(K.shape[0], count, width - count, usable - rider) == whole:
+                tg.ride(loads)
+                usable -= rider
+                riding = int(np.shape(loads)[1])
+        batch, guard = lobpcg_layout(K.shape[0], count, width - count, usable)
 
         def start(first: int, stop: int) -> np.ndarray:
             return sparse_times_dense(tg.P, np.ascontiguousarray(vc[:, first:stop]))
@@ -408,7 +415,7 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
              "history": list(result.history), "tolerance": target, "block": batch + guard,
              "batches": -(-count // batch), "solves": result.sweeps * (batch + guard),
              "calls": result.sweeps,
-             "lambda_max_dinv_k": tg.lambda_max,
+             "lambda_max_dinv_k": tg.lambda_max, "riding_columns": riding,
              "eigensolver_seconds": time.perf_counter() - t1}
     log.info("multigrid LOBPCG: %d sweeps of %d vectors in %.1f s (set-up %.1f s, coarse "
              "%d DOFs), preconditioned residual %.1e", result.sweeps, batch + guard,

@@ -83,6 +83,7 @@ DEGREE = 4
 LOWER = 0.05  # lower end of the smoothed interval, as a fraction of lambda_max(D^-1 A)
 POWER_STEPS = 12
 PCG_BLOCKS = 8  # (n x k) blocks a PCG iteration allocates (residual, search direction, cycle)
+RIDER_BLOCKS = 6  # (n x k) blocks a riding PCG holds through the sweeps (TwoGrid.ride)
 PCG_RTOL = 1e-12  # static solves: ||F - K X|| <= PCG_RTOL ||F|| per column
 PCG_MAX_ITER = 500
 
