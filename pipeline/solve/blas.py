@@ -190,6 +190,85 @@ def axpby(a: float, x: np.ndarray, b: float, y: np.ndarray) -> np.ndarray:
     return y
 
 
+_ROW_MAJOR, _COL_MAJOR, _NO_TRANS, _TRANS = 101, 102, 111, 112
+
+
+def _dgemm(lib):
+    f = lib.cblas_dgemm
+    f.argtypes = [ctypes.c_int] * 6 + [ctypes.c_double, ctypes.c_void_p, ctypes.c_int,
+                                       ctypes.c_void_p, ctypes.c_int, ctypes.c_double,
+                                       ctypes.c_void_p, ctypes.c_int]
+    return f
+
+
+def _tall(*arrays: np.ndarray) -> bool:
+    """Whether MKL's dgemm takes these blocks as they are: C-contiguous float64 2-D
+    arrays, sizes within its 32-bit interface."""
+    return all(a.ndim == 2 and a.dtype == np.float64 and a.flags.c_contiguous
+               and a.size < 2**31 for a in arrays)
+
+
+def gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A^T B (k1 x k2) for tall blocks A (n, k1) and B (n, k2), the Gram matrices of
+    block eigensolvers (:mod:`pipeline.solve.lobpcg`).
+
+    MKL's threaded dgemm when MKL is there and the blocks are C-contiguous float64,
+    else numpy's. MKL splits the long inner dimension over the cores, which numpy's
+    OpenBLAS does not for a 25 x 25 result: 1M x 25 blocks, 0.037 s against 0.050-0.065 s
+    (1.5x for 75 columns; Intel Xeon, 2 cores).
+
+    >>> A = np.arange(6.0).reshape(3, 2)
+    >>> gram(A, A)
+    array([[20., 26.],
+           [26., 35.]])
+    """
+    if A.shape[0] != B.shape[0]:
+        raise ValueError(f"gram: A has {A.shape[0]} rows and B {B.shape[0]}")
+    if _tall(A, B) and A.shape[0] > 0 and A.shape[1] and B.shape[1]:
+        with mkl.threads() as lib:
+            if lib is not None:
+                k1, k2 = A.shape[1], B.shape[1]
+                C = np.empty((k2, k1))  # column-major (k1, k2): C.T
+                _dgemm(lib)(_COL_MAJOR, _NO_TRANS, _TRANS, k1, k2, A.shape[0], 1.0,
+                            A.ctypes.data, k1, B.ctypes.data, k2, 0.0, C.ctypes.data, k1)
+                return np.ascontiguousarray(C.T)
+    return A.T @ B
+
+
+def times_small(A: np.ndarray, C: np.ndarray, out: np.ndarray | None = None,
+                alpha: float = 1.0, beta: float = 0.0) -> np.ndarray:
+    """alpha A C + beta out for a tall block A (n, k) and a small C (k, m), into ``out``
+    (n, m; C-contiguous float64) when given (beta = 0: a new array): the block updates of
+    block eigensolvers. MKL's threaded dgemm where :func:`gram` takes it (1M x 25 times
+    25 x 25: 0.037 s against numpy's 0.064 s), else numpy.
+
+    >>> times_small(np.ones((3, 2)), np.eye(2), out=np.ones((3, 2)), beta=2.0)[0]
+    array([3., 3.])
+    """
+    if out is None:
+        out, beta = np.empty((A.shape[0], C.shape[1])), 0.0
+    if out.shape != (A.shape[0], C.shape[1]):
+        raise ValueError(f"times_small: out {out.shape}, expected {(A.shape[0], C.shape[1])}")
+    C = np.ascontiguousarray(C, dtype=np.float64)
+    if _tall(A, out) and A.shape[0] > 0 and A.shape[1] and C.shape[1]:
+        with mkl.threads() as lib:
+            if lib is not None:
+                n, k = A.shape
+                _dgemm(lib)(_ROW_MAJOR, _NO_TRANS, _NO_TRANS, n, C.shape[1], k, alpha,
+                            A.ctypes.data, k, C.ctypes.data, C.shape[1], beta,
+                            out.ctypes.data, C.shape[1])
+                return out
+    if beta == 0.0:
+        np.matmul(A, C, out=out)
+        if alpha != 1.0:
+            out *= alpha
+    else:
+        if beta != 1.0:
+            out *= beta
+        out += alpha * (A @ C)
+    return out
+
+
 def scaled_inf_norm(A: sp.spmatrix, w: np.ndarray | None = None,
                     rows_per_chunk: int = 1 << 16) -> float:
     """|W |A| W|_inf = max_i w_i sum_j |A_ij| w_j for W = diag(w) (w (n,) >= 0; None:

@@ -32,6 +32,13 @@ same linear combinations as W. Memory: X, K X, M X and W, K W, M W, i.e. about
 The eigenvalues and residuals are computed in double precision from K and M
 themselves: the preconditioner's quality sets the number of sweeps, not the accuracy.
 
+The dense products (Gram matrices, block updates) go to MKL's dgemm where MKL is there
+(:func:`pipeline.solve.blas.gram`, :func:`~pipeline.solve.blas.times_small`), not to
+numpy's OpenBLAS, which does not split the long dimension of a 25 x 25 Gram product over
+the cores (1M x 25: 0.037 s against 0.050-0.065 s) and whose own thread pool then runs
+beside MKL's sparse products. The cantilever at 999k DOFs (Intel Xeon, 2 cores, pairs of
+runs): the modes stage 36.5 and 39.7 s -> 31.5 and 30.2 s, the same 6 sweeps.
+
 Kept over :func:`scipy.sparse.linalg.lobpcg` (``benchmarks/bench_solvers.py``, same
 matrices, start block and two-grid preconditioner, the cantilever at 100k DOFs, 20
 modes; 2-core Xeon, load average 10-14 from other jobs, ratios from the same run): 8
@@ -60,7 +67,7 @@ import numpy as np
 import scipy.linalg as la
 import scipy.sparse as sp
 
-from pipeline.solve.blas import column_norms, sparse_times_dense
+from pipeline.solve.blas import column_norms, gram, sparse_times_dense, times_small
 
 log = logging.getLogger(__name__)
 
@@ -135,30 +142,21 @@ def _columns(A: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 
 def _update(A: np.ndarray, B: np.ndarray, C: np.ndarray, alpha: float) -> None:
-    """A += alpha B @ C in place, by one BLAS product into A (no (n, k) temporary): on
-    the column-major views, A^T = A^T + alpha C^T B^T: almost twice as fast as
-    A -= B @ C for a (1M x 50) A."""
-    if A.flags.c_contiguous and B.flags.c_contiguous and A.dtype == B.dtype == np.float64:
-        out = la.blas.dgemm(alpha, np.asfortranarray(C.T), B.T, beta=1.0, c=A.T,
-                            overwrite_c=True)
-        if np.shares_memory(out, A):
-            return
-        A[...] = out.T
-        return
-    A += alpha * (B @ C)
+    """A += alpha B @ C in place, by one BLAS product into A (no (n, k) temporary;
+    :func:`pipeline.solve.blas.times_small`): almost twice as fast as A -= B @ C for a
+    (1M x 50) A."""
+    times_small(B, C, out=A, alpha=alpha, beta=1.0)
 
 
 def _plus(A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
     """A @ B + C in one new (n, k) array (``A @ B + C`` allocates and writes two)."""
-    out = A @ B
-    out += C
-    return out
+    return times_small(A, B, out=np.array(C, dtype=np.float64, order="C"), beta=1.0)
 
 
 def _combine(blocks: list[np.ndarray], C: np.ndarray) -> np.ndarray:
     """[B_1, B_2, ...] @ C for column blocks B_i (n, k_i) that are never joined into
     one array (C: (sum k_i, k)); each block's rows of C in turn, accumulated in place."""
-    out = blocks[0] @ C[:blocks[0].shape[1]]
+    out = times_small(blocks[0], C[:blocks[0].shape[1]])
     start = blocks[0].shape[1]
     for B in blocks[1:]:
         _update(out, B, C[start:start + B.shape[1]], 1.0)
@@ -182,7 +180,7 @@ def _gram(left: list[np.ndarray], right: list[np.ndarray],
                 G[rows[i]:rows[i + 1], cols[j]:cols[j + 1]] = \
                     G[cols[j]:cols[j + 1], rows[i]:rows[i + 1]].T
             else:
-                G[rows[i]:rows[i + 1], cols[j]:cols[j + 1]] = a.T @ b
+                G[rows[i]:rows[i + 1], cols[j]:cols[j + 1]] = gram(a, b)
     return G
 
 
@@ -239,8 +237,8 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         raise ValueError(f"count {count}: expected 1..{m} (the columns of the start block)")
     KX, MX = _times(K, X), _times(M, X)
     # Rayleigh-Ritz on span(X): ordered, exactly M-orthonormal
-    w, B = _rayleigh_ritz(total(X.T @ KX), total(X.T @ MX))
-    X, KX, MX = X @ B, KX @ B, MX @ B
+    w, B = _rayleigh_ritz(total(gram(X, KX)), total(gram(X, MX)))
+    X, KX, MX = times_small(X, B), times_small(KX, B), times_small(MX, B)
     P = KP = MP = None
     history: list[float] = []
     best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -290,7 +288,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         # W -= X (X^T M W): M-orthogonal to X, the images alike (one classical
         # Gram-Schmidt pass; what it leaves is handled by the explicit Gram matrix below)
         for Wb, KWb, MWb in zip(W, KW, MW):
-            C = total(MX.T @ Wb)
+            C = total(gram(MX, Wb))
             _update(Wb, X, C, -1.0)
             _update(KWb, KX, C, -1.0)
             _update(MWb, MX, C, -1.0)
@@ -312,7 +310,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         # unconverged directions), and carried from sweep to sweep it grew to 2e-10 in
         # the lowest eigenvalue after 400 Jacobi-preconditioned sweeps of a 1D pencil
         # (8e-12 computed)
-        Kr[:m, :m], Gr[:m, :m] = total(X.T @ KX), total(X.T @ MX)
+        Kr[:m, :m], Gr[:m, :m] = total(gram(X, KX)), total(gram(X, MX))
         Kr[:m, m:] = total(_gram([X], KW)) @ C
         Gr[:m, m:] = total(_gram([X], MW)) @ C
         Kr[m:, m:] = C.T @ total(_gram(W, KW, symmetric=True)) @ C
