@@ -111,8 +111,8 @@ class RowMatrix:
         (100,695 free DOFs, 2 ranks, one process measuring both): K times its 10 modes
         0.198 -> 0.062 s (3.2x), M 2.0x, 25 columns 2.4x, the same to round-off
         (1.8e-11 of the largest entry of K X, whose terms cancel). The reduce stage
-        itself does not move (Craig-Bampton with 20 modes: 47 and 54 s, noise of a
-        loaded machine): its clamped eigen solves dominate it."""
+        of cantilever_connection.yaml (Craig-Bampton, 20 modes; 30-50 s) is dominated
+        by its clamped eigen solves: its products take a few seconds of it."""
         if self.petsc is None:
             raise RuntimeError("RowMatrix.apply: no PETSc matrix attached")
         from pipeline.distributed.mpi import petsc

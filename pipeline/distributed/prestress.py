@@ -503,8 +503,8 @@ class SpeedFactor:
     factor) and factor of K(Omega); the next ones solve again with that solver on the
     same matrix, refilled (:func:`spin_matrix`): SLEPc keeps its KSP and PETSc's PC
     refactorises numerically only (:func:`~pipeline.distributed.eigen.solve_eigen_again`;
-    5 speeds of the cantilever at 16k DOFs: 6 symbolic factorisations -> 2; at 100k DOFs
-    on 2 ranks the numeric factorisation is 8.8 of the about 12 s a speed takes, so the
+    5 speeds of the cantilever at 100k DOFs on 2 ranks: 6 symbolic factorisations -> 2,
+    4.8 -> 1.5 s; the numeric factorisation is 9-10 of the 11-12 s a speed takes, so the
     time per speed does not move measurably).
     The pattern is the one a fresh factor per speed had, so the ordering is the same; a
     refactorisation that fails (MUMPS short of workspace after other pivots) is made

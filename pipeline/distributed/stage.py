@@ -418,7 +418,7 @@ def connection_models(cfg: Config, space, props, free, K: RowMatrix, M: RowMatri
     run's factor of K is freed: the static correction is made, and the clamped and
     fixed-interface solves factorise their own pencils, so two factors of K's size are
     never alive at once on a rank (cantilever_connection.yaml, 100k DOFs, 2 ranks: a
-    rank's resident memory 593 -> 290 MB here, rank peaks 1067 / 928 -> 943 / 884 MB)."""
+    rank's resident memory 593 -> 290 MB here, rank peaks 1318 / 1257 -> 882 / 886 MB)."""
     if modes.factorization is not None:
         modes.factorization.release_solver()
     return models_of_connections(cfg, space, props, free, K, M, modes, models)
