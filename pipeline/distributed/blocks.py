@@ -6,7 +6,7 @@ What the reduce stage needs from such blocks is small and made collectively:
 
     X^T Y = sum_r X_r^T Y_r                       (k, l): MPI_Allreduce
     T X   = sum_r T[:, rows_r] X_r                (n_y, k): a sparse T of a few rows
-    A X   (A = K or M)                            PETSc's distributed product, per column
+    A X   (A = K or M)                            PETSc's MatMatMult of the whole block
     X Q   (Q small, replicated)                   rows stay where they are
 
 :class:`PointBlocks` turns per-rank rows into one dataset of the file,

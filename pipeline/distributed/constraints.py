@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.resources import release_free_heap
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.operators import RowMatrix
 from pipeline.distributed.partition import RowPartition
@@ -179,6 +180,7 @@ class DistributedConstraint:
             if A is not None:
                 A.destroy()
         self.T = self.TtT = self.K = self.M = None
+        release_free_heap()  # the projected pencil's (and its factor's) pages, as KspSolve
 
 
 class Unconstrained:

@@ -180,10 +180,36 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: f
             raise _WorkspaceShort(reason) from None
         if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
             reason = reason.split(". ")[0][:240]
-        raise SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
-                          "solvable eigenproblem and options PETSc has (PETSC_OPTIONS: "
-                          f"{os.environ.get('PETSC_OPTIONS', '')!r})", key="modes.solver",
-                          value="slepc", expected="a solvable eigenproblem") from None
+        raise _slepc_failed(reason) from None
+    values, rows, stats = _eigenpairs(eps, K, count, solver)
+    return values, rows, {**stats, "eps": eps, "ksp": ksp}
+
+
+def _slepc_failed(reason: str) -> SolverError:
+    return SolverError(f"modes.solver: slepc: SLEPc failed ({reason}); expected a "
+                       "solvable eigenproblem and options PETSc has (PETSC_OPTIONS: "
+                       f"{os.environ.get('PETSC_OPTIONS', '')!r})", key="modes.solver",
+                       value="slepc", expected="a solvable eigenproblem")
+
+
+def solve_eigen_again(PETSc, eps, K, M, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(eigenvalues (count,), this rank's rows (n_loc, count)) as :func:`solve_eigen`,
+    with the solver ``eps`` of an earlier :func:`solve_eigen` call, for the same PETSc
+    matrices K, M holding new values in the same nonzero pattern: SLEPc's ST then keeps
+    its KSP (STSetMatrices with the same matrices: ST_STATE_UPDATED), and PETSc's PC
+    refactorises numerically on MUMPS' analysis of the first call (its ordering and
+    symbolic factor). A failure is a SolverError (no workspace retry)."""
+    eps.setOperators(K, M)
+    try:
+        eps.solve()
+    except PETSc.Error as exc:
+        raise _slepc_failed(_petsc_reason(exc)[:240]) from None
+    values, rows, _ = _eigenpairs(eps, K, count, "krylovschur-mumps")
+    return values, rows
+
+
+def _eigenpairs(eps, K, count: int, solver: str):
+    """(values (count,), this rank's rows (n_loc, count), stats) of a solved ``eps``."""
     nconv = eps.getConverged()
     if nconv < count:
         raise SolverError(f"modes.count: SLEPc ({solver}) converged {nconv} of {count} modes "
@@ -200,7 +226,7 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: f
              "converged": int(nconv)}
     log.info("SLEPc %s: %d modes converged in %d iterations", solver, nconv,
              stats["iterations"])
-    return values, rows, {**stats, "eps": eps, "ksp": ksp}
+    return values, rows, stats
 
 
 def mumps_cholesky(PETSc, A, prefix: str, what: str):

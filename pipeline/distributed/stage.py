@@ -47,7 +47,7 @@ from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
 from pipeline.distributed.constraints import distribute_constraint
 from pipeline.distributed.connection import (clamped_by_supports, connection_interfaces,
-                                             connection_models)  # noqa: F401 (run.py's)
+                                             connection_models as models_of_connections)
 from pipeline.distributed.unsupported import pair_bytes, unsupported_parts
 from pipeline.distributed.reduce import (build_statespace,  # noqa: F401 (run.py's)
                                          label_rows, rayleigh_ritz_rows, shapes_blocks,
@@ -107,7 +107,13 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     mesh points, ``n_el`` elements), its K, M and factor share and its three (n_dofs,
     n_modes) arrays of mode shapes divided by the rank count, plus what every rank holds
     (baseline); each rank's part of the mesh is the whole mesh / ranks, and rank 0 holds
-    the whole mesh besides (it meshes and writes). Returns this rank's bytes."""
+    the whole mesh besides (it meshes and writes). A rotation sweep (factor path, a
+    speed other than 0) factorises K(Omega), K's pattern, while the run's factor of K
+    is alive (the static correction solves with it afterwards): one more factor's share
+    (:func:`~pipeline._util.resources.factor_bytes`). The other factors made after the
+    modes stage come after the run's is freed and add nothing: the connection models'
+    clamped and fixed-interface solves (:func:`connection_models`) and a free body's
+    inertia relief (:func:`compute_modes`). Returns this rank's bytes."""
     from mpi4py import MPI
 
     from pipeline._util import resources as res
@@ -118,7 +124,11 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     whole = res.estimate_memory_bytes(n_nodes, n_el, cfg.mesh.order, count, "factor",
                                       solver="pardiso")
     shapes = 3 * 8.0 * n_dofs * count
-    divided = (whole - res.BASELINE_BYTES + shapes) / comm.size
+    rotation = cfg.rotation
+    sweep = (rotation is not None and any(s != 0 for s in rotation.speeds_rad_s)
+             and cfg.modes.method != "multigrid")
+    second = res.factor_bytes(n_dofs) if sweep else 0.0
+    divided = (whole - res.BASELINE_BYTES + shapes + second) / comm.size
     if cfg.connections and not clamped_by_supports(cfg):  # the connection model's own K, M
         divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
     per_rank = int(res.BASELINE_BYTES + divided + (mesh if comm.rank == 0 else 0))
@@ -128,8 +138,9 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     top = comm.allreduce(per_rank, op=MPI.MAX)
     node.Free()
     have = comm.allreduce(res.available_memory_bytes(), op=MPI.MIN)
-    log.info("memory estimate %.2f GB per rank, %d ranks on this node, %.2f GB available",
-             per_rank / 1e9, node_ranks, have / 1e9)
+    log.info("memory estimate %.2f GB per rank (%.2f GB of it the rotation sweep's "
+             "factor), %d ranks on this node, %.2f GB available", per_rank / 1e9,
+             second / comm.size / 1e9, node_ranks, have / 1e9)
     if need > res.HEADROOM * have:
         raise ResourceError(
             f"mesh with {n_dofs} DOFs on {comm.size} ranks needs about "
@@ -356,11 +367,11 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         _, local, stats, ksp = lobpcg_modes(
             PETSc, SLEPc, Kp, Mp, P, count, count + lobpcg_guard(count), shift, tolerance,
             MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
-        owned = [ksp, P, *stats.pop("keep")]
+        owned = [ksp, *stats.pop("keep")]
     else:
         omega2, local, stats = solve_eigen(PETSc, SLEPc, Kp, Mp, count, tolerance, shift)
         eps, ksp = stats.pop("eps"), stats.pop("ksp")
-        owned = [eps]  # SLEPc's solver owns its KSP
+        owned = [eps, ksp]  # SLEPc's solver holds its KSP (and MUMPS' factor) too
     comm = world()
     K.petsc, M.petsc = Kp, Mp  # the products of the Rayleigh-Ritz step and the reduce stage
     omega2, shapes, residuals = rayleigh_ritz_rows(K, M, RowBlock(comm, K.part, local), shift)
@@ -389,10 +400,12 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     # not K: no solver then (the inertia relief makes its own, as the serial path).
     # The PETSc objects (and K's and M's) are freed with it, when the pipeline drops K
     # (every rank at the same point: PETSc's destroy is collective)
-    factor: Any = KspSolve(ksp if supported else None, K,
-                           keep=[*owned]
+    factor: Any = KspSolve(ksp if supported else None, K, keep=owned,
+                           matrices=([P] if two_grid else [])
                            + ([Kp, Mp] if con is None else [con, fe.K.petsc, fe.M.petsc]),
                            prolongation=P if two_grid else None)
+    if not supported:  # its factor solves nothing more: freed before the relief's own
+        factor.release_solver()
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
     labels = label_rows(fe.space, fe.free, shapes, n_rigid)
@@ -404,6 +417,18 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor,
                  labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, fe.free, shapes),
                  constraint=con)
+
+
+def connection_models(cfg: Config, space, props, free, K: RowMatrix, M: RowMatrix,
+                      modes: Modes, models):
+    """:func:`pipeline.distributed.connection.connection_models` (run.py's) after the
+    run's factor of K is freed: the static correction is made, and the clamped and
+    fixed-interface solves factorise their own pencils, so two factors of K's size are
+    never alive at once on a rank (cantilever_connection.yaml, 100k DOFs, 2 ranks: a
+    rank's resident memory 593 -> 290 MB here, rank peaks 1318 / 1257 -> 882 / 886 MB)."""
+    if modes.factorization is not None:
+        modes.factorization.release_solver()
+    return models_of_connections(cfg, space, props, free, K, M, modes, models)
 
 
 def stress_modes_tree(cfg: Config, space, free, models) -> dict:

@@ -1,0 +1,80 @@
+"""The MUMPS factors on MPI ranks (:mod:`pipeline.distributed`): what the per-rank memory
+estimate counts and what the block products give.
+
+The estimate before the run (:func:`pipeline.distributed.stage.check_rank_memory`)
+counts one more factor of K's size, :func:`pipeline._util.resources.factor_bytes`,
+divided among the ranks, exactly when a rotation sweep factorises K(Omega) beside the
+run's factor (factor path, a speed other than 0); a sweep at rest only, or the
+factor-free path, adds nothing. The connection models' and a free body's inertia
+relief's factors are made after the run's is freed, so they add nothing either.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+
+import pytest
+
+from conftest import ROOT
+from test_mpi import MPI_PYTHON, _mpiexec
+
+_ESTIMATES = """
+from pipeline.config import load_config
+from pipeline.distributed.mpi import world
+from pipeline.distributed.stage import check_rank_memory
+from pipeline._util.resources import factor_bytes
+
+spin = "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], speeds_rad_s: [%s]}"
+cases = [[], [spin % "0, 100"], [spin % "0"], [spin % "0, 100", "modes.method=multigrid"]]
+comm = world()
+n_nodes, n_el = 40000, 25000
+plain, sweep, rest, factor_free = (
+    check_rank_memory(n_nodes, n_el, load_config("configs/cantilever.yaml",
+                                                 ["modes.solver=slepc", *extra]), comm)
+    for extra in cases)
+if comm.rank == 1:
+    print(sweep - plain, factor_bytes(3 * n_nodes) / comm.size, rest - plain,
+          factor_free - plain)
+"""
+
+
+@pytest.mark.mpi
+def test_the_rank_memory_estimate_counts_the_rotation_sweeps_second_factor():
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    proc = subprocess.run([*_mpiexec(2), str(MPI_PYTHON), "-c", _ESTIMATES], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    added, expected, at_rest, factor_free = map(float, proc.stdout.split())
+    # int() of the per-rank bytes: the difference is exact to a byte
+    assert abs(added - expected) <= 1.0 and expected > 0
+    assert at_rest == 0.0
+    assert factor_free == 0.0
+
+
+@pytest.mark.mpi
+def test_a_rotation_sweep_analyses_once_and_refactorises_per_speed(tmp_path):
+    """PETSc's own event counts (``-log_view``): MUMPS' symbolic factorisation twice (the
+    modes stage's K and the first speed's K(Omega)), the numeric one once more per
+    speed; the frequencies rise with the speed (the spin's stiffening dominates the
+    bending modes of the cantilever spun about z)."""
+    import h5py
+    import numpy as np
+
+    out = tmp_path / "spin.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "PETSC_OPTIONS": "-log_view"}
+    proc = subprocess.run(
+        [*_mpiexec(2), "-x", "PETSC_OPTIONS", str(MPI_PYTHON), "-m", "pipeline", "run",
+         "configs/cantilever.yaml", "--set", "modes.solver=slepc", "--set", "mesh.size=0.02",
+         "--set", "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], "
+         "speeds_rad_s: [0, 200, 400, 600]}", "-o", str(out)],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    counts = {line.split()[0]: int(line.split()[1]) for line in proc.stdout.splitlines()
+              if line.startswith(("MatCholFctrSym ", "MatCholFctrNum "))}
+    assert counts == {"MatCholFctrSym": 2, "MatCholFctrNum": 4}, counts
+    with h5py.File(out) as f:
+        first = f["rotation/frequencies_hz"][()][:, 0]
+    assert np.all(np.diff(first) > 0), first
