@@ -42,7 +42,7 @@ sweep's cycle takes their residual as k more columns and makes one PCG iteration
 (:class:`pipeline.solve.pcg.Pcg`, the same recurrence), and the solve the reduce stage
 asks for later continues from there. A one-column PCG iteration of its own streams K
 seven times for one vector; riding, it costs about a tenth of that. The cantilever at
-999k DOFs (one tip load, Intel Xeon 2 cores, alternating runs): the static solve 8.1-8.7 s ->
+999k DOFs (one tip load, Intel Xeon 2 cores, alternating runs): the static solve 6.8-8.7 s ->
 3.1-4.0 s, 7 of its iterations in LOBPCG's 6 sweeps. Shapes: A (n x n) CSR, P
 (n x n_c) CSR, blocks (n, k).
 
