@@ -211,7 +211,7 @@ class RankTwoGrid(TwoGrid):
         self.dinv = 1.0 / diagonal
         self.coarse_n = int(P.getSize()[1])
         self.coarse = CoarseFactor(PETSc, A.PtAP(P))
-        self._single = self._ptd = None
+        self._single = self._ptd = self._p32 = self._riding = None  # serial-only caches
         self.lambda_max = self._lambda_max()
         self.seconds = time.perf_counter() - t0
 
