@@ -74,6 +74,24 @@ def test_prolongation_reproduces_linear_fields_and_respects_supports(beam):
     assert p1_prolongation(build_model_order1(beam), np.arange(3)) is None
 
 
+def test_galerkin_product_in_row_slabs_is_the_single_product_bit_for_bit(beam, monkeypatch):
+    """P^T K P made in row slabs on threads (pipeline.solve.blas.galerkin_product) equals
+    scipy's one product exactly: same structure, same values to the last bit (each row
+    is summed in the same order), for any slab count."""
+    from pipeline.solve import blas
+
+    P = sp.csr_matrix(p1_prolongation(beam.space, beam.free))
+    PT = sp.csr_matrix(P.T)
+    expected = PT @ beam.K @ P
+    monkeypatch.setattr(blas, "GALERKIN_THREAD_ROWS", 1)
+    for threads in (1, 2, 3, 7):
+        got = blas.galerkin_product(PT, beam.K, P, threads=threads)
+        assert got.shape == expected.shape
+        assert np.array_equal(got.indptr, expected.indptr)
+        assert np.array_equal(got.indices, expected.indices)
+        assert np.array_equal(got.data, expected.data)
+
+
 def build_model_order1(beam):
     from pipeline.fe.space import build_space
 

@@ -312,3 +312,21 @@ def test_scaled_inf_norm_equals_the_scaled_matrix_row_sums(rows_per_chunk):
     plain = scaled_inf_norm(A, rows_per_chunk=rows_per_chunk)
     assert plain == pytest.approx(float(abs(A).sum(axis=1).max()), rel=1e-14)
     assert scaled_inf_norm(sp.csr_matrix((0, 0))) == 0.0
+
+
+def test_scaled_inf_norms_share_one_pass_and_equal_the_single_norms():
+    """scaled_inf_norms(A, None, w) gives exactly what scaled_inf_norm gives for each
+    scaling on its own (same row chunks, same sums): the static solve takes ||K||_inf
+    and |W |K| W|_inf from one pass over K."""
+    from pipeline.solve.blas import scaled_inf_norm, scaled_inf_norms
+
+    rng = np.random.default_rng(7)
+    n, m = 200, 1500
+    A = sp.csr_matrix((rng.standard_normal(m), (rng.integers(0, n, m),
+                                                rng.integers(0, n, m))), shape=(n, n))
+    w = rng.random(n)
+    for chunk in (3, 1 << 16):
+        both = scaled_inf_norms(A, None, w, rows_per_chunk=chunk)
+        assert both == [scaled_inf_norm(A, rows_per_chunk=chunk),
+                        scaled_inf_norm(A, w, rows_per_chunk=chunk)]
+    assert scaled_inf_norms(A) == [scaled_inf_norm(A)]

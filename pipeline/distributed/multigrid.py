@@ -212,6 +212,7 @@ class RankTwoGrid(TwoGrid):
         self.coarse_n = int(P.getSize()[1])
         self.coarse = CoarseFactor(PETSc, A.PtAP(P))
         self._single = self._ptd = self._p32 = self._riding = None  # serial-only caches
+        self._a_norm = None  # ||A||_inf, made on first use (TwoGrid._norm_inf)
         self.lambda_max = self._lambda_max()
         self.seconds = time.perf_counter() - t0
 

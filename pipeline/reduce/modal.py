@@ -183,7 +183,8 @@ def _omega(omega2: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.asarray(omega2, dtype=float), 0.0))
 
 
-def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, float]:
+def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6,
+                      mesh_scale: float | None = None) -> tuple[float, float]:
     """Verify that ``Phi`` is an M-orthonormal eigenbasis with eigenvalues ``omega2``.
 
     Checks  max |Phi^T M Phi - I|                       <= tol   (dimensionless), and
@@ -193,7 +194,8 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
     ``omega2`` must be the squared circular frequencies (rad^2/s^2); passing omega (or a
     basis scaled so that Phi^T K Phi = diag(omega)) fails the check. Raises
     :class:`SolverError` naming the worst entry (row, column, value, expected value).
-    Returns the two measured errors (M, K) on success.
+    Returns the two measured errors (M, K) on success. ``mesh_scale``: the mesh's
+    :func:`~pipeline.solve.thresholds.stiffness_scale` where the caller has it.
     """
     Phi = np.asarray(Phi, dtype=float)
     omega2 = np.asarray(omega2, dtype=float).reshape(-1)
@@ -208,7 +210,9 @@ def check_modal_basis(K, M, Phi, omega2, tol: float = 1e-6) -> tuple[float, floa
     # stiffness scale: the largest retained omega^2, but never below 1e-6 of the mesh's
     # own eigenvalue scale (diag K / diag M), so rigid-body modes (omega^2 = 0) are judged
     # against round-off of K, not against 1 rad^2/s^2
-    floor = 1e-6 * stiffness_scale(K, M) if K.shape[0] else 0.0
+    if mesh_scale is None:
+        mesh_scale = stiffness_scale(K, M) if K.shape[0] else 0.0
+    floor = 1e-6 * mesh_scale
     scale = max(float(np.max(np.abs(omega2))) if n else 0.0, floor)
     scale = scale if scale > 0 else 1.0
     eK = np.abs(Kr - np.diag(omega2)) / scale
@@ -493,11 +497,11 @@ def reduce_model(K, M, Phi, omega2, F, T, n_modes: int, xi, static_correction: s
 
     n_modes = _keep_clusters_whole(omega2, n_modes, xi)
     Phi_r, w2_r = Phi[:, :n_modes], omega2[:n_modes]
-    check_modal_basis(K, M, Phi_r, w2_r, tol=basis_tol)
+    scale = stiffness_scale(K, M)
+    check_modal_basis(K, M, Phi_r, w2_r, tol=basis_tol, mesh_scale=scale)
     spec = xi if isinstance(xi, DampingSpec) else DampingSpec(
         "per_mode", ratios=tuple(np.asarray(xi, dtype=float).reshape(-1)))
 
-    scale = stiffness_scale(K, M)
     if n_rigid is None:  # library callers: zero to round-off, relative to the mesh
         n_rigid = int(np.count_nonzero(w2_r < rigid_omega2_threshold(scale)))
     else:  # the modes stage knows (0 for a supported body: its K was factorised)

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
-from pipeline.solve.blas import constraint_coordinates, scaled_inf_norm
+from pipeline.solve.blas import constraint_coordinates, scaled_inf_norms
 from pipeline.solve.factorization import factorize as factorize_matrix
 from pipeline.solve.refine import BACKWARD_ERROR_TOL, refined_solve
 from pipeline.solve.thresholds import SINGULAR_COND_EPS
@@ -76,7 +76,11 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
         Xq = static_shapes((T.T @ (K @ T)).tocsr(), T.T @ Fd, solve, factorize,
                            lowest_omega2=lowest_omega2, stiffness_scale=stiffness_scale)
         return np.asarray(T @ Xq, dtype=float)
-    X, report = refined_solve(K, _solver(K, solve, factorize), Fd)
+    solver = _solver(K, solve, factorize)
+    d = np.sqrt(np.abs(K.diagonal()))
+    d = np.where(d > 0, d, 1.0)
+    norm_K, norm_Ks = scaled_inf_norms(K, None, 1.0 / d)  # one pass over K for both
+    X, report = refined_solve(K, solver, Fd, norm_A=norm_K)
     X = np.asarray(X, dtype=float).reshape(Fd.shape)
     eta = float(report.backward_error.max(initial=0.0))
     eps = np.finfo(float).eps
@@ -90,9 +94,6 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
     # solve of a singular K has a small backward error; its null-space component makes
     # this bound ~1/eps. (kappa from the modes is only reported: the diagonal ratios of
     # thin P2 elements overstate it by orders of magnitude.)
-    d = np.sqrt(np.abs(K.diagonal()))
-    d = np.where(d > 0, d, 1.0)
-    norm_Ks = scaled_inf_norm(K, 1.0 / d)
     Fs = np.abs(Fd / d[:, None]).max(initial=0.0)
     if Fs > 0 and np.all(np.isfinite(X)):
         lower = norm_Ks * float(np.abs(X * d[:, None]).max(initial=0.0)) / Fs

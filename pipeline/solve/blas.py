@@ -10,6 +10,7 @@ import ctypes
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.resources import release_free_heap, usable_cores
 from pipeline.solve import mkl
 
 
@@ -272,28 +273,37 @@ def times_small(A: np.ndarray, C: np.ndarray, out: np.ndarray | None = None,
 def scaled_inf_norm(A: sp.spmatrix, w: np.ndarray | None = None,
                     rows_per_chunk: int = 1 << 16) -> float:
     """|W |A| W|_inf = max_i w_i sum_j |A_ij| w_j for W = diag(w) (w (n,) >= 0; None:
-    the identity, i.e. ||A||_inf).
+    the identity, i.e. ||A||_inf): :func:`scaled_inf_norms` for one scaling."""
+    return scaled_inf_norms(A, w, rows_per_chunk=rows_per_chunk)[0]
 
-    Row chunks of A's own arrays, one CSR product with |A_ij| each: no abs copy of A
-    (``abs(A)`` copies its values and indices, 1 GB for K of 1M DOFs, written fresh every
-    call; two sparse-times-sparse products with diag(w) were slower still and held three
-    copies of K's values). A matrix that knows its own norm (one whose rows live on
-    several processes, :mod:`pipeline.distributed`) is asked for it."""
+
+def scaled_inf_norms(A: sp.spmatrix, *weights: np.ndarray | None,
+                     rows_per_chunk: int = 1 << 16) -> list[float]:
+    """[|W |A| W|_inf for each w of ``weights``] (W = diag(w), w (n,) >= 0; None: the
+    identity, ||A||_inf), in one pass over A.
+
+    Row chunks of A's own arrays, one |A_ij| chunk each, shared by every scaling: no abs
+    copy of A (``abs(A)`` copies its values and indices, 1 GB for K of 1M DOFs, written
+    fresh every call; two sparse-times-sparse products with diag(w) were slower still
+    and held three copies of K's values). A matrix that knows its own norm (one whose
+    rows live on several processes, :mod:`pipeline.distributed`) is asked for it."""
+    weights = weights or (None,)
     if hasattr(A, "scaled_inf_norm"):
-        return float(A.scaled_inf_norm(w))
+        return [float(A.scaled_inf_norm(w)) for w in weights]
     A = A if is_csr(A) else sp.csr_matrix(A)
     n = A.shape[0]
-    best = 0.0
+    best = [0.0] * len(weights)
     for r0 in range(0, n, rows_per_chunk):
         r1 = min(n, r0 + rows_per_chunk)
         lo, hi = int(A.indptr[r0]), int(A.indptr[r1])
         part = sp.csr_matrix((np.abs(A.data[lo:hi]), A.indices[lo:hi],
                               A.indptr[r0:r1 + 1] - lo), shape=(r1 - r0, A.shape[1]))
-        if w is None:
-            sums = np.asarray(part.sum(axis=1)).ravel()
-        else:
-            sums = w[r0:r1] * (part @ w)
-        best = max(best, float(sums.max(initial=0.0)))
+        for i, w in enumerate(weights):
+            if w is None:
+                sums = np.asarray(part.sum(axis=1)).ravel()
+            else:
+                sums = w[r0:r1] * (part @ w)
+            best[i] = max(best[i], float(sums.max(initial=0.0)))
     return best
 
 
@@ -305,3 +315,34 @@ def constraint_coordinates(T: sp.spmatrix, U: np.ndarray) -> np.ndarray:
 
     rhs = np.asarray(T.T @ U, dtype=float)
     return np.asarray(splu(sp.csc_matrix(T.T @ T)).solve(rhs)).reshape(rhs.shape)
+
+
+#: rows of R below which :func:`galerkin_product` stays on one thread (the threads' start
+#: and malloc arenas cost more than they save on a small coarse space)
+GALERKIN_THREAD_ROWS = 20_000
+
+
+def galerkin_product(R: sp.csr_matrix, A: sp.csr_matrix, P: sp.csr_matrix,
+                     threads: int | None = None) -> sp.csr_matrix:
+    """R A P (R: (m, n), A: (n, n), P: (n, m'); CSR): the Galerkin coarse matrix P^T A P
+    for R = P^T.
+
+    scipy's sparse products run on one core but release the GIL, so R's rows are cut into
+    ``threads`` (default: the usable cores) contiguous slabs whose products run side by
+    side and are stacked: every row of the result is computed exactly as in the single
+    product (same entries, same order), bit for bit. The cantilever at 1M DOFs on two
+    cores: P^T K P 1.2 -> 0.5 s (313k DOFs: 0.26-0.40 -> 0.12-0.13 s)."""
+    threads = max(1, int(threads or usable_cores()))
+    m = R.shape[0]
+    if threads == 1 or m < GALERKIN_THREAD_ROWS:
+        return R @ A @ P
+    from concurrent.futures import ThreadPoolExecutor
+
+    edges = [(m * i) // threads for i in range(threads + 1)]
+    with ThreadPoolExecutor(threads) as pool:
+        parts = list(pool.map(lambda lo_hi: R[lo_hi[0]:lo_hi[1]] @ A @ P,
+                              zip(edges[:-1], edges[1:])))
+    out = sp.vstack(parts, format="csr")
+    del parts
+    release_free_heap()  # the threads' malloc arenas keep their temporaries' pages
+    return out

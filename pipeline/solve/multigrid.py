@@ -68,7 +68,7 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
-from pipeline.solve.blas import axpby, sparse_times_dense
+from pipeline.solve.blas import axpby, galerkin_product, scaled_inf_norm, sparse_times_dense
 from pipeline.solve.factorization import Factorization, SolverFactorization, factorize
 from pipeline.solve.pcg import Pcg
 
@@ -99,7 +99,7 @@ def _csr32(A: sp.spmatrix) -> sp.csr_matrix:
 
 def coarse_matrix(tg: "TwoGrid", M: sp.spmatrix) -> sp.csr_matrix:
     """P^T M P (n_c x n_c) on the coarse space of ``tg`` (the P1 mass of a P2 mesh)."""
-    return _csr32(tg.PT @ _csr32(M) @ tg.P)
+    return _csr32(galerkin_product(tg.PT, _csr32(M), tg.P))
 
 
 class TwoGrid:
@@ -117,7 +117,7 @@ class TwoGrid:
         if self.P.shape[0] != self.A.shape[0]:
             raise ValueError(f"prolongation P has {self.P.shape[0]} rows; expected "
                              f"{self.A.shape[0]} (the rows of A)")
-        coarse = _csr32(self.PT @ self.A @ self.P)
+        coarse = _csr32(galerkin_product(self.PT, self.A, self.P))
         self.coarse_n = coarse.shape[0]
         self.coarse = factorize(coarse, backend, positive_definite=True, check=False)
         del coarse
@@ -130,6 +130,7 @@ class TwoGrid:
         self._ptd: sp.csr_matrix | None = None
         self._p32: sp.csr_matrix | None = None
         self._riding: tuple[np.ndarray, Pcg] | None = None
+        self._a_norm: float | None = None
         self.lambda_max = self._lambda_max()
         self.seconds = time.perf_counter() - t0
         log.info("two-grid preconditioner: %d -> %d coarse DOFs, coarse factor %.2f GB, "
@@ -329,7 +330,8 @@ class TwoGrid:
         advances one iteration per LOBPCG sweep and :meth:`solve` finishes when asked
         for exactly this B (the static correction's loads, announced by the modes
         stage): their columns ride in the sweep's own cycle (module doc)."""
-        self._riding = (np.array(B, dtype=np.float64), Pcg(self.A, B, rtol, PCG_MAX_ITER))
+        self._riding = (np.array(B, dtype=np.float64),
+                        Pcg(self.A, B, rtol, PCG_MAX_ITER, self._norm_inf()))
 
     def precondition(self, R: np.ndarray) -> np.ndarray:
         """LOBPCG's preconditioner: the float32 cycle on R (n, k), with the riding
@@ -353,7 +355,7 @@ class TwoGrid:
             run = self._take_riding(B, rtol, max_iter)
             rode = 0 if run is None else run.iterations
             if run is None:
-                run = Pcg(self.A, B, rtol, max_iter)
+                run = Pcg(self.A, B, rtol, max_iter, self._norm_inf())
             X, self.iterations = run.run(self.apply_single)
         log.debug("multigrid PCG: %d iterations (%d of them in LOBPCG's sweeps)",
                   self.iterations, rode)
@@ -373,6 +375,12 @@ class TwoGrid:
         self._riding = None
         run.vector = B.ndim == 1
         return run
+
+    def _norm_inf(self) -> float:
+        """||A||_inf, the floor of every PCG's stop test: one pass over A, made once."""
+        if self._a_norm is None:
+            self._a_norm = scaled_inf_norm(self.A)
+        return self._a_norm
 
     def release(self) -> None:
         self.coarse.release()

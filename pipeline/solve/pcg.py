@@ -56,11 +56,12 @@ class Pcg:
     ``advance(Z)`` takes Z = T R and makes the next iteration; ``finished`` once every
     column has stopped (module doc), ``solution()`` is then X (the shape of B).
     :func:`pcg` is ``Pcg(A, B, rtol).run(precondition, max_iter)``, with the same
-    arithmetic in the same order.
+    arithmetic in the same order. ``norm_A``: ||A||_inf (the round-off floor of the stop
+    test) where the caller knows it already; one pass over A otherwise.
     """
 
     def __init__(self, A: sp.spmatrix, B: np.ndarray, rtol: float = RTOL,
-                 max_iter: int = MAX_ITER):
+                 max_iter: int = MAX_ITER, norm_A: float | None = None):
         B = np.asarray(B, dtype=np.float64)
         self.vector = B.ndim == 1
         self.A, self.rtol, self.max_iter = A, rtol, max_iter
@@ -68,7 +69,7 @@ class Pcg:
         self.X = np.zeros_like(B)
         bnorm = column_norms(B)
         self.goal = rtol * np.where(bnorm > 0, bnorm, 1.0)
-        self.norm_A = scaled_inf_norm(A)
+        self.norm_A = scaled_inf_norm(A) if norm_A is None else float(norm_A)
         self.b_inf = np.abs(B).max(axis=0)
         self.residual = B.copy()
         self.iterations = 0
