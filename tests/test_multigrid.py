@@ -113,6 +113,34 @@ def test_rayleigh_ritz_on_mkl_equals_numpys_to_round_off(beam, monkeypatch):
         assert np.array_equal(eigen._largest_entry_signs(ties, tall), expected)
 
 
+def test_column_dots_in_row_halves(monkeypatch):
+    """column_dots from HALVES_ROWS rows adds the two row halves' sums (one on a thread
+    of its own): equal to one einsum to round-off of a sum of n products (n eps of the
+    sum of |a_i b_i|), the same whether one core or two run it, and a failure in either
+    half is raised in the caller."""
+    from pipeline.solve import blas
+
+    rng = np.random.default_rng(2)
+    A, B = rng.standard_normal((1001, 5)), rng.standard_normal((1001, 5))
+    whole = np.einsum("ij,ij->j", A, B)
+    monkeypatch.setattr(blas, "HALVES_ROWS", 2)
+    halves = blas.column_dots(A, B)
+    assert np.all(np.abs(halves - whole) <= 1001 * np.finfo(float).eps
+                  * np.einsum("ij,ij->j", abs(A), abs(B)))
+    assert np.array_equal(blas.column_norms(A), np.sqrt(blas.column_dots(A, A)))
+    monkeypatch.setattr(blas, "usable_cores", lambda: 1)
+    assert np.array_equal(blas.column_dots(A, B), halves)
+
+    def fail(rows):
+        if rows.start:
+            raise ValueError("second half")
+        return 0
+
+    monkeypatch.setattr(blas, "usable_cores", lambda: 2)
+    with pytest.raises(ValueError, match="second half"):
+        blas.in_halves(fail, 10)
+
+
 def build_model_order1(beam):
     from pipeline.fe.space import build_space
 

@@ -152,6 +152,56 @@ def _update_out(AX: np.ndarray, out: np.ndarray | None, alpha: float, beta: floa
     return out
 
 
+#: rows from which :func:`column_dots` and :func:`in_halves`' callers split a block into
+#: two row halves, the second on a thread of its own (numpy's loops release the GIL):
+#: 1M x 25 column norms 0.037 -> 0.020 s on two cores
+HALVES_ROWS = 200_000
+
+
+def in_halves(fn, n: int) -> list:
+    """[fn(slice(0, h)), fn(slice(h, n))] with h = n // 2: the second half on a new
+    thread while this one computes the first, where more than one core is usable, else
+    one after the other. The same halves either way, so the arithmetic does not depend
+    on the machine; the first exception of either half is raised."""
+    h = n // 2
+    halves = [slice(0, h), slice(h, n)]
+    if usable_cores() < 2:
+        return [fn(s) for s in halves]
+    import threading
+
+    out: list = [None, None]
+    failed: list[BaseException] = []
+
+    def second() -> None:
+        try:
+            out[1] = fn(halves[1])
+        except BaseException as exc:  # re-raised by the caller's thread below
+            failed.append(exc)
+
+    worker = threading.Thread(target=second, name="pipeline-half")
+    worker.start()
+    try:
+        out[0] = fn(halves[0])
+    finally:
+        worker.join()
+    if failed:
+        raise failed[0]
+    return out
+
+
+def column_dots(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(k,) a_j . b_j for the columns of A, B (n, k): one pass, no (n, k) temporary; from
+    :data:`HALVES_ROWS` rows the two row halves' sums are added (:func:`in_halves`).
+
+    >>> column_dots(np.array([[1.0, 2.0], [3.0, 4.0]]), np.ones((2, 2)))
+    array([4., 6.])
+    """
+    if A.ndim == 2 and A.shape[0] >= HALVES_ROWS:
+        first, second = in_halves(lambda s: np.einsum("ij,ij->j", A[s], B[s]), A.shape[0])
+        return first + second
+    return np.einsum("ij,ij->j", A, B)
+
+
 def column_norms(A: np.ndarray) -> np.ndarray:
     """(k,) Euclidean norms of the columns of A (n, k): one pass, no (n, k) temporary
     (``np.linalg.norm(A, axis=0)`` squares A into one, four times slower at 1M x 25).
@@ -159,7 +209,7 @@ def column_norms(A: np.ndarray) -> np.ndarray:
     >>> column_norms(np.array([[3.0, 0.0], [4.0, 2.0]]))
     array([5., 2.])
     """
-    return np.sqrt(np.einsum("ij,ij->j", A, A))
+    return np.sqrt(column_dots(A, A))
 
 
 def axpby(a: float, x: np.ndarray, b: float, y: np.ndarray) -> np.ndarray:

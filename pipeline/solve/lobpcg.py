@@ -67,7 +67,8 @@ import numpy as np
 import scipy.linalg as la
 import scipy.sparse as sp
 
-from pipeline.solve.blas import column_norms, gram, sparse_times_dense, times_small
+from pipeline.solve.blas import (HALVES_ROWS, column_dots, column_norms, gram, in_halves,
+                                 sparse_times_dense, times_small)
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +198,20 @@ def _times(A, X: np.ndarray) -> np.ndarray:
 def _residuals(KX, MX, w, sigma, total=_one_process):
     """R = K X - M X diag(w) (n, m) and the relative residuals (m,); ``total`` sums the
     ranks' partial column sums (rows on several ranks)."""
-    R = MX * -w
-    R += KX
+    R = np.empty_like(MX)
+
+    def fill(rows: slice) -> None:  # elementwise: the same values in halves or at once
+        np.multiply(MX[rows], -w, out=R[rows])
+        R[rows] += KX[rows]
+
+    if R.shape[0] >= HALVES_ROWS:
+        in_halves(fill, R.shape[0])
+    else:
+        fill(slice(None))
 
     def norms(A):
         return column_norms(A) if total is _one_process else \
-            np.sqrt(total(np.einsum("ij,ij->j", A, A)))
+            np.sqrt(total(column_dots(A, A)))
     scale = np.maximum(norms(KX), abs(sigma) * norms(MX))
     return R, norms(R) / np.where(scale > 0, scale, 1.0)
 
@@ -251,7 +260,7 @@ def lobpcg(K: sp.spmatrix, M: sp.spmatrix, X: np.ndarray,
         active[count:] = True  # guard columns keep helping the last wanted ones
         R = _columns(R, active)
         Z = np.asarray(precondition(R), dtype=np.float64).reshape(n, -1)
-        rho[active] = np.sqrt(np.abs(total(np.einsum("ij,ij->j", R, Z)))
+        rho[active] = np.sqrt(np.abs(total(column_dots(R, Z)))
                               / np.maximum(np.abs(w[active]), floor))
         del R
         worst = float(rho[:count].max())
