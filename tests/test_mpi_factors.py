@@ -55,9 +55,11 @@ def test_the_rank_memory_estimate_counts_the_rotation_sweeps_second_factor():
 
 @pytest.mark.mpi
 def test_a_rotation_sweep_analyses_once_and_refactorises_per_speed(tmp_path):
-    """PETSc's own event counts (``-log_view``): MUMPS' symbolic factorisation twice (the
-    modes stage's K and the first speed's K(Omega)), the numeric one once more per
-    speed; the frequencies rise with the speed (the spin's stiffening dominates the
+    """MUMPS' analysis twice (the modes stage's K and the first speed's K(Omega): two
+    logged analyses, each made by MatCholeskyFactorSymbolic before the memory check, and
+    PCSetUp's own call, from which MUMPS returns at once for the analysed pattern: four
+    calls in PETSc's event counts, ``-log_view``), the numeric factorisation once more
+    per speed; the frequencies rise with the speed (the spin's stiffening dominates the
     bending modes of the cantilever spun about z)."""
     import h5py
     import numpy as np
@@ -66,7 +68,7 @@ def test_a_rotation_sweep_analyses_once_and_refactorises_per_speed(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1", "PETSC_OPTIONS": "-log_view"}
     proc = subprocess.run(
-        [*_mpiexec(2), "-x", "PETSC_OPTIONS", str(MPI_PYTHON), "-m", "pipeline", "run",
+        [*_mpiexec(2), "-x", "PETSC_OPTIONS", str(MPI_PYTHON), "-m", "pipeline", "-v", "run",
          "configs/cantilever.yaml", "--set", "modes.solver=slepc", "--set", "mesh.size=0.02",
          "--set", "rotation={axis: [0, 0, 1], point: [0, 0.01, 0.025], "
          "speeds_rad_s: [0, 200, 400, 600]}", "-o", str(out)],
@@ -74,7 +76,8 @@ def test_a_rotation_sweep_analyses_once_and_refactorises_per_speed(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     counts = {line.split()[0]: int(line.split()[1]) for line in proc.stdout.splitlines()
               if line.startswith(("MatCholFctrSym ", "MatCholFctrNum "))}
-    assert counts == {"MatCholFctrSym": 2, "MatCholFctrNum": 4}, counts
+    assert counts == {"MatCholFctrSym": 4, "MatCholFctrNum": 4}, counts
+    assert proc.stderr.count("MUMPS' analysis of K") == 2, proc.stderr[-3000:]
     with h5py.File(out) as f:
         first = f["rotation/frequencies_hz"][()][:, 0]
     assert np.all(np.diff(first) > 0), first
