@@ -102,8 +102,12 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float =
         ksp = mumps_cholesky(PETSc, A, prefix + "st_",
                              "K" if shift == 0.0 else f"K - sigma M (sigma {shift:.3g} "
                              "rad^2/s^2)")
-        values, rows, stats = _solve_eigen_once(PETSc, SLEPc, A, M, count, tolerance, 0.0,
-                                                prefix, ksp)
+        try:
+            values, rows, stats = _solve_eigen_once(PETSc, SLEPc, A, M, count, tolerance,
+                                                    0.0, prefix, ksp)
+        except BaseException:
+            ksp.destroy()
+            raise
     finally:
         if A is not K:  # the solvers keep their references
             A.destroy()
