@@ -49,9 +49,10 @@ def test_a_factor_that_does_not_fit_is_refused_after_the_analysis(tmp_path):
     assert "memory estimate" in proc.stderr  # the early gate ran and passed
     assert "MUMPS' analysis of K" in proc.stderr  # the analysis ran ...
     assert "MUMPS' factor of" not in proc.stderr  # ... the numeric factorisation did not
+    # every rank raises it; the first MPI_Abort may stop the other before it prints
     lines = ["error on rank" + part for part in re.split(r"error on rank", proc.stderr)[1:]]
     lines = [part.splitlines()[0] for part in lines]
-    assert len(lines) == 2, proc.stderr[-2000:]
+    assert 1 <= len(lines) <= 2, proc.stderr[-2000:]
     for line in lines:
         assert re.search(r"MUMPS' analysis of K \(\d+ rows\) on 2 ranks: the numeric "
                          r"factorisation needs [\d.]+ GB more on a rank, [\d.]+ GB with what "
