@@ -123,11 +123,11 @@ def symbolic_factor(PETSc, F, A, kind: str) -> None:
     f, a = ctypes.c_void_p(F.handle), ctypes.c_void_p(A.handle)
     if kind == "cholesky":
         fn = lib.MatCholeskyFactorSymbolic
-        fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_void_p]
+        fn.argtypes = [ctypes.c_void_p] * 4  # (F, A, IS perm, MatFactorInfo *)
         code = fn(f, a, None, ctypes.byref(info))
     else:
         fn = lib.MatLUFactorSymbolic
-        fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_void_p]
+        fn.argtypes = [ctypes.c_void_p] * 5  # (F, A, IS row, IS col, MatFactorInfo *)
         code = fn(f, a, None, None, ctypes.byref(info))
     if code:
         raise PETSc.Error(code)
@@ -138,9 +138,9 @@ def analysed_setup(PETSc, ksp, what: str) -> MumpsFactor | None:
     memory check (:func:`check_factor_estimate`) before the numeric factorisation, when
     its preconditioner is a Cholesky or LU factor by MUMPS (the others: KSPSetUp alone,
     None). Returns MUMPS' figures after the factorisation, which the INFO log record
-    also carries (``mumps_factor``, ``mumps_of``: what was factorised). Collective; a PETSc failure
-    is raised as PETSc.Error, a failed analysis as AnalysisFailed, a factor that
-    does not fit as ResourceError."""
+    also carries (``mumps_factor``, ``mumps_of``: what was factorised). Collective; a
+    PETSc failure is raised as PETSc.Error, a failed analysis as AnalysisFailed, a
+    factor that does not fit as ResourceError."""
     pc = ksp.getPC()
     kind = pc.getType()
     if kind not in ("cholesky", "lu") or pc.getFactorSolverType() != "mumps":
