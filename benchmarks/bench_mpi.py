@@ -12,31 +12,36 @@ Each case is ``mpiexec -n P python benchmarks/bench_mpi.py --worker``: the pipel
 reports its peak resident memory (ru_maxrss) and the memory it had after importing the
 stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
 
-The memory model per rank, fitted to the cases at one size N0 (free DOFs):
+The memory model per rank, at N free DOFs on P ranks, fitted to the cases at one size
+N0 (free DOFs) and MUMPS' own figures at several:
 
-    m(P, N) = c + r N / N0 + [rank 0] w N / N0 + (s N / N0 + (d - s) (N / N0)^(4/3)) / P
+    m(P, N) = c + r N / N0 + [rank 0] w N / N0 + ((s + l) N / N0 + k F(N)) / P
 
 c: the imports (measured); r: what every rank holds whatever P is (linear in N: the
 free-DOF index and the row order, the labels' point coordinates for a moment, and
 transients of the run that do not fall with P); w: what rank 0 alone holds besides (it
 meshes the body with gmsh, builds the whole FE space to evaluate regions, ports and
-the partition, cuts out the parts and keeps the points and elements it writes); d:
-what is divided among the ranks (its part of the mesh and FE space, its rows of K and
-M, its part of MUMPS' factor and its rows of the mode shapes). s: the shapes' part of
-d, counted, not fitted: the Rayleigh-Ritz step holds three blocks of its rows (Phi,
-K Phi, M Phi: 3 x 8 N m / P bytes), which grows as N; the rest of d (the factor, for a
-3D mesh in nested-dissection order N^(4/3), the exponent used for all of it: an upper
-bound). From the peaks at 1 and 2 ranks: one rank c + r + w + d, on two rank 0
-c + r + w + d / 2 and rank 1 c + r + d / 2. Measured at N0 = 100,695 (docs/distributed.md,
-"Measured scaling"): r = 115 MB, w = 60 MB, d = 737 MB from 1 and 2 ranks (r = 92 MB,
-d = 784 MB from the ranks other than 0 at 2 and 4 ranks); before the ranks held only
-their part of the mesh r was 188 MB and there was no w.
+the partition, cuts out the parts and keeps the points and elements it writes); the
+divided part d at N0 (from the peaks at 1 and 2 ranks: one rank c + r + w + d, on two
+rank 0 c + r + w + d / 2 and rank 1 c + r + d / 2) is MUMPS' factor F(N0), the mode
+shapes s and the rest l (each rank's part of the mesh and FE space, its rows of K and
+M: linear in N). F(N): what MUMPS allocated for the factor on all ranks (INFOG(19) MB,
+which is its estimate after the analysis, INFOG(17); :mod:`pipeline.distributed.factor_memory`
+logs it), measured on 2 ranks at the bench's sizes (``--fit-sizes`` besides ``--size``)
+and fitted as F = alpha N^(4/3) + beta N (:func:`factor_fit`: a nested-dissection
+factor's top separators and the levels below them; the single power law's exponent
+and the local ones between sizes are printed beside it); k = 2 INFOG(18) / INFOG(19), the
+largest rank's share over the mean. s, counted: the Rayleigh-Ritz step holds three
+blocks of the shapes' rows (Phi, K Phi, M Phi: 3 x 8 N m / P bytes). Before MUMPS'
+figures, all of d was extrapolated as N^(4/3) (an upper bound for a factor in nested
+dissection order); the figures measured are in docs/distributed.md, "Measured scaling".
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import resource
 import shutil
@@ -58,13 +63,36 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+class _MumpsFigures(logging.Handler):
+    """Collects MUMPS' figures after each numeric factorisation of the run (the records
+    of :func:`pipeline.distributed.factor_memory.analysed_setup`)."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.factors = []
+
+    def emit(self, record) -> None:
+        done = getattr(record, "mumps_factor", None)
+        if done is not None:
+            self.factors.append({"of": record.mumps_of, "entries": done.entries,
+                                 "max_mb": done.max_bytes / 1e6,
+                                 "sum_mb": done.sum_bytes / 1e6,
+                                 "max_used_mb": done.max_used_bytes / 1e6,
+                                 "sum_used_mb": done.sum_used_bytes / 1e6})
+
+
 def worker(size: float, output: str, method: str) -> None:
-    """One MPI case: every rank runs the pipeline; rank 0 prints a JSON line."""
+    """One MPI case: every rank runs the pipeline; rank 0 prints a JSON line (with
+    MUMPS' figures of each factor the run made, which rank 0 logs)."""
     from pipeline.distributed.mpi import world
     from pipeline.api import run_config
 
     comm = world()
     base = _peak_mb()
+    figures = _MumpsFigures()
+    logger = logging.getLogger("pipeline.distributed.factor_memory")
+    logger.addHandler(figures)
+    logger.setLevel(logging.INFO)
     t0 = time.perf_counter()
     result = run_config(CONFIG, output=output,
                         overrides=[f"mesh.size={size}", "modes.solver=slepc",
@@ -76,7 +104,8 @@ def worker(size: float, output: str, method: str) -> None:
         print("BENCH " + json.dumps({
             "ranks": comm.size, "n_free": result.n_free, "wall_s": wall,
             "times": result.times, "peak_mb": peaks, "import_mb": bases,
-            "f1_hz": float(result.frequencies_hz[0])}), flush=True)
+            "f1_hz": float(result.frequencies_hz[0]), "mumps": figures.factors}),
+            flush=True)
 
 
 #: the partition comparison (``--cuts``): the slender cantilever and a compact cube
@@ -167,18 +196,59 @@ def run_case(ranks: int, size: float, method: str, timeout: float) -> dict:
 MODES, SHAPE_BLOCKS = 11, 3
 
 
+def mumps_mb(row: dict) -> tuple[float, float]:
+    """(all ranks' MB, the largest rank's MB) that MUMPS allocated for the largest factor
+    of a case (INFOG(19), INFOG(18): its in-core estimate after the analysis)."""
+    top = max(row["mumps"], key=lambda f: f["sum_mb"])
+    return top["sum_mb"], top["max_mb"]
+
+
+def factor_fit(rows: list[dict]) -> dict:
+    """MUMPS' in-core data of the factor on all ranks (MB) against the free DOFs N over the
+    2-rank cases: F = alpha N^(4/3) + beta N (non-negative least squares of F_fit / F - 1:
+    a nested-dissection factor of a 3D mesh, its top separators N^(4/3), the levels below
+    them N), and for comparison the single power law F = a N^b (least squares in log-log)
+    with the local exponents between neighbouring sizes."""
+    import numpy as np
+    from scipy.optimize import nnls
+
+    pts = sorted((r["n_free"], mumps_mb(r)[0]) for r in rows if r["ranks"] == 2 and r["mumps"])
+    n, f = np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float)
+    basis = np.stack([n ** (4.0 / 3.0), n], axis=1)
+    (alpha, beta), _ = nnls(basis / f[:, None], np.ones(f.size))
+    b, loga = np.polyfit(np.log(n), np.log(f), 1) if n.size > 1 else (4.0 / 3.0, 0.0)
+    local = np.diff(np.log(f)) / np.diff(np.log(n))
+    return {"alpha": float(alpha), "beta": float(beta), "b": float(b), "a": float(np.exp(loga)),
+            "local": [float(x) for x in local], "points": pts,
+            "misfit": float(np.abs(basis @ [alpha, beta] / f - 1).max())}
+
+
 def memory_model(rows: list[dict]) -> dict:
-    """c, r, w, d, s (MB) of the module's model from the 1- and 2-rank cases: on 2 ranks
-    rank 1 peaks at c + r + d / 2, rank 0 at c + r + w + d / 2, one rank at c + r + w + d."""
+    """c, r, w, d, s, l (MB), k, and MUMPS' fit (:func:`factor_fit`) of the module's model
+    from the 1- and 2-rank cases at N0 (``--size``) and the 2-rank cases at every size:
+    on 2 ranks rank 1 peaks at c + r + d / 2, rank 0 at c + r + w + d / 2, one rank at
+    c + r + w + d; of d, F(N0) is MUMPS' and s the mode shapes'."""
     one = next(r for r in rows if r["ranks"] == 1)
-    two = next(r for r in rows if r["ranks"] == 2)
+    two = next(r for r in rows if r["ranks"] == 2 and r["n_free"] == one["n_free"])
     c = max(one["import_mb"])
     m1 = max(one["peak_mb"])
     m20, m2o = two["peak_mb"][0], max(two["peak_mb"][1:])
     d = max(2.0 * (m1 - m20), 0.0)
     shapes = SHAPE_BLOCKS * 8.0 * one["n_free"] * MODES / 2**20
+    fit = factor_fit(rows)
+    total, largest = mumps_mb(two)
+    factor = total / 2**20 * 1e6  # MiB, as the peaks
     return {"c": c, "r": max(m2o - c - d / 2, 0.0), "w": max(m20 - m2o, 0.0),
-            "d": max(d, shapes), "s": shapes, "n0": one["n_free"]}
+            "d": max(d, shapes + factor), "s": shapes,
+            "l": max(d - shapes - factor, 0.0), "k": 2.0 * largest / total,
+            "fit": fit, "factor": factor, "n0": one["n_free"]}
+
+
+def mumps_factor_mb(model: dict, n: float) -> float:
+    """MUMPS' in-core data of the factor on all ranks at n free DOFs (MiB, the fit
+    alpha n^(4/3) + beta n)."""
+    fit = model["fit"]
+    return (fit["alpha"] * n ** (4.0 / 3.0) + fit["beta"] * n) * 1e6 / 2**20
 
 
 def extrapolate(model: dict, n: float) -> list[str]:
@@ -187,13 +257,14 @@ def extrapolate(model: dict, n: float) -> list[str]:
     s = n / model["n0"]
     fixed = model["c"] + model["r"] * s
     whole = model.get("w", 0.0) * s
-    shared = model["s"] * s + (model["d"] - model["s"]) * s ** (4.0 / 3.0)
+    factor = model["k"] * mumps_factor_mb(model, n)
+    shared = (model["s"] + model["l"]) * s + factor
     usable = NODE_GB * 1024 * NODE_USABLE
     lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
              f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
-             f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it the mode shapes "
-             f"{model['s'] * s / 1024:.1f} GB / P), rank 0 {whole / 1024:.1f} GB more "
-             "(the whole mesh)"]
+             f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it MUMPS' factor "
+             f"{factor / 1024:.0f} GB / P, the mode shapes {model['s'] * s / 1024:.1f} GB / P),"
+             f" rank 0 {whole / 1024:.1f} GB more (the whole mesh)"]
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed + whole >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
@@ -213,6 +284,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=float, default=0.005, help="mesh.size, m (0.005: 100k DOFs)")
     ap.add_argument("--ranks", default="1,2")
+    ap.add_argument("--fit-sizes", default="0.01,0.007,0.004",
+                    help="further mesh.size values (m) run on 2 ranks for MUMPS' factor fit")
     ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
@@ -241,18 +314,31 @@ def main(argv=None) -> int:
         return 0
     rows = [run_case(int(p), args.size, args.method, args.timeout)
             for p in args.ranks.split(",")]
+    rows += [run_case(2, float(h), args.method, args.timeout)
+             for h in args.fit_sizes.split(",") if h and float(h) != args.size]
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
     print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
-          f"{'peak MB per rank':>20}")
+          f"{'peak MB per rank':>20} {'MUMPS entries':>13} {'MUMPS MB all/max':>16}")
     for r in rows:
         peaks = "/".join(f"{p:.0f}" for p in r["peak_mb"])
+        top = max(r["mumps"], key=lambda f: f["sum_mb"]) if r["mumps"] else None
+        mumps = (f"{top['entries']:>13.4g} {top['sum_mb']:>9.0f}/{top['max_mb']:<6.0f}"
+                 if top else f"{'-':>13} {'-':>16}")
         print(f"{r['ranks']:>5} {r['n_free']:>10} {r['times'].get('assemble', 0):>10.1f} "
-              f"{r['times'].get('modes', 0):>8.1f} {r['wall_s']:>8.1f} {peaks:>20}")
-    if {1, 2} <= {r["ranks"] for r in rows}:
+              f"{r['times'].get('modes', 0):>8.1f} {r['wall_s']:>8.1f} {peaks:>20} {mumps}")
+    if {1, 2} <= {r["ranks"] for r in rows} and all(r["mumps"] for r in rows):
         model = memory_model(rows)
+        fit = model["fit"]
+        print(f"MUMPS' factor on 2 ranks (INFOG(19), MB) at N = "
+              + ", ".join(f"{n}: {f:.0f}" for n, f in fit["points"])
+              + f": F(N) = {fit['alpha']:.3g} N^(4/3) + {fit['beta']:.3g} N (worst misfit "
+              f"{fit['misfit']:.0%}); one power law N^{fit['b']:.3f}, the local exponents "
+              + ", ".join(f"{x:.2f}" for x in fit["local"])
+              + f"; the largest rank {model['k']:.2f} times the mean (INFOG(18))")
         print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
-              f"w = {model['w']:.0f} MB (rank 0's whole mesh), d = {model['d']:.0f} MB (divided; the mode shapes {model['s']:.0f} MB of it) "
-              f"at {model['n0']} free DOFs")
+              f"w = {model['w']:.0f} MB (rank 0's whole mesh), d = {model['d']:.0f} MB "
+              f"(divided: MUMPS' factor {model['factor']:.0f} MB, the mode shapes "
+              f"{model['s']:.0f} MB, the rest l = {model['l']:.0f} MB) at {model['n0']} free DOFs")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
     if args.json:

@@ -28,6 +28,7 @@ import re
 
 import numpy as np
 
+from pipeline.distributed.factor_memory import AnalysisFailed, analysed_setup
 from pipeline.errors import SolverError
 
 log = logging.getLogger(__name__)
@@ -75,19 +76,42 @@ def solve_eigen(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float =
     """(eigenvalues (count,), this rank's rows of the M-normalised eigenvectors
     (n_loc, count), stats) of the PETSc pair (K, M) nearest ``shift`` (rad^2/s^2: 0, or
     below zero for a free body, whose K is singular): Krylov-Schur on MUMPS' factor of
-    K - shift M (the module).
+    A = K - shift M (the module).
 
-    A MUMPS factorisation that runs out of workspace (INFOG(1) = -9 or -8, the same on
-    every rank) is retried with a larger ICNTL(14) (:data:`MUMPS_WORKSPACE_RETRIES`),
-    unless the user set that option. ``prefix``: the PETSc options prefix of the solve
-    (its ``eps_*``, ``st_*`` options; the two-grid start block's own,
-    :mod:`pipeline.distributed.multigrid`). ``ksp``: a set-up solver of K - shift M to
-    use instead of a new factor (the two-grid cycle's coarse factor), or None."""
-    return _with_workspace_retries(
-        PETSc, prefix + MUMPS_WORKSPACE_OPTION, ksp is None,
-        lambda last: _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, shift,
-                                       last=last, prefix=prefix, ksp=ksp),
-        prefix + MUMPS_BLOCK_ANALYSIS_OPTION)
+    The factor is made first (:func:`mumps_cholesky`, options prefix ``prefix + "st_"``,
+    SLEPc's own for its spectral transformation: ``-st_mat_mumps_icntl_14``, ...), so
+    MUMPS' memory estimate is checked after its analysis and before its numeric
+    factorisation (:mod:`pipeline.distributed.factor_memory`) and a factorisation short
+    of workspace (INFOG(1) = -9 or -8) is retried with a larger ICNTL(14)
+    (:data:`MUMPS_WORKSPACE_RETRIES`) unless the user set that option. SLEPc then solves
+    the shifted pencil (A, M) at shift 0 with that factor (its eigenvalues lambda -
+    shift; the same Krylov space as shift-invert about ``shift`` on (K, M)), and
+    ``shift`` is added back. ``prefix``: the PETSc options prefix of the solve (its
+    ``eps_*``, ``st_*`` options; the two-grid start block's own,
+    :mod:`pipeline.distributed.multigrid`). ``ksp``: a set-up solver of K (shift 0) to
+    use instead of a new factor (the two-grid cycle's coarse factor), or None; stats
+    hold the solver as ``ksp`` and SLEPc's as ``eps``, which the caller destroys."""
+    if ksp is not None:
+        return _solve_eigen_once(PETSc, SLEPc, K, M, count, tolerance, shift, prefix, ksp)
+    A = K
+    if shift != 0.0:  # K - shift M: positive definite where K is only semi-definite
+        A = K.copy()
+        A.axpy(-shift, M, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    try:
+        ksp = mumps_cholesky(PETSc, A, prefix + "st_",
+                             "K" if shift == 0.0 else f"K - sigma M (sigma {shift:.3g} "
+                             "rad^2/s^2)")
+        try:
+            values, rows, stats = _solve_eigen_once(PETSc, SLEPc, A, M, count, tolerance,
+                                                    0.0, prefix, ksp)
+        except BaseException:
+            ksp.destroy()
+            raise
+    finally:
+        if A is not K:  # the solvers keep their references
+            A.destroy()
+    return values + shift, rows, stats
 
 
 def _with_workspace_retries(PETSc, option: str, retry: bool, attempt,
@@ -145,9 +169,9 @@ class _WorkspaceShort(Exception):
 
 
 def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: float,
-                      last: bool, prefix: str = "", ksp=None):
-    """One attempt of :func:`solve_eigen`; ``last``: a workspace shortage raises the
-    SolverError instead of _WorkspaceShort."""
+                      prefix: str, ksp):
+    """:func:`solve_eigen` with the set-up solver ``ksp`` of K - shift M (its factor
+    made: SLEPc's spectral transformation keeps it, its operator being the same matrix)."""
     eps = SLEPc.EPS().create(comm=PETSc.COMM_WORLD)
     if prefix:
         eps.setOptionsPrefix(prefix)
@@ -161,23 +185,14 @@ def _solve_eigen_once(PETSc, SLEPc, K, M, count: int, tolerance: float, shift: f
     eps.setWhichEigenpairs(SLEPc.EPS.Which.TARGET_MAGNITUDE)
     st.setType(SLEPc.ST.Type.SINVERT)
     st.setShift(shift)
-    if ksp is not None:  # a factor made already (its own options prefix)
-        st.setKSP(ksp)
-    else:
-        ksp = st.getKSP()
-        ksp.setType(PETSc.KSP.Type.PREONLY)
-        pc = ksp.getPC()
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType("mumps")
+    st.setKSP(ksp)
     solver = "krylovschur-mumps"
     try:
         eps.setFromOptions()  # PETSc options (command line, PETSC_OPTIONS) override
         eps.solve()
     except PETSc.Error as exc:
+        eps.destroy()
         reason = _petsc_reason(exc)
-        if not last and _workspace_short(reason):
-            eps.destroy()
-            raise _WorkspaceShort(reason) from None
         if len(reason) > 240:  # some ranks add PETSc's configure hints: keep one line short
             reason = reason.split(". ")[0][:240]
         raise _slepc_failed(reason) from None
@@ -234,7 +249,10 @@ def mumps_cholesky(PETSc, A, prefix: str, what: str):
     now (the caller destroys it); PETSc options with ``prefix`` apply to it, a
     factorisation short of workspace is retried as the eigen solve's
     (:func:`solve_eigen`) and MUMPS' analysis by blocks is off unless set; a failure is
-    one line (SolverError) naming ``what`` was factorised."""
+    one line (SolverError) naming ``what`` was factorised. MUMPS' analysis and its
+    numeric factorisation are split: between them the ranks' memory is checked against
+    MUMPS' own estimate (:func:`pipeline.distributed.factor_memory.analysed_setup`: a
+    ResourceError on every rank, before the factor is made)."""
     def attempt(last: bool):
         ksp = PETSc.KSP().create(comm=A.getComm())
         ksp.setOptionsPrefix(prefix)
@@ -245,8 +263,8 @@ def mumps_cholesky(PETSc, A, prefix: str, what: str):
         pc.setFactorSolverType("mumps")
         try:
             ksp.setFromOptions()
-            ksp.setUp()
-        except PETSc.Error as exc:
+            analysed_setup(PETSc, ksp, what)  # MUMPS' estimate checked before its factor
+        except (PETSc.Error, AnalysisFailed) as exc:
             ksp.destroy()
             reason = _petsc_reason(exc)
             if not last and _workspace_short(reason):
@@ -255,6 +273,9 @@ def mumps_cholesky(PETSc, A, prefix: str, what: str):
                               f"({reason.split('. ')[0][:240]})",
                               key="modes.solver", value="slepc",
                               expected=f"a factorisable {what}") from None
+        except BaseException:  # the memory check refused it: on every rank alike
+            ksp.destroy()
+            raise
         return ksp
 
     return _with_workspace_retries(PETSc, prefix + "mat_mumps_icntl_14", True, attempt,

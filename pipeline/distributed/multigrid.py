@@ -181,6 +181,15 @@ class CoarseFactor:
         Xd.destroy()
         return X
 
+    def refactor(self, A, P) -> None:
+        """A_c = P^T A P for an A of the same nonzero pattern, into the same matrix
+        (PETSc's PtAP reusing its symbolic product), factorised numerically on MUMPS'
+        analysis of the first (PCSetUp of a matrix whose values changed)."""
+        A.PtAP(P, result=self.Ac)
+        self.ksp.setOperators(self.Ac)
+        self.ksp.setUp()
+        self.factor = self.ksp.getPC().getFactorMatrix()
+
     def release(self) -> None:
         if self.ksp is not None:
             self.ksp.destroy()
@@ -198,9 +207,21 @@ class RankTwoGrid(TwoGrid):
 
     def __init__(self, PETSc, A, P):  # noqa: D107 (not TwoGrid's: nothing is whole here)
         t0 = time.perf_counter()
-        self.comm = A.getComm().tompi4py()
-        self.A, self.P = BlockProduct(PETSc, A), BlockProduct(PETSc, P)
+        self.PETSc, self.comm = PETSc, A.getComm().tompi4py()
+        self._P = P
+        self.P = BlockProduct(PETSc, P)
         self.PT = BlockProduct(PETSc, P, transpose=True)
+        self._smoother(A)
+        self.coarse_n = int(P.getSize()[1])
+        self.coarse = CoarseFactor(PETSc, A.PtAP(P))
+        self._single = self._ptd = self._p32 = self._riding = None  # serial-only caches
+        self._a_norm = None  # ||A||_inf, made on first use (TwoGrid._norm_inf)
+        self.lambda_max = self._lambda_max()
+        self.seconds = time.perf_counter() - t0
+
+    def _smoother(self, A) -> None:
+        """A's products and Jacobi's D^-1 (a non-positive diagonal entry: SolverError)."""
+        self.A = BlockProduct(self.PETSc, A)
         d = A.getDiagonal()
         diagonal = d.getArray().copy()
         d.destroy()
@@ -209,10 +230,17 @@ class RankTwoGrid(TwoGrid):
             raise SolverError("multigrid: the stiffness matrix has a non-positive diagonal "
                               "entry; expected a positive definite K")
         self.dinv = 1.0 / diagonal
-        self.coarse_n = int(P.getSize()[1])
-        self.coarse = CoarseFactor(PETSc, A.PtAP(P))
-        self._single = self._ptd = self._p32 = self._riding = None  # serial-only caches
-        self._a_norm = None  # ||A||_inf, made on first use (TwoGrid._norm_inf)
+
+    def refresh(self, A) -> None:
+        """The cycle of a new A with the nonzero pattern of the one it was made for (a
+        rotation sweep's K(Omega) at the next speed): P is kept (the mesh's, not A's);
+        what depends on A's values is made again: the smoother's D^-1 and lambda_max,
+        the Galerkin A_c = P^T A P (PtAP into the same matrix) and its MUMPS factor,
+        numerically only (the analysis of the first A is kept)."""
+        t0 = time.perf_counter()
+        self._smoother(A)
+        self._a_norm = None  # A's values changed
+        self.coarse.refactor(A, self._P)
         self.lambda_max = self._lambda_max()
         self.seconds = time.perf_counter() - t0
 
@@ -276,9 +304,6 @@ def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
     (SolverError, as on one process). ``ksp``: conjugate gradients on the cycle for
     A = K - sigma M (the static correction's solver when sigma = 0); the caller destroys
     it and ``stats["keep"]``."""
-    from pipeline.distributed.eigen import solve_eigen
-
-    comm = PETSc.COMM_WORLD.tompi4py()
     t0 = time.perf_counter()
     if shift != 0.0:
         A = K.copy()
@@ -287,46 +312,106 @@ def lobpcg_modes(PETSc, SLEPc, K, M, P, count: int, width: int, shift: float,
         A = K
     cycle = RankTwoGrid(PETSc, A, P)
     ksp = two_grid_solver(PETSc, A, cycle)
-    n_coarse = cycle.coarse_n
     Mc = M.PtAP(P)
-    width = min(width, n_coarse // 2)
-    _, coarse_rows, cstats = solve_eigen(PETSc, SLEPc, cycle.coarse.Ac, Mc, width,
-                                         start_tolerance, prefix=START_PREFIX,
-                                         ksp=cycle.coarse.ksp)
-    cstats.pop("eps").destroy()
-    Mc.destroy()
-    X = cycle.P(coarse_rows)
-    del coarse_rows
+    width = min(width, cycle.coarse_n // 2)
+    try:
+        X = _start_block(PETSc, SLEPc, cycle, Mc, width, start_tolerance)
+    finally:
+        Mc.destroy()
     t1 = time.perf_counter()
     # PETSc's objects the caller destroys, on every rank at the same point (MUMPS'
     # termination is collective: never left to the garbage collector)
     keep = [cycle.coarse.ksp, cycle.coarse.Ac] + ([A] if A is not K else [])
     try:
-        result = lobpcg_module.lobpcg(
-            BlockProduct(PETSc, K), BlockProduct(PETSc, M), X, cycle.apply_double, count,
-            sigma=shift, target=target, max_sweeps=max_sweeps,
-            total=lambda a: allreduce_sum(comm, a))
-        # the serial path's acceptance (the same history on every rank: its sums are)
-        if not result.converged and min(result.history) > accept:
-            raise SolverError(
-                f"multigrid eigensolver did not converge for {count} modes in "
-                f"{result.sweeps} sweeps (worst preconditioned residual "
-                f"{min(result.history):.1e}, tolerance {target:.1e}); try modes.method: "
-                "factor, or a coarser mesh.size", key="modes.method", value="multigrid",
-                expected="a body the two-grid cycle converges on")
+        result = _lobpcg(PETSc, K, M, X, cycle, count, shift, target, max_sweeps, accept)
     except BaseException:
         for obj in (ksp, *keep):
             obj.destroy()
         raise
+    return (result.omega2[:count], result.X[:, :count],
+            {**_stats(cycle, result, width, target, t1 - t0), "keep": keep}, ksp)
+
+
+def _start_block(PETSc, SLEPc, cycle: RankTwoGrid, Mc, width: int, tolerance: float):
+    """This rank's rows of the prolongated lowest ``width`` modes of the coarse pencil
+    (A_c, M_c = P^T M P) by shift-invert on the cycle's own coarse factor."""
+    from pipeline.distributed.eigen import solve_eigen
+
+    _, coarse_rows, cstats = solve_eigen(PETSc, SLEPc, cycle.coarse.Ac, Mc, width,
+                                         tolerance, prefix=START_PREFIX,
+                                         ksp=cycle.coarse.ksp)
+    cstats.pop("eps").destroy()
+    return cycle.P(coarse_rows)
+
+
+def _lobpcg(PETSc, K, M, X, cycle: RankTwoGrid, count: int, shift: float, target: float,
+            max_sweeps: int, accept: float):
+    """LOBPCG from the start block X on this rank's rows, the serial path's acceptance
+    (the same history on every rank: its sums are)."""
+    comm = PETSc.COMM_WORLD.tompi4py()
+    result = lobpcg_module.lobpcg(
+        BlockProduct(PETSc, K), BlockProduct(PETSc, M), X, cycle.apply_double, count,
+        sigma=shift, target=target, max_sweeps=max_sweeps,
+        total=lambda a: allreduce_sum(comm, a))
+    if not result.converged and min(result.history) > accept:
+        raise SolverError(
+            f"multigrid eigensolver did not converge for {count} modes in "
+            f"{result.sweeps} sweeps (worst preconditioned residual "
+            f"{min(result.history):.1e}, tolerance {target:.1e}); try modes.method: "
+            "factor, or a coarser mesh.size", key="modes.method", value="multigrid",
+            expected="a body the two-grid cycle converges on")
     if not result.converged and comm.rank == 0:
         log.warning("multigrid eigensolver stopped at a preconditioned residual of %.1e "
                     "(tolerance %.1e): round-off floor", min(result.history), target)
-    stats = {"method": "slepc-lobpcg-two-grid", "coarse_dofs": int(n_coarse),
-             "setup_seconds": t1 - t0, "sweeps": result.sweeps,
-             "history": list(result.history), "tolerance": target, "block": width,
-             "converged": bool(result.converged), "keep": keep}
+    return result
+
+
+def _stats(cycle: RankTwoGrid, result, width: int, target: float, setup: float) -> dict:
+    """The stats of a two-grid LOBPCG solve (logged at INFO)."""
     log.info("two-grid LOBPCG on %d ranks: %d sweeps of %d vectors in %.1f s (set-up "
-             "%.1f s, coarse %d DOFs), preconditioned residual %.1e", comm.size,
-             result.sweeps, width, result.seconds, t1 - t0, n_coarse,
-             min(result.history))
-    return result.omega2[:count], result.X[:, :count], stats, ksp
+             "%.2f s, of it the cycle %.2f s; coarse %d DOFs), preconditioned residual "
+             "%.1e", cycle.comm.size, result.sweeps, width, result.seconds, setup,
+             cycle.seconds, cycle.coarse_n, min(result.history))
+    return {"method": "slepc-lobpcg-two-grid", "coarse_dofs": int(cycle.coarse_n),
+            "setup_seconds": setup, "cycle_seconds": cycle.seconds, "sweeps": result.sweeps,
+            "history": list(result.history), "tolerance": target, "block": width,
+            "converged": bool(result.converged)}
+
+
+class TwoGridSweep:
+    """Two-grid LOBPCG for a family of operators A of one nonzero pattern with the same
+    M and P (a rotation sweep's K(Omega) = K + Omega^2 S, speed after speed): the cycle
+    is made for the first A and refreshed for the next (:meth:`RankTwoGrid.refresh`: P,
+    the coarse mass M_c = P^T M P and MUMPS' coarse analysis kept; the smoother, A_c and
+    its numeric factor made again), then the coarse start block and LOBPCG as
+    :func:`lobpcg_modes`; no conjugate-gradient solver (the sweep solves no static
+    problem). Collective; :meth:`release` frees it."""
+
+    def __init__(self, PETSc, SLEPc, M, P):
+        self.PETSc, self.SLEPc, self.M, self.P = PETSc, SLEPc, M, P
+        self.cycle: RankTwoGrid | None = None
+        self.Mc = None
+
+    def solve(self, A, count: int, width: int, target: float, start_tolerance: float,
+              max_sweeps: int, accept: float = MULTIGRID_ACCEPT):
+        """(omega2 (count,), this rank's rows (n_loc, count), stats) of (A, M) at shift 0."""
+        t0 = time.perf_counter()
+        if self.cycle is None:
+            self.cycle = RankTwoGrid(self.PETSc, A, self.P)
+            self.Mc = self.M.PtAP(self.P)
+        else:
+            self.cycle.refresh(A)
+        width = min(width, self.cycle.coarse_n // 2)
+        X = _start_block(self.PETSc, self.SLEPc, self.cycle, self.Mc, width, start_tolerance)
+        t1 = time.perf_counter()
+        result = _lobpcg(self.PETSc, A, self.M, X, self.cycle, count, 0.0, target,
+                         max_sweeps, accept)
+        return (result.omega2[:count], result.X[:, :count],
+                _stats(self.cycle, result, width, target, t1 - t0))
+
+    def release(self) -> None:
+        """Free the cycle and the coarse mass (collective)."""
+        if self.cycle is not None:
+            self.cycle.release()
+            self.Mc.destroy()
+        self.cycle = self.Mc = None

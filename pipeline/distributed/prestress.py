@@ -26,7 +26,9 @@ term with the serial kernels on that part:
   (:func:`pipeline.distributed.eigen.solve_eigen`, shift-invert at 0 on MUMPS, one
   solver and one analysis for every speed, :class:`SpeedFactor`; with
   ``modes.method: multigrid`` LOBPCG on the two-grid cycle of K(Omega) made from the
-  modes stage's prolongation, :mod:`pipeline.distributed.multigrid`) and the
+  modes stage's prolongation, kept from speed to speed with only what depends on
+  K(Omega)'s values made again, :class:`~pipeline.distributed.multigrid.TwoGridSweep`)
+  and the
   exact Rayleigh-Ritz step; a negative eigenvalue (MUMPS' LDL^T factors an indefinite
   K(Omega) where the serial Cholesky fails) names the unstable speed as the serial path.
 
@@ -58,7 +60,7 @@ from pipeline.distributed.assemble import with_int32_indices
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen, solve_eigen_again
-from pipeline.distributed.multigrid import lobpcg_modes
+from pipeline.distributed.multigrid import TwoGridSweep
 from pipeline._util.resources import lobpcg_guard
 from pipeline.solve.eigen import (MULTIGRID_MAX_SWEEPS, MULTIGRID_START_TOLERANCE,
                                   MULTIGRID_TOLERANCE)
@@ -429,7 +431,9 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
     S = K_G1 - M_perp, PETSc's numbering), by SLEPc at shift 0 (module); ``rest_hz``
     (count,): the frequencies at rest (a speed 0 is not solved again). With the
     factor-free path's ``prolongation`` P: LOBPCG on the two-grid cycle of K(Omega), as
-    the modes at rest, ``tolerance`` its preconditioned residual; else shift-invert on
+    the modes at rest, the cycle refreshed per speed
+    (:class:`~pipeline.distributed.multigrid.TwoGridSweep`), ``tolerance`` its
+    preconditioned residual; else shift-invert on
     MUMPS' factor. ``constraint``: the
     :class:`~pipeline.distributed.constraints.DistributedConstraint` u = T q or None; the
     sweep then runs on q, T^T K(Omega) T = K_q + Omega^2 T^T S T (PETSc's PtAP) with M_q,
@@ -442,7 +446,8 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
         K, M = constraint.K, constraint.M
     out = np.empty((len(speeds), count))
     A = None  # K(Omega), made once with K's and S's pattern: its values change per speed
-    sweep = SpeedFactor()
+    sweep = SpeedFactor() if prolongation is None else \
+        TwoGridSweep(PETSc, SLEPc, M.petsc, prolongation)
     try:
         for i, speed in enumerate(speeds):
             if speed == 0:
@@ -454,12 +459,9 @@ def full_frequencies_rows(K: RowMatrix, M: RowMatrix, spin_rows: sp.csr_matrix, 
             At.petsc = A
             try:
                 if prolongation is not None:
-                    omega2, rows, stats, ksp = lobpcg_modes(
-                        PETSc, SLEPc, A, M.petsc, prolongation, count,
-                        count + lobpcg_guard(count), 0.0, tolerance,
+                    omega2, rows, _ = sweep.solve(
+                        A, count, count + lobpcg_guard(count), tolerance,
                         MULTIGRID_START_TOLERANCE, MULTIGRID_MAX_SWEEPS)
-                    for obj in (ksp, *stats.pop("keep")):
-                        obj.destroy()
                 else:
                     omega2, rows = sweep.solve(PETSc, SLEPc, A, M.petsc, count, tolerance)
             except SolverError:

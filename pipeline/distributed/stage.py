@@ -113,7 +113,9 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     (:func:`~pipeline._util.resources.factor_bytes`). The other factors made after the
     modes stage come after the run's is freed and add nothing: the connection models'
     clamped and fixed-interface solves (:func:`connection_models`) and a free body's
-    inertia relief (:func:`compute_modes`). Returns this rank's bytes."""
+    inertia relief (:func:`compute_modes`). This is the first gate: every factorisation
+    is checked again after MUMPS' analysis, against MUMPS' own estimate
+    (:mod:`pipeline.distributed.factor_memory`). Returns this rank's bytes."""
     from mpi4py import MPI
 
     from pipeline._util import resources as res
