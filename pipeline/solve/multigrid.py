@@ -69,7 +69,8 @@ import scipy.sparse as sp
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
 from pipeline.solve.blas import axpby, galerkin_product, scaled_inf_norm, sparse_times_dense
-from pipeline.solve.factorization import Factorization, SolverFactorization, factorize
+from pipeline.solve.factorization import (Factorization, SolverFactorization, factorize,
+                                          resolve_backend)
 from pipeline.solve.pcg import Pcg
 
 log = logging.getLogger(__name__)
@@ -102,6 +103,17 @@ def coarse_matrix(tg: "TwoGrid", M: sp.spmatrix) -> sp.csr_matrix:
     return _csr32(galerkin_product(tg.PT, _csr32(M), tg.P))
 
 
+def _analysis_ahead(coarse: sp.csr_matrix, backend: str):
+    """PARDISO's analysis of the coarse matrix's pattern started in a background thread
+    (:class:`~pipeline.solve.backends.pardiso.PatternAnalysis`) when PARDISO will
+    factorise it, else None (the backend analyses as it factorises)."""
+    if resolve_backend(backend) != "pardiso":
+        return None
+    from pipeline.solve.backends.pardiso import PatternAnalysis
+
+    return PatternAnalysis(coarse.indptr, coarse.indices)
+
+
 class TwoGrid:
     """The two-grid preconditioner of the module doc for A (n x n) and P (n x n_c).
 
@@ -119,19 +131,28 @@ class TwoGrid:
                              f"{self.A.shape[0]} (the rows of A)")
         coarse = _csr32(galerkin_product(self.PT, self.A, self.P))
         self.coarse_n = coarse.shape[0]
-        self.coarse = factorize(coarse, backend, positive_definite=True, check=False)
+        # the coarse matrix's ordering runs beside the smoother's set-up (D^-1, the
+        # float32 D^-1 A and lambda_max's power steps), its numerical factor after them
+        ahead = _analysis_ahead(coarse, backend)
+        try:
+            d = self.A.diagonal()
+            if not np.all(d > 0):
+                raise SolverError("multigrid: the stiffness matrix has a non-positive "
+                                  "diagonal entry; expected a positive definite K")
+            self.dinv = 1.0 / d
+            self._single: tuple[sp.csr_matrix, np.ndarray] | None = None
+            self._ptd: sp.csr_matrix | None = None
+            self._p32: sp.csr_matrix | None = None
+            self._riding: tuple[np.ndarray, Pcg] | None = None
+            self._a_norm: float | None = None
+            self.lambda_max = self._lambda_max()
+        except BaseException:
+            if ahead is not None:
+                ahead.release()
+            raise
+        self.coarse = factorize(coarse, backend, positive_definite=True, check=False,
+                                analysis=ahead)
         del coarse
-        d = self.A.diagonal()
-        if not np.all(d > 0):
-            raise SolverError("multigrid: the stiffness matrix has a non-positive diagonal "
-                              "entry; expected a positive definite K")
-        self.dinv = 1.0 / d
-        self._single: tuple[sp.csr_matrix, np.ndarray] | None = None
-        self._ptd: sp.csr_matrix | None = None
-        self._p32: sp.csr_matrix | None = None
-        self._riding: tuple[np.ndarray, Pcg] | None = None
-        self._a_norm: float | None = None
-        self.lambda_max = self._lambda_max()
         self.seconds = time.perf_counter() - t0
         log.info("two-grid preconditioner: %d -> %d coarse DOFs, coarse factor %.2f GB, "
                  "lambda_max(D^-1 A) %.3g, set up in %.1f s", self.A.shape[0], self.coarse_n,

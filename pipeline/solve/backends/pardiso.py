@@ -286,7 +286,7 @@ class PatternAnalysis:
                 lib = mkl.mkl_library()
                 if lib is not None and hasattr(lib, "mkl_thread_free_buffers"):
                     lib.mkl_thread_free_buffers()  # MKL's pool of this thread's buffers
-                log.info("ordering (METIS) of %d DOFs beside the assembly: %.2f s", n,
+                log.info("ordering (METIS) of %d DOFs ahead of the values: %.2f s", n,
                          time.perf_counter() - t0)
             except BaseException as exc:  # reported by take(); the main path then analyses
                 self._result[1] = exc
