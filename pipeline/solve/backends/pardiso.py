@@ -267,7 +267,10 @@ class PatternAnalysis:
     :func:`factorize` takes the analysis for a matrix of exactly this pattern
     (:meth:`take`) and only factorises numerically; any other matrix gets its own
     analysis and this one is released. At 100k DOFs the analysis is 0.3 s, at 300k about
-    1.5 s, beside an element loop that leaves a core idle below about 150k DOFs.
+    1.5 s, beside an element loop that leaves a core idle below about 150k DOFs. The
+    thread also marks the entries of the upper triangle in the full pattern, so that
+    :meth:`take` gathers the values (10 ms at 100k DOFs) instead of extracting the
+    triangle of the assembled matrix (80 ms).
     :meth:`release` (always call it: ``with`` does) waits for the thread and frees
     PARDISO's memory if nobody took it.
     """
@@ -278,10 +281,15 @@ class PatternAnalysis:
         n = indptr.size - 1
         pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, n))
         self._result: list = [None, None]  # (PardisoFactorization, exception)
+        self._pattern = (indptr, indices)
+        self._upper: np.ndarray | None = None  # (nnz,) bool: column >= row
 
         def analyse() -> None:
             try:
                 t0 = time.perf_counter()
+                rows = np.repeat(np.arange(n, dtype=indices.dtype), np.diff(indptr))
+                self._upper = indices >= rows
+                del rows
                 self._result[0] = PardisoFactorization(pattern, analysis_only=True)
                 lib = mkl.mkl_library()
                 if lib is not None and hasattr(lib, "mkl_thread_free_buffers"):
@@ -303,18 +311,21 @@ class PatternAnalysis:
             if self._result[1] is not None:
                 log.debug("the analysis ahead failed (%s): analysing again", self._result[1])
             return None
-        U = upper_triangle_csr(sp.csr_matrix(A))
-        if not (np.array_equal(U.indptr, fact.ia) and np.array_equal(U.indices, fact.ja)):
+        A = sp.csr_matrix(A)
+        if not all(mine is theirs or np.array_equal(mine, theirs)
+                   for mine, theirs in zip((A.indptr, A.indices), self._pattern)):
             fact.release()
             release_free_heap()
             return None
-        fact.a = U.data.astype(fact.dtype, copy=False)  # the analysis thread's zeros go
-        del U
+        # the upper triangle's values in CSR order: what upper_triangle_csr(A) would give
+        fact.a = A.data[self._upper].astype(fact.dtype, copy=False)  # the zeros go
+        self._upper = None
         release_free_heap()  # that thread's malloc arena would keep their pages
         return fact
 
     def release(self) -> None:
         self._thread.join()
+        self._upper = None
         fact, self._result[0] = self._result[0], None
         if fact is not None:
             fact.release()
