@@ -501,12 +501,13 @@ def accuracy_table(rows: list[dict]) -> str:
 #: modes stage is split into its solver's own timers, the rest of it is "modes, other"
 BREAKDOWN = (("imports", ("imports",)), ("mesh (gmsh, space)", ("stage:mesh",)),
              ("assembly", ("stage:assemble",)), ("ordering", ("analysis",)),
+             ("waiting for the ordering", ("analysis_wait",)),
              ("factorisation (multigrid: set-up)", ("numeric", "setup")),
              ("passes over the factor", ("solve",)), ("mass products", ("mass",)),
              ("orthogonalisation", ("orthogonalisation",)), ("refinement", ("refine",)),
              ("Rayleigh-Ritz", ("rayleigh_ritz",)))
-MODES_PARTS = ("analysis", "numeric", "setup", "solve", "mass", "orthogonalisation",
-               "refine", "rayleigh_ritz")
+MODES_PARTS = ("analysis", "analysis_wait", "numeric", "setup", "solve", "mass",
+               "orthogonalisation", "refine", "rayleigh_ritz")
 
 
 def breakdown(rows: list[dict]) -> str:

@@ -103,7 +103,8 @@ class PardisoFactorization(Factorization):
         ip[36] = VBSR_THRESHOLD  # rows with (nearly) equal patterns -> variable blocks
         self._alive = True  # from the first call on, PARDISO may hold memory to release
         self._known: list[tuple[np.ndarray, np.ndarray]] = []  # (b, A^-1 b): remember()
-        self.seconds = {"analysis": 0.0, "factorisation": 0.0}
+        # analysis_wait: how long take() waited for an analysis run ahead (PatternAnalysis)
+        self.seconds = {"analysis": 0.0, "factorisation": 0.0, "analysis_wait": 0.0}
         t0 = time.perf_counter()
         try:
             if analysis_only:  # in a background thread (PatternAnalysis): no progress stage
@@ -275,6 +276,7 @@ class PardisoFactorization(Factorization):
         factorisation and solution in KB, iparm[17]: non-zeros of the factor)."""
         return {"format": "csr-upper/vbsr" + ("/float32" if self.dtype == np.float32 else ""),
                 "analysis_seconds": self.seconds["analysis"],
+                "analysis_wait_seconds": self.seconds["analysis_wait"],
                 "numeric_seconds": self.seconds["factorisation"],
                 "factor_nnz": int(self.iparm[17]),
                 "factor_bytes": int(self.iparm[16]) * 1024,
@@ -328,8 +330,11 @@ class PatternAnalysis:
     def take(self, A: sp.spmatrix) -> "PardisoFactorization | None":
         """The analysed PARDISO object for ``A`` (same pattern; the caller owns it and
         sets the values), else None (and this analysis is released)."""
+        t0 = time.perf_counter()
         self._thread.join()
         fact, self._result[0] = self._result[0], None
+        if fact is not None:
+            fact.seconds["analysis_wait"] = time.perf_counter() - t0
         if fact is None:
             if self._result[1] is not None:
                 log.debug("the analysis ahead failed (%s): analysing again", self._result[1])
