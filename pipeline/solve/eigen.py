@@ -16,6 +16,8 @@ the shifted matrix A = K - sigma M is factorised once (:mod:`pipeline.solve.fact
   vector (the factor is gigabytes at 1M DOFs, and reading it dominates a single-vector
   solve). The inner products are plain dot products, so the mass matrix is applied once
   per step.
+  The singularity check's probe and the static loads ride along the first two steps as
+  extra columns (:func:`_run_factor`): no pass over the factor of their own.
 - Otherwise (SuperLU, CHOLMOD, cuDSS), scipy's ``eigsh`` (ARPACK) in shift-invert mode
   with the factorisation as its ``OPinv``.
 - Without a factor of K (``multigrid``): LOBPCG (:mod:`pipeline.solve.lobpcg`)

@@ -9,8 +9,11 @@ is checked against the available memory before the factorisation allocates it. T
 over the cores this process may use, scoped to each call (:func:`pipeline.solve.mkl.threads`).
 Multiple right-hand sides are solved in one call, and the Cholesky factor ``L`` is also
 offered as separate forward (``L^-1 b``) and backward (``L^-T y``) substitutions, which
-the block Lanczos eigensolver uses (:mod:`pipeline.solve.eigen`). PARDISO's phase codes
-and error table live in this module only.
+the block Lanczos eigensolver uses (:mod:`pipeline.solve.eigen`); solves made there as
+extra columns (the singularity check's probe, the static loads) are remembered
+(:meth:`PardisoFactorization.remember`) and returned by :meth:`~PardisoFactorization.solve`
+without a pass of their own. PARDISO's phase codes and error table live in this module
+only.
 """
 
 from __future__ import annotations
