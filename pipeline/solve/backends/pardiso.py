@@ -29,7 +29,7 @@ from pipeline._util import progress
 from pipeline._util.resources import check_factor_memory, release_free_heap
 from pipeline.errors import ConfigError, SolverError
 from pipeline.solve import mkl
-from pipeline.solve.blas import upper_triangle_csr
+from pipeline.solve.blas import _upper_mask, upper_triangle_csr
 from pipeline.solve.factorization import Capabilities, Factorization, register_backend
 
 log = logging.getLogger(__name__)
@@ -65,14 +65,15 @@ class PardisoFactorization(Factorization):
     """One MKL PARDISO factorisation (matrix type 2 or -2), prepared once.
 
     ``analysis_only``: stop after the analysis (:class:`PatternAnalysis`); the values
-    are then set in :attr:`a` and :meth:`factorise` called."""
+    are then set in :attr:`a` and :meth:`factorise` called. ``upper``: A is already the
+    upper triangle (sorted, 32-bit indices), taken as it is."""
 
     backend = "pardiso"
     capabilities = Capabilities(indefinite=True, half_solves=True, single_precision=True,
                                 pattern_analysis=True)
 
     def __init__(self, A: sp.spmatrix, positive_definite: bool = True, single: bool = False,
-                 analysis_only: bool = False):
+                 analysis_only: bool = False, upper: bool = False):
         lib = mkl.mkl_library()
         if lib is None:
             raise ConfigError("config key 'modes.solver': 'pardiso' needs MKL (install the "
@@ -84,7 +85,7 @@ class PardisoFactorization(Factorization):
         self.lib = lib
         self.analysis_ahead = False
         self.mtype = 2 if positive_definite else -2
-        U = upper_triangle_csr(sp.csr_matrix(A))
+        U = A if upper else upper_triangle_csr(sp.csr_matrix(A))
         if U.indptr.dtype != np.int32:
             raise SolverError(f"the {self.n}x{self.n} system has {U.nnz} non-zeros in its "
                               "upper triangle: more than 32-bit PARDISO indices hold")
@@ -307,7 +308,6 @@ class PatternAnalysis:
         import threading
 
         n = indptr.size - 1
-        pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, n))
         self._result: list = [None, None]  # (PardisoFactorization, exception)
         self._pattern = (indptr, indices)
         self._upper: np.ndarray | None = None  # (nnz,) bool: column >= row
@@ -315,10 +315,16 @@ class PatternAnalysis:
         def analyse() -> None:
             try:
                 t0 = time.perf_counter()
-                rows = np.repeat(np.arange(n, dtype=indices.dtype), np.diff(indptr))
-                self._upper = indices >= rows
-                del rows
-                self._result[0] = PardisoFactorization(pattern, analysis_only=True)
+                # the upper triangle's pattern straight from the mask, with zeros PARDISO's
+                # analysis does not read (no full-pattern values to allocate and gather)
+                self._upper, upper_indptr = _upper_mask(indptr, indices, n)
+                itype = np.int32 if upper_indptr[-1] < 2**31 else np.int64
+                pattern = sp.csr_matrix(
+                    (np.zeros(int(upper_indptr[-1])), indices[self._upper].astype(itype),
+                     upper_indptr.astype(itype)), shape=(n, n))
+                self._result[0] = PardisoFactorization(pattern, analysis_only=True,
+                                                       upper=True)
+                del pattern
                 lib = mkl.mkl_library()
                 if lib is not None and hasattr(lib, "mkl_thread_free_buffers"):
                     lib.mkl_thread_free_buffers()  # MKL's pool of this thread's buffers
