@@ -63,3 +63,30 @@ def test_multigrid_path_has_its_set_up(bench):
 
 def test_rows_without_a_breakdown_are_left_out(bench):
     assert "no pipeline case" in bench.breakdown([{"kind": "straightforward", "label": "20k"}])
+
+
+def _peer_rows(bench) -> list[dict]:
+    freqs = [65.6, 162.6, 408.2, 974.5, 1011.1]
+    ours = {"kind": "pipeline", "label": "100k", "n_dofs": 101_406, "peak_mb": 850.0,
+            "frequencies": freqs, "mesh": 0.25, "assembly": 0.5, "eigensolve": 3.25,
+            "reduction": 0.5, "write": 0.5, "total": 5.0}
+    peer = {"kind": "ngsolve (pardiso_spd)", "label": "100k", "n_dofs": 88_008,
+            "peak_mb": 1100.0, "frequencies": [f * 1.001 for f in freqs], "mesh": 1.0,
+            "assembly": 1.0, "eigensolve": 10.0, "total": 12.0}
+    return [bench.median_row([ours]), bench.median_row([peer])]
+
+
+def test_peer_comparison_prints_both_ratios(bench):
+    text = bench.peer_comparison(_peer_rows(bench))
+    cells = _cells("\n".join(text.splitlines()[:3]))
+    assert cells["NGSolve / pipeline time"] == "2.40x"  # 12 / 5: whole runs
+    assert cells["pipeline mesh + assembly + eigensolve s"] == "4.0"
+    assert cells["same work: NGSolve / pipeline"] == "3.00x"  # 12 / (0.25 + 0.5 + 3.25)
+    assert "same work: mesh + assembly + eigensolve" in text
+
+
+def test_same_work_is_the_median_over_runs(bench):
+    runs = [{"kind": "pipeline", "total": t, "process_s": t, "peak_mb": 1.0, "mesh": 0.0,
+             "assembly": 0.0, "eigensolve": e} for t, e in ((5.0, 1.0), (4.0, 3.0), (6.0, 2.0))]
+    assert bench.median_row(runs)["same_work"] == 2.0
+    assert bench.same_work({"mesh": 1.0, "assembly": None, "eigensolve": 1.0}) is None

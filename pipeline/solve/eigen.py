@@ -16,6 +16,8 @@ the shifted matrix A = K - sigma M is factorised once (:mod:`pipeline.solve.fact
   vector (the factor is gigabytes at 1M DOFs, and reading it dominates a single-vector
   solve). The inner products are plain dot products, so the mass matrix is applied once
   per step.
+  The singularity check's probe and the static loads ride along the first two steps as
+  extra columns (:func:`_run_factor`): no pass over the factor of their own.
 - Otherwise (SuperLU, CHOLMOD, cuDSS), scipy's ``eigsh`` (ARPACK) in shift-invert mode
   with the factorisation as its ``OPinv``.
 - Without a factor of K (``multigrid``): LOBPCG (:mod:`pipeline.solve.lobpcg`)
@@ -53,6 +55,8 @@ from pipeline.solve.thresholds import stiffness_scale
 
 log = logging.getLogger(__name__)
 
+# the seed of check_factorization's probe, so that its solve can ride along in Lanczos
+CHECK_SEED = 7
 # Lanczos stopping test: ||S y - theta y|| <= tol * theta for every wanted Ritz pair;
 # tol is modes.tolerance when given, else default_tolerance(n).
 DEFAULT_TOLERANCE = 1e-10
@@ -231,28 +235,48 @@ _GIVING_UP = {"mixed": "a float32 factor does not fit either: the factor-free mu
 # each: (K, M, count, plan, coarse, analysis, progress, loads) -> (eigenvectors (n, count),
 # statistics, the kept factorisation of K or None, the backend's name for the result)
 def _run_factor(K, M, count, plan: EigenPlan, coarse, analysis, progress, loads):
-    """Shift-invert with a factor of K - shift M: block Lanczos or ARPACK."""
+    """Shift-invert with a factor of K - shift M: block Lanczos or ARPACK.
+
+    At shift 0 with a factor that can :meth:`remember` solves (PARDISO), the probe of
+    :func:`check_factorization` and the static ``loads`` of a kept factor ride along in
+    Lanczos' first two steps as extra columns, and the check runs after it (also when
+    Lanczos fails, so a singular K is still reported as such)."""
     sigma = plan.shift
     shifted = K - sigma * M if sigma != 0.0 else K
     t1 = time.perf_counter()
     fact = factorize(shifted, plan.backend, positive_definite=True, check=False,
                      analysis=analysis if sigma == 0.0 else None)
-    try:
-        check_factorization(shifted, fact)
-    except SolverError:
-        fact.release()
-        raise
+    ride = None
+    if sigma == 0.0 and plan.method == "lanczos" and hasattr(fact, "remember"):
+        B = [K @ np.random.default_rng(CHECK_SEED).standard_normal(K.shape[0])]
+        if plan.keep_factor and loads is not None:
+            B += list(np.asarray(loads, dtype=float).reshape(K.shape[0], -1).T)
+        ride = (np.array(B), np.empty((len(B), K.shape[0])))
+    else:
+        try:
+            check_factorization(shifted, fact, seed=CHECK_SEED)
+        except SolverError:
+            fact.release()
+            raise
     del shifted
     t2 = time.perf_counter()
     stats = {"backend": fact.backend, "factor_seconds": t2 - t1, **fact.info}
     log.info("factorised %d DOFs with %s in %.2f s (shift %.3g, factor %.2f GB)", K.shape[0],
              fact.backend, t2 - t1, sigma, fact.memory_bytes / 1e9)
     try:
-        if plan.method == "lanczos":
-            v, lstats = _lanczos_modes(fact, M, count, plan.tolerance, plan.block_size,
-                                       plan.max_basis, progress)
-        else:
-            v, lstats = _arpack_modes(fact, K, M, count, sigma, plan.tolerance, progress)
+        try:
+            if plan.method == "lanczos":
+                v, lstats = _lanczos_modes(fact, M, count, plan.tolerance, plan.block_size,
+                                           plan.max_basis, progress, ride)
+            else:
+                v, lstats = _arpack_modes(fact, K, M, count, sigma, plan.tolerance, progress)
+        except Exception:
+            if ride is not None:  # a singular K: say so rather than how Lanczos failed
+                check_factorization(K, fact, seed=CHECK_SEED)
+            raise
+        if ride is not None:
+            fact.remember(ride[0].T, ride[1].T)
+            check_factorization(K, fact, seed=CHECK_SEED)  # its probe is solved already
     except BaseException:
         fact.release()
         raise
@@ -528,20 +552,32 @@ def _arpack_modes(fact, K, M, count, sigma, tolerance, progress):
 
 
 # --------------------------------------------------------------------------- block Lanczos
-def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
-    """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T."""
+def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress, ride=None):
+    """Eigenvectors (n, count) of the ``count`` largest theta of F^-1 M F^-T.
+
+    ``ride``: (B (r, n), X (r, n)): the solves X = A^-1 B = F^-T F^-1 B ride along the
+    first two steps, F^-1 B as r more columns of the first forward substitution, F^-T of
+    that of the second backward one (a column more costs about a tenth of a pass over
+    the factor of its own at 100k DOFs), and are written into X."""
     n = fact.n
     calls = [0, 0]
     clock = {"solve": 0.0, "mass": 0.0}
+    riding = [None if ride is None else ride[0]]  # right-hand sides for the next pass
 
     def op(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t0 = time.perf_counter()
-        X = fact.backward_rows(Y)  # F^-T Y: the image kept for the Ritz vectors of the pencil
+        k, halfway = Y.shape[0], riding[0] is not None and riding[0] is not ride[0]
+        # F^-T Y: the image kept for the Ritz vectors of the pencil
+        X = fact.backward_rows(np.vstack([Y, riding[0]]) if halfway else Y)
+        if halfway:
+            ride[1][...], X, riding[0] = X[k:], X[:k], None
         t1 = time.perf_counter()
         MX = sparse_times_dense(M, X.T)  # (n, k), column-major
         t2 = time.perf_counter()
-        out = fact.forward_rows(MX.T)  # F^-1 M F^-T Y
-        del MX
+        first = riding[0] is not None
+        out = fact.forward_rows(np.vstack([MX.T, riding[0]]) if first else MX.T)
+        if first:  # F^-1 M F^-T Y, and F^-1 B for the next backward substitution
+            out, riding[0] = out[:k], out[k:]
         clock["solve"] += time.perf_counter() - t2 + t1 - t0
         clock["mass"] += t2 - t1
         calls[0] += 2 * Y.shape[0]
@@ -562,6 +598,8 @@ def _lanczos_modes(fact, M, count, tolerance, block_size, max_basis, progress):
         _, theta, steps, restarts, X = block_lanczos(
             lambda Y: (watch.update(1), op(Y))[1], n, count, b, tol, max_basis,
             with_images=True)
+    if riding[0] is not None:  # converged in one step: the backward half on its own
+        ride[1][...] = fact.backward_rows(riding[0])
     # the Ritz vectors of the pencil, x = F^-T y, are the same combination of the
     # images F^-T v the steps computed anyway: no further pass over the factor
     return X.T, {"method": "block-lanczos", "block": b, "steps": steps, "restarts": restarts,

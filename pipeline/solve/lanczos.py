@@ -128,7 +128,7 @@ def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
         W = np.array(W, dtype=np.float64)  # own copy: modified in place below
         del out
         steps += 1
-        scale = max(scale, float(np.sqrt((W * W).sum(axis=1).max())))
+        scale = max(scale, float(np.sqrt(np.einsum("ij,ij->i", W, W).max())))  # no temporary
         Q = basis[:hi]
         _orthogonalise(W, basis, H, near, lo, hi)
         Hs = np.triu(H[:hi, :hi])

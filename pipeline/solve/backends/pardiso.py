@@ -9,8 +9,11 @@ is checked against the available memory before the factorisation allocates it. T
 over the cores this process may use, scoped to each call (:func:`pipeline.solve.mkl.threads`).
 Multiple right-hand sides are solved in one call, and the Cholesky factor ``L`` is also
 offered as separate forward (``L^-1 b``) and backward (``L^-T y``) substitutions, which
-the block Lanczos eigensolver uses (:mod:`pipeline.solve.eigen`). PARDISO's phase codes
-and error table live in this module only.
+the block Lanczos eigensolver uses (:mod:`pipeline.solve.eigen`); solves made there as
+extra columns (the singularity check's probe, the static loads) are remembered
+(:meth:`PardisoFactorization.remember`) and returned by :meth:`~PardisoFactorization.solve`
+without a pass of their own. PARDISO's phase codes and error table live in this module
+only.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from pipeline._util import progress
 from pipeline._util.resources import check_factor_memory, release_free_heap
 from pipeline.errors import ConfigError, SolverError
 from pipeline.solve import mkl
-from pipeline.solve.blas import upper_triangle_csr
+from pipeline.solve.blas import _upper_mask, upper_triangle_csr
 from pipeline.solve.factorization import Capabilities, Factorization, register_backend
 
 log = logging.getLogger(__name__)
@@ -62,14 +65,15 @@ class PardisoFactorization(Factorization):
     """One MKL PARDISO factorisation (matrix type 2 or -2), prepared once.
 
     ``analysis_only``: stop after the analysis (:class:`PatternAnalysis`); the values
-    are then set in :attr:`a` and :meth:`factorise` called."""
+    are then set in :attr:`a` and :meth:`factorise` called. ``upper``: A is already the
+    upper triangle (sorted, 32-bit indices), taken as it is."""
 
     backend = "pardiso"
     capabilities = Capabilities(indefinite=True, half_solves=True, single_precision=True,
                                 pattern_analysis=True)
 
     def __init__(self, A: sp.spmatrix, positive_definite: bool = True, single: bool = False,
-                 analysis_only: bool = False):
+                 analysis_only: bool = False, upper: bool = False):
         lib = mkl.mkl_library()
         if lib is None:
             raise ConfigError("config key 'modes.solver': 'pardiso' needs MKL (install the "
@@ -81,7 +85,7 @@ class PardisoFactorization(Factorization):
         self.lib = lib
         self.analysis_ahead = False
         self.mtype = 2 if positive_definite else -2
-        U = upper_triangle_csr(sp.csr_matrix(A))
+        U = A if upper else upper_triangle_csr(sp.csr_matrix(A))
         if U.indptr.dtype != np.int32:
             raise SolverError(f"the {self.n}x{self.n} system has {U.nnz} non-zeros in its "
                               "upper triangle: more than 32-bit PARDISO indices hold")
@@ -102,7 +106,9 @@ class PardisoFactorization(Factorization):
         ip[34] = 1  # zero-based indices: scipy's arrays are passed as they are
         ip[36] = VBSR_THRESHOLD  # rows with (nearly) equal patterns -> variable blocks
         self._alive = True  # from the first call on, PARDISO may hold memory to release
-        self.seconds = {"analysis": 0.0, "factorisation": 0.0}
+        self._known: list[tuple[np.ndarray, np.ndarray]] = []  # (b, A^-1 b): remember()
+        # analysis_wait: how long take() waited for an analysis run ahead (PatternAnalysis)
+        self.seconds = {"analysis": 0.0, "factorisation": 0.0, "analysis_wait": 0.0}
         t0 = time.perf_counter()
         try:
             if analysis_only:  # in a background thread (PatternAnalysis): no progress stage
@@ -185,7 +191,28 @@ class PardisoFactorization(Factorization):
         return xt.T
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        return self._apply(_SOLVE, b)
+        known = self._recall(b)
+        return self._apply(_SOLVE, b) if known is None else known
+
+    def remember(self, B: np.ndarray, X: np.ndarray) -> None:
+        """Keep X = A^-1 B (both (n, k)), solved already (the probe of
+        :func:`~pipeline.solve.factorization.check_factorization` and the static loads
+        ride along in the eigensolver's first passes over the factor,
+        :func:`pipeline.solve.eigen._lanczos_modes`): :meth:`solve` of exactly those
+        columns returns them without a pass of its own."""
+        self._known += [(np.array(B[:, j]), np.array(X[:, j])) for j in range(B.shape[1])]
+
+    def _recall(self, b: np.ndarray) -> np.ndarray | None:
+        """A^-1 b from :meth:`remember` when every column of b (n,) or (n, k) is known."""
+        if not self._known or not self._alive or np.shape(b)[0] != self.n:
+            return None
+        columns = np.asarray(b).reshape(self.n, -1).T
+        found = [next((x for known, x in self._known if np.array_equal(c, known)), None)
+                 for c in columns]
+        if any(x is None for x in found):
+            return None
+        return (found[0].copy() if np.ndim(b) == 1
+                else np.column_stack(found).astype(self.dtype, copy=False))
 
     def forward(self, b: np.ndarray) -> np.ndarray:
         self._check_halves()
@@ -231,6 +258,7 @@ class PardisoFactorization(Factorization):
         if not self._alive:
             return
         self._alive = False
+        self._known = []
 
         def free() -> None:
             try:
@@ -252,6 +280,7 @@ class PardisoFactorization(Factorization):
         factorisation and solution in KB, iparm[17]: non-zeros of the factor)."""
         return {"format": "csr-upper/vbsr" + ("/float32" if self.dtype == np.float32 else ""),
                 "analysis_seconds": self.seconds["analysis"],
+                "analysis_wait_seconds": self.seconds["analysis_wait"],
                 "numeric_seconds": self.seconds["factorisation"],
                 "factor_nnz": int(self.iparm[17]),
                 "factor_bytes": int(self.iparm[16]) * 1024,
@@ -267,7 +296,10 @@ class PatternAnalysis:
     :func:`factorize` takes the analysis for a matrix of exactly this pattern
     (:meth:`take`) and only factorises numerically; any other matrix gets its own
     analysis and this one is released. At 100k DOFs the analysis is 0.3 s, at 300k about
-    1.5 s, beside an element loop that leaves a core idle below about 150k DOFs.
+    1.5 s, beside an element loop that leaves a core idle below about 150k DOFs. The
+    thread also marks the entries of the upper triangle in the full pattern, so that
+    :meth:`take` gathers the values (10 ms at 100k DOFs) instead of extracting the
+    triangle of the assembled matrix (80 ms).
     :meth:`release` (always call it: ``with`` does) waits for the thread and frees
     PARDISO's memory if nobody took it.
     """
@@ -276,13 +308,23 @@ class PatternAnalysis:
         import threading
 
         n = indptr.size - 1
-        pattern = sp.csr_matrix((np.zeros(indices.size), indices, indptr), shape=(n, n))
         self._result: list = [None, None]  # (PardisoFactorization, exception)
+        self._pattern = (indptr, indices)
+        self._upper: np.ndarray | None = None  # (nnz,) bool: column >= row
 
         def analyse() -> None:
             try:
                 t0 = time.perf_counter()
-                self._result[0] = PardisoFactorization(pattern, analysis_only=True)
+                # the upper triangle's pattern straight from the mask, with zeros PARDISO's
+                # analysis does not read (no full-pattern values to allocate and gather)
+                self._upper, upper_indptr = _upper_mask(indptr, indices, n)
+                itype = np.int32 if upper_indptr[-1] < 2**31 else np.int64
+                pattern = sp.csr_matrix(
+                    (np.zeros(int(upper_indptr[-1])), indices[self._upper].astype(itype),
+                     upper_indptr.astype(itype)), shape=(n, n))
+                self._result[0] = PardisoFactorization(pattern, analysis_only=True,
+                                                       upper=True)
+                del pattern
                 lib = mkl.mkl_library()
                 if lib is not None and hasattr(lib, "mkl_thread_free_buffers"):
                     lib.mkl_thread_free_buffers()  # MKL's pool of this thread's buffers
@@ -297,24 +339,30 @@ class PatternAnalysis:
     def take(self, A: sp.spmatrix) -> "PardisoFactorization | None":
         """The analysed PARDISO object for ``A`` (same pattern; the caller owns it and
         sets the values), else None (and this analysis is released)."""
+        t0 = time.perf_counter()
         self._thread.join()
         fact, self._result[0] = self._result[0], None
+        if fact is not None:
+            fact.seconds["analysis_wait"] = time.perf_counter() - t0
         if fact is None:
             if self._result[1] is not None:
                 log.debug("the analysis ahead failed (%s): analysing again", self._result[1])
             return None
-        U = upper_triangle_csr(sp.csr_matrix(A))
-        if not (np.array_equal(U.indptr, fact.ia) and np.array_equal(U.indices, fact.ja)):
+        A = sp.csr_matrix(A)
+        if not all(mine is theirs or np.array_equal(mine, theirs)
+                   for mine, theirs in zip((A.indptr, A.indices), self._pattern)):
             fact.release()
             release_free_heap()
             return None
-        fact.a = U.data.astype(fact.dtype, copy=False)  # the analysis thread's zeros go
-        del U
+        # the upper triangle's values in CSR order: what upper_triangle_csr(A) would give
+        fact.a = A.data[self._upper].astype(fact.dtype, copy=False)  # the zeros go
+        self._upper = None
         release_free_heap()  # that thread's malloc arena would keep their pages
         return fact
 
     def release(self) -> None:
         self._thread.join()
+        self._upper = None
         fact, self._result[0] = self._result[0], None
         if fact is not None:
             fact.release()
