@@ -111,6 +111,7 @@ def _analysis_ahead(coarse: sp.csr_matrix, backend: str):
         return None
     from pipeline.solve.backends.pardiso import PatternAnalysis
 
+    coarse.sort_indices()  # in place: the analysis reads sorted rows (scipy's product's are not)
     return PatternAnalysis(coarse.indptr, coarse.indices)
 
 

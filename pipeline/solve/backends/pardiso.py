@@ -288,6 +288,17 @@ class PardisoFactorization(Factorization):
                 "analysis_ahead": self.analysis_ahead}
 
 
+def _sorted_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
+    """Whether every CSR row's column indices increase (scipy's check, no temporaries);
+    True where that private kernel is not there (the caller's word is taken)."""
+    try:
+        from scipy.sparse._sparsetools import csr_has_sorted_indices
+
+        return bool(csr_has_sorted_indices(indptr.size - 1, indptr, indices))
+    except (ImportError, TypeError, ValueError):
+        return True
+
+
 class PatternAnalysis:
     """PARDISO's analysis (ordering, symbolic factorisation) of a symmetric matrix's
     pattern, run in a background thread while its values are still being assembled.
@@ -315,6 +326,8 @@ class PatternAnalysis:
         def analyse() -> None:
             try:
                 t0 = time.perf_counter()
+                if not _sorted_rows(indptr, indices):  # PARDISO reads sorted rows only
+                    raise ValueError("the pattern's rows are not sorted")
                 # the upper triangle's pattern straight from the mask, with zeros PARDISO's
                 # analysis does not read (no full-pattern values to allocate and gather)
                 self._upper, upper_indptr = _upper_mask(indptr, indices, n)
