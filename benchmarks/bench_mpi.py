@@ -1,31 +1,36 @@
 """Benchmark of the distributed path (``modes.solver: slepc``): wall time and peak memory
-per rank on 1 and 2 MPI ranks, and the per-rank memory model extrapolated to a large body.
+per rank on 1, 2 and 4 MPI ranks, and the per-rank memory model extrapolated to a large body.
 
 ``make bench`` runs it when the MPI environment exists (``make mpi-env``), with MUMPS'
 factor and then factor-free (``--method multigrid``: the two-grid LOBPCG, whose only
 factor is the P1 coarse problem's), so that the extrapolations say which solver takes
 fewer nodes; by hand:
-``.venv-mpi/bin/python benchmarks/bench_mpi.py [--size 0.005] [--ranks 1,2]``.
+``.venv-mpi/bin/python benchmarks/bench_mpi.py [--size 0.005] [--ranks 1,2,4]``.
 
 Each case is ``mpiexec -n P python benchmarks/bench_mpi.py --worker``: the pipeline on
 ``configs/cantilever.yaml`` (``modes.count`` 10, the shipped config's), then every rank
-reports its peak resident memory (ru_maxrss) and the memory it had after importing the
-stack (the interpreter, numpy, gmsh, PETSc: a constant per rank).
+reports its peak resident memory (ru_maxrss), its resident memory and peak at the end of
+each stage (VmRSS, VmHWM), and the memory it had after loading the stack (the
+interpreter, the pipeline's modules, numpy, scikit-fem, h5py, gmsh, petsc4py and
+slepc4py with PETSc's, MUMPS' and MPI's libraries initialised: a constant per rank).
 
-The memory model per rank, at N free DOFs on P ranks, fitted to the cases at one size
-N0 (free DOFs) and MUMPS' own figures at several:
+The memory model per rank, at N free DOFs on P ranks, fitted to the cases at N0 (free
+DOFs, ``--size``) on 1, 2 and 4 ranks, at a second size on 2 and 4 ranks
+(``--split-size``) and MUMPS' own figures at several sizes:
 
-    m(P, N) = c + r N / N0 + [rank 0] w N / N0 + ((s + l) N / N0 + k F(N)) / P
+    m(P, N) = c + r0 + r N / N0 + [rank 0, P > 1] w N / N0 + ((s + l) N / N0 + k F(N)) / P
 
-c: the imports (measured); r: what every rank holds whatever P is (linear in N: the
-free-DOF index and the row order, the labels' point coordinates for a moment, and
-transients of the run that do not fall with P); w: what rank 0 alone holds besides (it
-meshes the body with gmsh, builds the whole FE space to evaluate regions, ports and
-the partition, cuts out the parts and keeps the points and elements it writes); the
-divided part d at N0 (from the peaks at 1 and 2 ranks: one rank c + r + w + d, on two
-rank 0 c + r + w + d / 2 and rank 1 c + r + d / 2) is MUMPS' factor F(N0), the mode
-shapes s and the rest l (each rank's part of the mesh and FE space, its rows of K and
-M: linear in N). F(N): what MUMPS allocated for the factor on all ranks (INFOG(19) MB,
+c: the stack (measured); r0 + r N / N0 = R(N): what every rank holds whatever P is, its
+constant and linear parts; w: what rank 0 alone holds besides when P > 1 (it meshes the
+body with gmsh, builds the whole FE space to evaluate regions, ports and the partition,
+cuts out the parts and keeps the points and elements it writes; on one rank the whole
+mesh is its part). R and the divided part d at N come from the ranks other than 0 on 2
+and 4 ranks (each peaks at c + R + d / P: :func:`rank_split`; 4 ranks oversubscribe the
+2 cores, which moves their times, not their memory): rank 0 is left out, so w does not
+leak into R, and the 1-rank case is the check (c + R + d against its peak). R at two
+sizes splits into r0 and r. d at N0 is MUMPS' factor F(N0), the mode shapes s and the
+rest l (each rank's part of the mesh and FE space, its rows of K and M: linear in N).
+F(N): what MUMPS allocated for the factor on all ranks (INFOG(19) MB,
 which is its estimate after the analysis, INFOG(17); :mod:`pipeline.distributed.factor_memory`
 logs it), measured on 2 ranks at the bench's sizes (``--fit-sizes`` besides ``--size``)
 and fitted as F = alpha N^(4/3) + beta N (:func:`factor_fit`: a nested-dissection
@@ -81,18 +86,63 @@ class _MumpsFigures(logging.Handler):
                                  "sum_used_mb": done.sum_used_bytes / 1e6})
 
 
+def _status_mb() -> dict[str, float]:
+    """This process's resident memory now and its peak so far (VmRSS, VmHWM; MB)."""
+    out = {}
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(("VmRSS:", "VmHWM:")):
+                out[line[:5]] = int(line.split()[1]) / 1024.0
+    return out
+
+
+class _StageMemory(logging.Handler):
+    """Each stage's resident memory at its end and the peak so far (VmRSS, VmHWM; MB),
+    from the records of :func:`pipeline.run.run_pipeline` ("<stage> done in ...")."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.stages = []
+
+    def emit(self, record) -> None:
+        if record.msg.startswith("%s done in"):
+            now = _status_mb()
+            self.stages.append([record.args[0], round(now["VmRSS"]), round(now["VmHWM"])])
+
+
+def _load_stack() -> None:
+    """Import and initialise what every rank loads whatever the problem (the pipeline's
+    modules, scikit-fem, h5py, gmsh, petsc4py and slepc4py with PETSc's, MUMPS' and MPI's
+    libraries), so that the memory measured after it (c) is the constant part."""
+    import gmsh  # noqa: F401
+    import h5py  # noqa: F401
+    import skfem  # noqa: F401
+    import pipeline.distributed.stage  # noqa: F401
+    import pipeline.run  # noqa: F401
+    from pipeline.distributed.mpi import petsc, world
+
+    PETSc, _ = petsc()
+    world().Barrier()
+
+
 def worker(size: float, output: str, method: str) -> None:
     """One MPI case: every rank runs the pipeline; rank 0 prints a JSON line (with
-    MUMPS' figures of each factor the run made, which rank 0 logs)."""
+    MUMPS' figures of each factor the run made, which rank 0 logs, and every rank's
+    memory at the end of each stage)."""
     from pipeline.distributed.mpi import world
     from pipeline.api import run_config
 
     comm = world()
+    _load_stack()
     base = _peak_mb()
     figures = _MumpsFigures()
     logger = logging.getLogger("pipeline.distributed.factor_memory")
     logger.addHandler(figures)
     logger.setLevel(logging.INFO)
+    stages = _StageMemory()
+    run_log = logging.getLogger("pipeline.run")
+    run_log.addHandler(stages)
+    run_log.setLevel(logging.INFO)
     t0 = time.perf_counter()
     result = run_config(CONFIG, output=output,
                         overrides=[f"mesh.size={size}", "modes.solver=slepc",
@@ -100,10 +150,12 @@ def worker(size: float, output: str, method: str) -> None:
     wall = time.perf_counter() - t0
     peaks = comm.gather(_peak_mb(), root=0)
     bases = comm.gather(base, root=0)
+    by_stage = comm.gather(stages.stages, root=0)
     if comm.rank == 0:
         print("BENCH " + json.dumps({
             "ranks": comm.size, "n_free": result.n_free, "wall_s": wall,
             "times": result.times, "peak_mb": peaks, "import_mb": bases,
+            "stages_mb": by_stage,
             "f1_hz": float(result.frequencies_hz[0]), "mumps": figures.factors}),
             flush=True)
 
@@ -223,25 +275,55 @@ def factor_fit(rows: list[dict]) -> dict:
             "misfit": float(np.abs(basis @ [alpha, beta] / f - 1).max())}
 
 
+def rank_split(rows: list[dict], n_free: int) -> tuple[float, float] | None:
+    """(R, D) MB at ``n_free`` from the 2- and 4-rank cases there, or None: the ranks other
+    than 0 peak at c + R + D / P (their mean), so R = 2 m(4) - m(2) - c, D = 4 (m(2) - m(4))."""
+    peak = {r["ranks"]: sum(r["peak_mb"][1:]) / (r["ranks"] - 1) for r in rows
+            if r["n_free"] == n_free and r["ranks"] in (2, 4)}
+    if len(peak) < 2:
+        return None
+    c = max(max(r["import_mb"]) for r in rows if r["n_free"] == n_free)
+    return 2.0 * peak[4] - peak[2] - c, 4.0 * (peak[2] - peak[4])
+
+
 def memory_model(rows: list[dict]) -> dict:
-    """c, r, w, d, s, l (MB), k, and MUMPS' fit (:func:`factor_fit`) of the module's model
-    from the 1- and 2-rank cases at N0 (``--size``) and the 2-rank cases at every size:
-    on 2 ranks rank 1 peaks at c + r + d / 2, rank 0 at c + r + w + d / 2, one rank at
-    c + r + w + d; of d, F(N0) is MUMPS' and s the mode shapes'."""
+    """c, r0, r, w, d, s, l (MB), k, and MUMPS' fit (:func:`factor_fit`) of the module's
+    model. At N0 (the 1-rank case's size) the ranks other than 0 on 2 and 4 ranks give what
+    every rank holds, R(N0) = r0 + r, and the divided part d (:func:`rank_split`; rank 0
+    is left out: it holds the whole mesh besides, but only when P > 1, so the 1-rank case
+    cannot separate w from R); at a second size N1 with 2- and 4-rank cases R(N1) =
+    r0 + r N1 / N0 splits R into its constant and linear parts (without one, all of R is
+    taken as linear). w: rank 0's peak over the mean of the others' on 2 and 4 ranks
+    (their mean; MUMPS' shares differ between ranks by tens of MB). Of d, F(N0) is
+    MUMPS' (2 ranks) and s the mode shapes'. ``one_mb``: the model's 1-rank peak
+    (c + R + d) beside the measured ``one_measured_mb``."""
     one = next(r for r in rows if r["ranks"] == 1)
-    two = next(r for r in rows if r["ranks"] == 2 and r["n_free"] == one["n_free"])
-    c = max(one["import_mb"])
-    m1 = max(one["peak_mb"])
-    m20, m2o = two["peak_mb"][0], max(two["peak_mb"][1:])
-    d = max(2.0 * (m1 - m20), 0.0)
-    shapes = SHAPE_BLOCKS * 8.0 * one["n_free"] * MODES / 2**20
+    n0 = one["n_free"]
+    two = next(r for r in rows if r["ranks"] == 2 and r["n_free"] == n0)
+    c = max(max(r["import_mb"]) for r in rows if r["n_free"] == n0)
+    split = rank_split(rows, n0)
+    if split is None:
+        raise ValueError("the memory model needs the 2- and 4-rank cases at --size")
+    R, d = split
+    split_rows = [r for r in rows if r["n_free"] == n0 and r["ranks"] in (2, 4)]
+    other = [rank_split(rows, r["n_free"]) + (r["n_free"],) for r in rows
+             if r["ranks"] == 4 and r["n_free"] != n0]
+    if other:
+        R1, _, n1 = other[0]
+        r = max((R - R1) / (n0 - n1) * n0, 0.0)
+    else:
+        R1, n1, r = None, None, max(R, 0.0)
+    shapes = SHAPE_BLOCKS * 8.0 * n0 * MODES / 2**20
     fit = factor_fit(rows)
     total, largest = mumps_mb(two)
     factor = total / 2**20 * 1e6  # MiB, as the peaks
-    return {"c": c, "r": max(m2o - c - d / 2, 0.0), "w": max(m20 - m2o, 0.0),
+    return {"c": c, "r0": max(R - r, 0.0), "r": r, "R": R, "R1": R1, "n1": n1,
+            "w": max(sum(r["peak_mb"][0] - sum(r["peak_mb"][1:]) / (r["ranks"] - 1)
+                         for r in split_rows) / len(split_rows), 0.0),
             "d": max(d, shapes + factor), "s": shapes,
             "l": max(d - shapes - factor, 0.0), "k": 2.0 * largest / total,
-            "fit": fit, "factor": factor, "n0": one["n_free"]}
+            "fit": fit, "factor": factor, "n0": n0, "one_mb": c + R + d,
+            "one_measured_mb": max(one["peak_mb"])}
 
 
 def mumps_factor_mb(model: dict, n: float) -> float:
@@ -255,13 +337,14 @@ def extrapolate(model: dict, n: float) -> list[str]:
     """Lines: per-rank memory at n DOFs against the rank count, and the nodes needed (the
     node of rank 0, which holds the whole mesh besides, is the one that must fit)."""
     s = n / model["n0"]
-    fixed = model["c"] + model["r"] * s
+    fixed = model["c"] + model["r0"] + model["r"] * s
     whole = model.get("w", 0.0) * s
     factor = model["k"] * mumps_factor_mb(model, n)
     shared = (model["s"] + model["l"]) * s + factor
     usable = NODE_GB * 1024 * NODE_USABLE
     lines = [f"model per rank at {n / 1e6:.0f}M DOFs: {fixed / 1024:.1f} GB on every rank "
-             f"(imports {model['c'] / 1024:.2f} GB + replicated {model['r'] * s / 1024:.1f} GB) "
+             f"(imports {model['c'] / 1024:.2f} GB + a constant {model['r0'] / 1024:.2f} GB + "
+             f"replicated {model['r'] * s / 1024:.1f} GB) "
              f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it MUMPS' factor "
              f"{factor / 1024:.0f} GB / P, the mode shapes {model['s'] * s / 1024:.1f} GB / P),"
              f" rank 0 {whole / 1024:.1f} GB more (the whole mesh)"]
@@ -283,9 +366,14 @@ def extrapolate(model: dict, n: float) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=float, default=0.005, help="mesh.size, m (0.005: 100k DOFs)")
-    ap.add_argument("--ranks", default="1,2")
+    ap.add_argument("--ranks", default="1,2,4",
+                    help="rank counts at --size (the model needs 1, 2 and 4; 4 ranks "
+                         "oversubscribe 2 cores: their memory counts, not their time)")
     ap.add_argument("--fit-sizes", default="0.01,0.007,0.004",
                     help="further mesh.size values (m) run on 2 ranks for MUMPS' factor fit")
+    ap.add_argument("--split-size", default="0.01",
+                    help="mesh.size (m) also run on 4 ranks: what every rank holds, split "
+                         "into its constant and linear parts ('' for none)")
     ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
@@ -316,6 +404,10 @@ def main(argv=None) -> int:
             for p in args.ranks.split(",")]
     rows += [run_case(2, float(h), args.method, args.timeout)
              for h in args.fit_sizes.split(",") if h and float(h) != args.size]
+    if args.split_size and float(args.split_size) != args.size:
+        if float(args.split_size) not in [float(h) for h in args.fit_sizes.split(",") if h]:
+            rows.append(run_case(2, float(args.split_size), args.method, args.timeout))
+        rows.append(run_case(4, float(args.split_size), args.method, args.timeout))
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
     print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
           f"{'peak MB per rank':>20} {'MUMPS entries':>13} {'MUMPS MB all/max':>16}")
@@ -326,7 +418,17 @@ def main(argv=None) -> int:
                  if top else f"{'-':>13} {'-':>16}")
         print(f"{r['ranks']:>5} {r['n_free']:>10} {r['times'].get('assemble', 0):>10.1f} "
               f"{r['times'].get('modes', 0):>8.1f} {r['wall_s']:>8.1f} {peaks:>20} {mumps}")
-    if {1, 2} <= {r["ranks"] for r in rows} and all(r["mumps"] for r in rows):
+    print("resident memory per rank at the end of each stage (MB; rank 0 / the largest "
+          "other / the peak so far of the largest rank)")
+    for r in rows:
+        names = [st[0] for st in r.get("stages_mb", [[]])[0]]
+        cells = []
+        for i, name in enumerate(names):
+            ranks = [st[i] for st in r["stages_mb"]]
+            others = max((x[1] for x in ranks[1:]), default=0)
+            cells.append(f"{name} {ranks[0][1]}/{others}/{max(x[2] for x in ranks)}")
+        print(f"{r['ranks']:>5} {r['n_free']:>10}  " + ", ".join(cells))
+    if {1, 2, 4} <= {r["ranks"] for r in rows} and all(r["mumps"] for r in rows):
         model = memory_model(rows)
         fit = model["fit"]
         print(f"MUMPS' factor on 2 ranks (INFOG(19), MB) at N = "
@@ -335,7 +437,13 @@ def main(argv=None) -> int:
               f"{fit['misfit']:.0%}); one power law N^{fit['b']:.3f}, the local exponents "
               + ", ".join(f"{x:.2f}" for x in fit["local"])
               + f"; the largest rank {model['k']:.2f} times the mean (INFOG(18))")
-        print(f"fit: c = {model['c']:.0f} MB (imports), r = {model['r']:.0f} MB (replicated), "
+        split = (f"R = {model['R']:.0f} MB at {model['n0']} and {model['R1']:.0f} MB at "
+                 f"{model['n1']} free DOFs" if model["n1"] else f"R = {model['R']:.0f} MB")
+        print(f"what every rank holds (2 and 4 ranks, the ranks other than 0): {split}; "
+              f"the model's 1-rank peak {model['one_mb']:.0f} MB, measured "
+              f"{model['one_measured_mb']:.0f} MB")
+        print(f"fit: c = {model['c']:.0f} MB (imports), r0 = {model['r0']:.0f} MB (constant), "
+              f"r = {model['r']:.0f} MB (replicated, linear in N), "
               f"w = {model['w']:.0f} MB (rank 0's whole mesh), d = {model['d']:.0f} MB "
               f"(divided: MUMPS' factor {model['factor']:.0f} MB, the mode shapes "
               f"{model['s']:.0f} MB, the rest l = {model['l']:.0f} MB) at {model['n0']} free DOFs")

@@ -1,0 +1,65 @@
+"""The distributed bench's per-rank memory model (benchmarks/bench_mpi.py).
+
+Synthetic rows made from known c, r0, r, w and d (the model of the bench's docstring,
+m(P, N) = c + r0 + r N / N0 + [rank 0, P > 1] w N / N0 + d(N) / P): the fit must give
+them back. The model is linear in what it fits, so the checks are equalities to
+round-off (1e-9 MB)."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_mpi.py"
+N0, N1 = 100_000, 20_000
+C, R0, R, W = 128.0, 17.0, 30.0, 25.0
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_mpi", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def _divided(n: int) -> float:
+    return 800.0 * (n / N0) ** (4.0 / 3.0)
+
+
+def _row(ranks: int, n: int) -> dict:
+    """One case: every rank's peak from the model (rank 0 with w when P > 1), MUMPS'
+    figures (half of d on 2 ranks, the larger rank 1.1 times the mean)."""
+    s = n / N0
+    others = C + R0 + R * s + _divided(n) / ranks
+    peaks = [others + (W * s if ranks > 1 else 0.0)] + [others] * (ranks - 1)
+    total = 0.5 * _divided(n) * 2**20 / 1e6
+    mumps = [{"of": "K", "entries": 1.0, "sum_mb": total, "max_mb": 0.55 * total,
+              "max_used_mb": 0.0, "sum_used_mb": 0.0}]
+    return {"ranks": ranks, "n_free": n, "peak_mb": peaks, "import_mb": [C] * ranks,
+            "mumps": mumps}
+
+
+def test_the_fit_returns_what_made_the_peaks(bench):
+    rows = [_row(1, N0), _row(2, N0), _row(4, N0), _row(2, N1), _row(4, N1), _row(2, 50_000)]
+    model = bench.memory_model(rows)
+    assert model["c"] == C
+    assert model["r0"] == pytest.approx(R0, abs=1e-9)
+    assert model["r"] == pytest.approx(R, abs=1e-9)
+    assert model["w"] == pytest.approx(W, abs=1e-9)
+    assert model["d"] == pytest.approx(_divided(N0), abs=1e-9)
+    assert model["k"] == pytest.approx(1.1)
+    # the 1-rank case is not used by the fit: it checks it (no w on one rank)
+    assert model["one_mb"] == pytest.approx(model["one_measured_mb"], abs=1e-9)
+
+
+def test_without_a_second_size_all_of_what_every_rank_holds_is_linear(bench):
+    rows = [_row(1, N0), _row(2, N0), _row(4, N0), _row(2, N1), _row(2, 50_000)]
+    model = bench.memory_model(rows)
+    assert model["r0"] == 0.0
+    assert model["r"] == pytest.approx(R0 + R, abs=1e-9)
