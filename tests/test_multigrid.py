@@ -141,6 +141,35 @@ def test_column_dots_in_row_halves(monkeypatch):
         blas.in_halves(fail, 10)
 
 
+def test_float32_cycle_in_row_halves_is_bitwise_the_one_piece_cycle(beam, monkeypatch):
+    """The cycle's element-wise passes (column scales, casts, copies, the unscaling) run
+    in two row halves on two threads from HALVES_ROWS rows: element-wise, so the result
+    is bit for bit the one-piece cycle's, for one block and for the riding solve's list
+    of blocks, and with a column of zeros (scale 1) and a tiny one (no underflow)."""
+    from pipeline.solve import blas
+
+    P = p1_prolongation(beam.space, beam.free)
+    tg = multigrid.TwoGrid(beam.K, P)
+    try:
+        rng = np.random.default_rng(7)
+        R = rng.standard_normal((beam.K.shape[0], 5))
+        R[:, 1] = 0.0
+        R[:, 2] *= 1e-300
+        S = rng.standard_normal((beam.K.shape[0], 2))
+        whole = tg.apply_single(R)
+        whole_list = tg._apply_single([R, S])
+        monkeypatch.setattr(blas, "HALVES_ROWS", 2)
+        halves = tg.apply_single(R)
+        halves_list = tg._apply_single([R, S])
+        assert np.array_equal(halves, whole)
+        assert all(np.array_equal(a, b) for a, b in zip(halves_list, whole_list))
+        assert np.array_equal(halves_list[0], whole)
+        assert not np.any(whole[:, 1]) and np.all(np.isfinite(whole))
+        assert np.abs(whole[:, 2]).max() > 0.0
+    finally:
+        tg.release()
+
+
 def build_model_order1(beam):
     from pipeline.fe.space import build_space
 

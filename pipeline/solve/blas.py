@@ -189,6 +189,16 @@ def in_halves(fn, n: int) -> list:
     return out
 
 
+def by_rows(fn, n: int) -> list:
+    """[fn(slice(0, n))] below :data:`HALVES_ROWS` rows, else :func:`in_halves`: for
+    element-wise passes over (n, k) blocks, whose results do not depend on the split.
+
+    >>> by_rows(lambda s: s, 4)
+    [slice(0, 4, None)]
+    """
+    return in_halves(fn, n) if n >= HALVES_ROWS else [fn(slice(0, n))]
+
+
 def column_dots(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """(k,) a_j . b_j for the columns of A, B (n, k): one pass, no (n, k) temporary; from
     :data:`HALVES_ROWS` rows the two row halves' sums are added (:func:`in_halves`).

@@ -68,7 +68,8 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
-from pipeline.solve.blas import axpby, galerkin_product, scaled_inf_norm, sparse_times_dense
+from pipeline.solve.blas import (axpby, by_rows, galerkin_product, scaled_inf_norm,
+                                 sparse_times_dense)
 from pipeline.solve.factorization import (Factorization, SolverFactorization, factorize,
                                           resolve_backend)
 from pipeline.solve.pcg import Pcg
@@ -226,9 +227,9 @@ class TwoGrid:
         B, _ = self._operator(True)
         theta, delta, sigma = self._chebyshev()
         rho = 1.0 / sigma
-        D = np.multiply(Rh, np.float32(1.0 / theta))
+        D = _scaled(Rh, np.float32(1.0 / theta))
         if Z is None:
-            Z = D.copy()
+            Z = _copied(D)
         else:
             sparse_times_dense(B, Z, out=D, alpha=-1.0 / theta, beta=1.0)
             axpby(1.0, D, 1.0, Z)
@@ -313,16 +314,25 @@ class TwoGrid:
         conversions, a fifth of the cycle."""
         blocks = R if isinstance(R, list) else [R]
         B, dinv32 = self._operator(True)
+        n = B.shape[0]
         edges = np.cumsum([0] + [b.shape[1] for b in blocks])
-        Rh = np.empty((B.shape[0], int(edges[-1])), dtype=np.float32)
+        Rh = np.empty((n, int(edges[-1])), dtype=np.float32)
         scale = np.empty(Rh.shape[1])
         for b, lo, hi in zip(blocks, edges[:-1], edges[1:]):
-            s = np.maximum(b.max(axis=0), -b.min(axis=0))
+            parts = by_rows(lambda s, b=b: (b[s].max(axis=0), b[s].min(axis=0)), n)
+            s = np.maximum(np.max([p[0] for p in parts], axis=0),
+                           -np.min([p[1] for p in parts], axis=0))
             scale[lo:hi] = np.where(np.isfinite(s) & (s > 0), s, 1.0)
-            np.multiply(b, 1.0 / scale[lo:hi], out=Rh[:, lo:hi], casting="unsafe")
-        Rh *= dinv32[:, None]  # D^-1 R / scale
+
+        def cast(rows: slice) -> None:  # Rh = D^-1 R / scale, row half by row half
+            for b, lo, hi in zip(blocks, edges[:-1], edges[1:]):
+                np.multiply(b[rows], 1.0 / scale[lo:hi], out=Rh[rows, lo:hi],
+                            casting="unsafe")
+            Rh[rows] *= dinv32[rows, None]
+
+        by_rows(cast, n)
         Z = self._smooth_single(Rh, None)
-        res = Rh.copy()  # D^-1 (R - A Z); its restriction is (P^T D) res
+        res = _copied(Rh)  # D^-1 (R - A Z); its restriction is (P^T D) res
         sparse_times_dense(B, Z, out=res, alpha=-1.0, beta=1.0)
         rc = self._product(self._restriction_scaled(), res)
         del res
@@ -330,11 +340,13 @@ class TwoGrid:
         zc = np.asarray(self.coarse.solve(rc)).reshape(rc.shape)
         self._prolong_into(np.ascontiguousarray(zc, dtype=np.float32), Z)
         Z = self._smooth_single(Rh, Z)
-        out = []
-        for lo, hi in zip(edges[:-1], edges[1:]):
-            o = np.empty((Z.shape[0], hi - lo))
-            np.multiply(Z[:, lo:hi], scale[lo:hi], out=o)
-            out.append(o)
+        out = [np.empty((n, hi - lo)) for lo, hi in zip(edges[:-1], edges[1:])]
+
+        def unscale(rows: slice) -> None:
+            for o, lo, hi in zip(out, edges[:-1], edges[1:]):
+                np.multiply(Z[rows, lo:hi], scale[lo:hi], out=o[rows])
+
+        by_rows(unscale, n)
         if isinstance(R, list):
             return out
         return out[0][:, 0] if vector else out[0]
@@ -416,3 +428,18 @@ class TwoGrid:
                                    release=self.release,
                                    info={"coarse_dofs": self.coarse_n,
                                          "factor_bytes": self.coarse.memory_bytes})
+
+
+def _scaled(X: np.ndarray, c) -> np.ndarray:
+    """c X in a new array, by row halves on two threads for tall X (element-wise: the
+    same result however the rows are split)."""
+    out = np.empty_like(X)
+    by_rows(lambda s: np.multiply(X[s], c, out=out[s]), X.shape[0])
+    return out
+
+
+def _copied(X: np.ndarray) -> np.ndarray:
+    """A copy of X, by row halves on two threads for tall X."""
+    out = np.empty_like(X)
+    by_rows(lambda s: np.copyto(out[s], X[s]), X.shape[0])
+    return out
