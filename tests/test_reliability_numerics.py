@@ -330,3 +330,26 @@ def test_scaled_inf_norms_share_one_pass_and_equal_the_single_norms():
         assert both == [scaled_inf_norm(A, rows_per_chunk=chunk),
                         scaled_inf_norm(A, w, rows_per_chunk=chunk)]
     assert scaled_inf_norms(A) == [scaled_inf_norm(A)]
+    # the dense definition, to the round-off of a row sum of at most m terms
+    dense = abs(A.toarray())
+    expected = [dense.sum(axis=1).max(), (w * (dense @ w)).max()]
+    assert np.allclose(both, expected, rtol=m * np.finfo(float).eps, atol=0.0)
+
+
+def test_scaled_inf_norms_in_row_halves_are_the_one_pass_norms(monkeypatch):
+    """From HALVES_ROWS rows the two row halves run on two threads: every row's sum is
+    its own, so the norms are exactly the one-pass ones, for any chunking and an odd n."""
+    from pipeline.solve import blas
+
+    rng = np.random.default_rng(8)
+    n, m = 201, 2000
+    A = sp.csr_matrix((rng.standard_normal(m), (rng.integers(0, n, m),
+                                                rng.integers(0, n, m))), shape=(n, n))
+    w = rng.random(n)
+    whole = {c: blas.scaled_inf_norms(A, None, w, rows_per_chunk=c) for c in (3, 1 << 16)}
+    monkeypatch.setattr(blas, "HALVES_ROWS", 2)
+    for chunk, expected in whole.items():
+        assert blas.scaled_inf_norms(A, None, w, rows_per_chunk=chunk) == expected
+    # the largest row sum in the second half only: a half that is left out is missed
+    B = sp.csr_matrix((np.ones(3), ([n - 1] * 3, [0, 1, 2])), shape=(n, n)) + 1e-3 * A
+    assert blas.scaled_inf_norms(B)[0] == pytest.approx(3.0, rel=0.1)
