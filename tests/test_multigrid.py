@@ -142,8 +142,8 @@ def test_column_dots_in_row_halves(monkeypatch):
 
 
 def test_float32_cycle_in_row_halves_is_bitwise_the_one_piece_cycle(beam, monkeypatch):
-    """The cycle's element-wise passes (column scales, casts, copies, the unscaling) run
-    in two row halves on two threads from HALVES_ROWS rows: element-wise, so the result
+    """The cycle's element-wise passes (column scales, casts, copies, the unscaling, and
+    the float32 D^-1 K made once) run in two row halves on two threads from HALVES_ROWS rows: element-wise, so the result
     is bit for bit the one-piece cycle's, for one block and for the riding solve's list
     of blocks, and with a column of zeros (scale 1) and a tiny one (no underflow)."""
     from pipeline.solve import blas
@@ -158,7 +158,10 @@ def test_float32_cycle_in_row_halves_is_bitwise_the_one_piece_cycle(beam, monkey
         S = rng.standard_normal((beam.K.shape[0], 2))
         whole = tg.apply_single(R)
         whole_list = tg._apply_single([R, S])
+        operator = tg._operator(True)[0].data.copy()
         monkeypatch.setattr(blas, "HALVES_ROWS", 2)
+        tg._single = None  # the float32 D^-1 K made again, in row halves
+        assert np.array_equal(tg._operator(True)[0].data, operator)
         halves = tg.apply_single(R)
         halves_list = tg._apply_single([R, S])
         assert np.array_equal(halves, whole)

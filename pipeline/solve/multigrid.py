@@ -182,13 +182,19 @@ class TwoGrid:
             return self.A, self.dinv
         if self._single is None:
             A = self.A
-            data = A.data.astype(np.float32)
+            data = np.empty(A.nnz, dtype=np.float32)
             dinv32 = self.dinv.astype(np.float32)
-            rows = 1 << 16  # row chunks: no nnz-long float64 temporary
-            for start in range(0, A.shape[0], rows):
-                stop = min(start + rows, A.shape[0])
-                lo, hi = A.indptr[start], A.indptr[stop]
-                data[lo:hi] *= np.repeat(dinv32[start:stop], np.diff(A.indptr[start:stop + 1]))
+
+            def fill(part: slice) -> None:  # cast, then scale in float32, chunk by chunk
+                rows = 1 << 16  # row chunks: no nnz-long temporary
+                for start in range(part.start or 0, part.stop, rows):
+                    stop = min(start + rows, part.stop)
+                    lo, hi = A.indptr[start], A.indptr[stop]
+                    np.copyto(data[lo:hi], A.data[lo:hi], casting="unsafe")
+                    data[lo:hi] *= np.repeat(dinv32[start:stop],
+                                             np.diff(A.indptr[start:stop + 1]))
+
+            by_rows(fill, A.shape[0])  # row halves on two threads: the same values
             self._single = (sp.csr_matrix((data, A.indices, A.indptr), shape=A.shape), dinv32)
         return self._single
 
