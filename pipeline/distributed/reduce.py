@@ -221,15 +221,22 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
 
 def label_rows(space, free, Phi: RowBlock, n_rigid: int) -> list[str]:
     """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
-    every sum over the mesh points is summed over the ranks. The slices along the body
-    need every point's position and volume weight: rank 0 sends them for this step only
-    (32 bytes a point; ``space``: a :class:`~pipeline.distributed.submesh.DistributedSpace`)."""
-    from pipeline.solve.labels import label_modes
+    rank 0 makes the body's :class:`~pipeline.solve.labels.LabelFrame` from every point
+    (a few numbers per slice, sent to every rank), and each rank sums over the points of
+    its own rows, their positions and volume weights from its part of the mesh (``space``:
+    a :class:`~pipeline.distributed.submesh.DistributedSpace`; the part holds every
+    element around those points, so each weight is the whole mesh's, bit for bit); the
+    sums are added over the ranks. No rank but 0 holds every point."""
+    from pipeline.fe.body import node_volume_weights
+    from pipeline.solve.labels import label_frame, label_modes
 
     points, values = Phi.on_points(free)
-    whole = (space.node_points, space.node_weights) if Phi.comm.rank == 0 else None
-    node_points, weights = Phi.comm.bcast(whole, root=0)
-    return label_modes(node_points, values, n_rigid, weights, nodes=points,
+    frame = Phi.comm.bcast(label_frame(space.node_points, space.node_weights)
+                           if Phi.comm.rank == 0 else None, root=0)
+    mesh = space.local
+    local = mesh.local_nodes(points)
+    weights = node_volume_weights(mesh.space)[local]
+    return label_modes(mesh.space.node_points[local], values, n_rigid, weights, frame=frame,
                        reduce_sum=lambda a: allreduce_sum(Phi.comm, a))
 
 
