@@ -6,8 +6,9 @@ every rank that its mode shapes are its own rows only (a RowBlock of hi - lo row
 ranks' rows add up to the free DOFs, none holds them all), that the shapes dataset is
 written from the ranks' own points (each rank's share smaller than the mesh), that
 only rank 0 ran gmsh and every other rank holds a part of the mesh, not all of it,
-that no rank other than 0 received an array as long as the mesh's points (every message
-of the stage's communicator is inspected: :class:`ReceivedArrays`), and prints one line
+that no rank other than 0 received an array as long as the mesh's points, its DOFs or
+its free DOFs (every message of the stage's communicator is inspected:
+:class:`ReceivedArrays`), and prints one line
 per rank: ``rank R rows N of F points P of Q gmsh G part H of Q
 elements E of T`` (H, E: the points and elements of its part of the mesh).
 """
@@ -63,11 +64,19 @@ class ReceivedArrays:
     def scatter(self, obj, root=0):
         return self._received(self._comm.scatter(obj, root=root), self.rank == root)
 
+    def _pieces(self, got, mine: bool):
+        """A gathered list: its items, and their concatenation if they are arrays."""
+        import numpy as np
+
+        if not mine and got and all(isinstance(g, np.ndarray) and g.ndim for g in got):
+            self.shapes.append((sum(g.shape[0] for g in got),))
+        return self._received(got, mine)
+
     def allgather(self, obj):
-        return self._received(self._comm.allgather(obj), False)
+        return self._pieces(self._comm.allgather(obj), False)
 
     def gather(self, obj, root=0):
-        return self._received(self._comm.gather(obj, root=root), self.rank != root)
+        return self._pieces(self._comm.gather(obj, root=root), self.rank != root)
 
     def Allgatherv(self, send, recv):
         self._comm.Allgatherv(send, recv)
@@ -117,8 +126,11 @@ def main(argv: list[str]) -> None:
     assert seen["gmsh"] == (1 if comm.rank == 0 else 0), seen["gmsh"]
     assert comm.size == 1 or (seen["part_points"] < n_points
                               and seen["part_elements"] < seen["n_elements"])
-    # whole-length arrays are rank 0's alone: the label step's points and weights
-    whole = comm.whole_length(n_points)
+    # whole-length arrays are rank 0's alone: the free DOFs, the PETSc row order, the
+    # label step's points and weights, any (n_free, k) block
+    # (the factor-free path's coarse numbering gathers every row's DOF: docs/distributed.md)
+    lengths = (n_points, 3 * n_points) + ((n_free,) if cfg.modes.method != "multigrid" else ())
+    whole = comm.whole_length(*lengths)
     assert comm.rank == 0 or not whole, f"rank {comm.rank} received {whole}"
     print(f"rank {comm.rank} rows {rows} of {n_free} points {blocks.points.size} of "
           f"{n_points} gmsh {seen['gmsh']} part {seen['part_points']} of {n_points} "

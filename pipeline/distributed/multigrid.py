@@ -139,13 +139,14 @@ def petsc_prolongation(PETSc, rows: sp.csr_matrix, coarse_rows: int):
     return P
 
 
-def prolongation(PETSc, space, free: np.ndarray, part, rank: int):
+def prolongation(PETSc, space, part, comm):
     """The MPIAIJ P (module doc) of the distributed quadratic ``space``
-    (:class:`~pipeline.distributed.submesh.DistributedSpace`) with sorted ``free`` DOFs
-    and the row partition ``part``; collective."""
-    free_of_row = np.asarray(free, dtype=np.int64)[part.order]
+    (:class:`~pipeline.distributed.submesh.DistributedSpace`) on the row partition
+    ``part`` (the DOF of every row gathered for it: the coarse numbering needs every
+    rank's; freed with P's making); collective."""
+    free_of_row = np.asarray(part.whole(comm).dofs, dtype=np.int64)
     coarse_of_row = coarse_numbering(free_of_row < 3 * space.body.n_vertices)
-    lo, hi = part.rows(rank)
+    lo, hi = part.rows(comm.rank)
     rows = prolongation_rows(space.local, free_of_row, coarse_of_row,
                              space.body.n_vertices)
     return petsc_prolongation(PETSc, rows, int(np.count_nonzero(coarse_of_row[lo:hi] >= 0)))
