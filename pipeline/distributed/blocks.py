@@ -76,10 +76,8 @@ class RowBlock:
     def dof_sensor_product(self, T) -> np.ndarray:
         """(n_y, k) T X for a replicated sparse (n_y, n_dofs) T on every DOF (its
         columns of the fixed DOFs never read): each rank its own rows' columns."""
-        import scipy.sparse as sp
-
-        T = sp.csc_matrix(T)
-        return allreduce_sum(self.comm, np.asarray(T[:, self.dofs()] @ self.local))
+        own = dof_rows(T.T, self.dofs())  # (hi - lo, n_y)
+        return allreduce_sum(self.comm, np.asarray(own.T @ self.local))
 
     def sensor_product(self, T) -> np.ndarray:
         """(n_y, k) T X for a replicated sparse (n_y, n_free) T (free order)."""
@@ -120,6 +118,22 @@ class RowBlock:
         values = np.zeros((points.size, 3, self.local.shape[1]))
         values[where, dofs % 3] = self.local
         return points, values
+
+
+def dof_rows(A, dofs: np.ndarray):
+    """(len(dofs), n_cols) CSR: the rows ``dofs`` (any order, distinct) of the sparse
+    (n_dofs, n_cols) ``A`` (a few stored entries: port loads, sensor rows), from its
+    entries alone (no array of A's n_dofs rows is made, as row indexing a CSC or
+    converting to CSR would)."""
+    import scipy.sparse as sp
+
+    B = sp.coo_matrix(A)
+    by_dof = np.argsort(dofs, kind="stable")
+    sorted_dofs = np.asarray(dofs)[by_dof]
+    at = np.minimum(np.searchsorted(sorted_dofs, B.row), max(sorted_dofs.size - 1, 0))
+    keep = (sorted_dofs[at] == B.row) if sorted_dofs.size else np.zeros(B.nnz, bool)
+    return sp.csr_matrix((B.data[keep], (by_dof[at[keep]], B.col[keep])),
+                         shape=(len(dofs), B.shape[1]))
 
 
 class PointBlocks:

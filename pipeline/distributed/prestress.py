@@ -57,7 +57,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Config, Ports
 from pipeline.distributed.assemble import with_int32_indices
-from pipeline.distributed.blocks import RowBlock
+from pipeline.distributed.blocks import RowBlock, dof_rows
 from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen, solve_eigen_again
 from pipeline.distributed.multigrid import TwoGridSweep
@@ -291,8 +291,8 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     rhs = loads
     if names:
         cols = [space.ports.input_names.index(n) for n in names]
-        F = sp.csr_matrix(space.ports.F)[:, cols].tocsr()
-        rhs = loads.like(np.hstack([loads.local, F[loads.dofs()].toarray()]))
+        F = dof_rows(sp.csc_matrix(space.ports.F)[:, cols], loads.dofs())
+        rhs = loads.like(np.hstack([loads.local, F.toarray()]))
     factor = modes.factorization
     # u = T q: the static solves run on the coordinates, X = T K_q^-1 T^T F
     on = Unconstrained(K, M) if modes.constraint is None else modes.constraint

@@ -35,10 +35,9 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.blocks import PointBlocks, RowBlock, dof_rows
 from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import shifted_cholesky
 from pipeline.distributed.mpi import allreduce_sum, petsc
@@ -151,8 +150,8 @@ def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None)
     Phi: RowBlock = modes.shapes
     ports = space.ports  # rank 0's, from the whole mesh (pipeline.distributed.stage)
     dofs = Phi.dofs()  # this rank's rows: the DOF of each
-    F_own = sp.csr_matrix(ports.F)[dofs]
-    T_own = sp.csc_matrix(ports.T)[:, dofs]
+    F_own = dof_rows(ports.F, dofs)  # (hi - lo, n_u)
+    T_own = dof_rows(ports.T.T, dofs).T  # (n_y, hi - lo)
     # each port's largest entry on the free DOFs: the largest over the ranks' own rows
     F_max = allreduce_sum(Phi.comm, _abs_max(F_own, 0), "MAX")
     T_max = allreduce_sum(Phi.comm, _abs_max(T_own, 1), "MAX")

@@ -51,8 +51,9 @@ __all__ = ["Unsupported", "held_partition", "unsupported_parts", "assemble_pair"
 @dataclass(frozen=True)
 class Unsupported:
     """One rank's share of the unsupported body (module): ``mesh`` its part on the
-    partition ``part`` of every DOF (PETSc row -> DOF), or both None when the run's
-    matrices are the unsupported ones (no DOF held, no spring)."""
+    partition of every DOF and ``part`` its own rows of it (PETSc row -> DOF,
+    :meth:`~pipeline.distributed.partition.RowPartition.local`), or both None when the
+    run's matrices are the unsupported ones (no DOF held, no spring)."""
 
     mesh: RankMesh | None
     part: RowPartition | None
@@ -99,8 +100,11 @@ def unsupported_parts(comm, whole, part: RowPartition) -> Unsupported:
                               comm.size)
         parts = split_mesh(space, whole.materials, np.arange(space.n_dofs), full,
                            comm.size, whole.added)
-    full = comm.bcast(full, root=0)
-    return Unsupported(scatter_parts(comm, parts), full)
+    mesh = scatter_parts(comm, parts)
+    # each rank keeps its own rows of the partition (the whole one: O(n_dofs))
+    own = comm.scatter(None if full is None else [full.local(r) for r in range(comm.size)],
+                       root=0)
+    return Unsupported(mesh, own)
 
 
 def assemble_pair(comm, un: Unsupported) -> tuple[RowMatrix, RowMatrix]:

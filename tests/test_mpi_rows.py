@@ -1,0 +1,63 @@
+"""What a rank holds of the free-DOF numbering (:mod:`pipeline.distributed.partition`)
+and the port rows it reads (:func:`pipeline.distributed.blocks.dof_rows`), without MPI:
+each emulated rank's own partition holds its rows only, and gathering the ranks' own
+partitions gives the whole one back; the rows of a sparse port matrix at a rank's
+DOFs are the matrix's rows, made from its stored entries alone."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from pipeline.distributed.blocks import RowBlock, dof_rows
+from pipeline.distributed.partition import FreeDofs, slab_partition
+
+
+class _Gathered:
+    """An emulated communicator whose successive allgathers return ``gathers`` (every
+    rank's contributions, as MPI would)."""
+
+    def __init__(self, rank: int, gathers: list):
+        self.rank, self._gathers = rank, iter(gathers)
+
+    def allgather(self, obj):
+        return next(self._gathers)
+
+
+def test_each_rank_holds_its_own_rows_and_the_whole_partition_gathers_back():
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 1, size=(40, 3)) * [1.0, 0.1, 0.1]
+    free = np.setdiff1d(np.arange(120), [0, 1, 2, 7, 50])  # a few held DOFs
+    size = 3
+    whole = slab_partition(points, free, size)
+    assert np.array_equal(whole.dofs, free[whole.order])
+    locals_ = [whole.local(r) for r in range(size)]
+    for r, own in enumerate(locals_):
+        lo, hi = whole.rows(r)
+        assert own.order.size == own.dofs.size == hi - lo < free.size
+        assert np.array_equal(own.owned_dofs(r), free[whole.owned_free(r)])
+        assert own.n_free == free.size and own.rows(r) == (lo, hi)
+        with pytest.raises(ValueError, match="own rows only"):
+            own.owned_free((r + 1) % size)
+        block = RowBlock(SimpleNamespace(rank=r), own, np.zeros((hi - lo, 2)))
+        assert block.shape == (free.size, 2) and np.array_equal(block.dofs(), own.dofs)
+    comm = _Gathered(1, [[p.order for p in locals_], [p.dofs for p in locals_]])
+    back = locals_[1].whole(comm)
+    assert np.array_equal(back.order, whole.order) and np.array_equal(back.dofs, whole.dofs)
+    assert np.array_equal(back.free_dofs(), free)
+    assert FreeDofs(free.size).size == free.size
+    with pytest.raises(TypeError, match="not held on every rank"):
+        np.asarray(FreeDofs(free.size))
+
+
+def test_port_rows_at_a_ranks_dofs_are_the_matrix_rows():
+    rng = np.random.default_rng(0)
+    F = sp.random(300, 4, density=0.05, format="csc", random_state=1)  # loads, CSC
+    T = sp.random(3, 300, density=0.05, format="csr", random_state=2)  # sensors, CSR
+    dofs = rng.permutation(300)[:80]  # a rank's rows: any order
+    assert (dof_rows(F, dofs) != sp.csr_matrix(F)[dofs]).nnz == 0
+    assert (dof_rows(T.T, dofs).T != T[:, dofs]).nnz == 0
+    assert dof_rows(F, dofs[:0]).shape == (0, 4)
