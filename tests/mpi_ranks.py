@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 class ReceivedArrays:
     """A communicator that records the shape of every numpy array this rank receives
-    (bcast, recv, scatter, allgather, gather at the root, Allgatherv's buffer), found
+    (bcast, recv, scatter, allgather, alltoall, gather at the root, Allgatherv's buffer), found
     in tuples, lists, dicts and dataclasses, and passes everything else through."""
 
     def __init__(self, comm):
@@ -78,6 +78,9 @@ class ReceivedArrays:
     def gather(self, obj, root=0):
         return self._pieces(self._comm.gather(obj, root=root), self.rank != root)
 
+    def alltoall(self, obj):
+        return self._pieces(self._comm.alltoall(obj), False)
+
     def Allgatherv(self, send, recv):
         self._comm.Allgatherv(send, recv)
         self._record(recv[0])
@@ -128,9 +131,7 @@ def main(argv: list[str]) -> None:
                               and seen["part_elements"] < seen["n_elements"])
     # whole-length arrays are rank 0's alone: the free DOFs, the PETSc row order, the
     # label step's points and weights, any (n_free, k) block
-    # (the factor-free path's coarse numbering gathers every row's DOF: docs/distributed.md)
-    lengths = (n_points, 3 * n_points) + ((n_free,) if cfg.modes.method != "multigrid" else ())
-    whole = comm.whole_length(*lengths)
+    whole = comm.whole_length(n_points, n_free, 3 * n_points)
     assert comm.rank == 0 or not whole, f"rank {comm.rank} received {whole}"
     print(f"rank {comm.rank} rows {rows} of {n_free} points {blocks.points.size} of "
           f"{n_points} gmsh {seen['gmsh']} part {seen['part_points']} of {n_points} "

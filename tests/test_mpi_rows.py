@@ -61,3 +61,70 @@ def test_port_rows_at_a_ranks_dofs_are_the_matrix_rows():
     assert (dof_rows(F, dofs) != sp.csr_matrix(F)[dofs]).nnz == 0
     assert (dof_rows(T.T, dofs).T != T[:, dofs]).nnz == 0
     assert dof_rows(F, dofs[:0]).shape == (0, 4)
+
+
+class _Exchange:
+    """What emulated ranks (threads) hand each other in one collective."""
+
+    def __init__(self, size: int):
+        import threading
+
+        self.slots, self.barrier = [None] * size, threading.Barrier(size)
+
+    def swap(self, rank: int, obj) -> list:
+        self.slots[rank] = obj
+        self.barrier.wait()
+        out = list(self.slots)
+        self.barrier.wait()
+        return out
+
+
+class _ThreadComm:
+    """An emulated rank's communicator (allgather, alltoall) over an :class:`_Exchange`."""
+
+    def __init__(self, rank: int, exchange: _Exchange):
+        self.rank, self.size, self._x = rank, len(exchange.slots), exchange
+
+    def allgather(self, obj):
+        return self._x.swap(self.rank, obj)
+
+    def alltoall(self, objs):
+        return [sent[self.rank] for sent in self._x.swap(self.rank, objs)]
+
+
+def test_each_ranks_coarse_numbers_are_the_whole_numbering(tmp_path):
+    """The factor-free path's coarse DOFs: each emulated rank numbers its own vertex rows
+    after the ranks before it and asks the owners for the other vertex rows its
+    midpoint rows read; its numbers are coarse_numbering of every row (the serial
+    definition), and it asked for few rows (its neighbours' boundary layer)."""
+    import threading
+
+    from conftest import ALUMINIUM, build_model
+    from pipeline.distributed.multigrid import coarse_numbering, coarse_rows
+    from pipeline.distributed.submesh import split_mesh
+    from pipeline.fe.materials import assign_materials
+
+    model = build_model(tmp_path, size=0.02)
+    space, free, size = model.space, model.free, 3
+    n_vertices = space.body.n_vertices
+    part = slab_partition(space.node_points, free, size)
+    meshes = list(split_mesh(space, assign_materials(space, ALUMINIUM), free, part, size))
+    exchange, found = _Exchange(size), [None] * size
+
+    def rank(r: int) -> None:
+        found[r] = coarse_rows(_ThreadComm(r, exchange), part.local(r), meshes[r],
+                               n_vertices)
+
+    threads = [threading.Thread(target=rank, args=(r,)) for r in range(size)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    whole = coarse_numbering(part.dofs // 3 < n_vertices)
+    for r, coarse in enumerate(found):
+        lo, hi = part.rows(r)
+        assert np.array_equal(coarse.own, whole[lo:hi])
+        assert coarse.others.size and np.array_equal(coarse[coarse.others],
+                                                     whole[coarse.others])
+        assert coarse.others.size < (hi - lo) // 4  # a layer, not the neighbours' rows
+        assert coarse.n_coarse == int(whole.max()) + 1
