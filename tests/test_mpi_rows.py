@@ -6,6 +6,7 @@ DOFs are the matrix's rows, made from its stored entries alone."""
 
 from __future__ import annotations
 
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,6 +15,8 @@ import scipy.sparse as sp
 
 from pipeline.distributed.blocks import RowBlock, dof_rows
 from pipeline.distributed.partition import FreeDofs, slab_partition
+from conftest import ROOT
+from test_mpi import MPI_PYTHON, _mpiexec
 
 
 class _Gathered:
@@ -128,3 +131,29 @@ def test_each_ranks_coarse_numbers_are_the_whole_numbering(tmp_path):
                                                      whole[coarse.others])
         assert coarse.others.size < (hi - lo) // 4  # a layer, not the neighbours' rows
         assert coarse.n_coarse == int(whole.max()) + 1
+
+
+_CONNECTIONS = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
+                "coupling: distributing}, {name: tip, region: tip, point: [0.5, 0.01, "
+                "0.025], coupling: rigid}]")
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("overrides", [
+    ("supports=[{region: root, fix: [x]}]", "modes.method=multigrid", "mesh.size=0.03"),
+    (_CONNECTIONS, "craig_bampton={modes: 5}", "mesh.size=0.02",
+     "supports=[{region: tip, fix: [x]}, {region: root, bushing: {stiffness: [0, 2.0e9, "
+     "2.0e9, 1.0e6, 1.0e6, 1.0e6]}}]"),
+], ids=["partly-held-factor-free", "unsupported-pair-craig-bampton"])
+def test_no_rank_but_zero_receives_a_whole_length_array(tmp_path, overrides):
+    """Beyond the plain cantilever (tests/test_mpi.py): a partly held body on the
+    factor-free path (its rigid motions on each rank's own points, the coarse numbering
+    from each rank's rows) and a connection model on the unsupported pair with
+    Craig-Bampton (the partition of every DOF held per rank, the clamped entries made
+    on rank 0): tests/mpi_ranks.py asserts on every rank that no message brought it an
+    array as long as the points, DOFs or free DOFs."""
+    from test_mpi import _run
+
+    proc = _run([*_mpiexec(2), str(MPI_PYTHON), str(ROOT / "tests" / "mpi_ranks.py"),
+                 str(tmp_path / "mpi.h5"), *overrides], tmp_path, timeout=300)
+    assert len(re.findall(r"rank \d+ rows \d+ of \d+", proc.stdout)) == 2, proc.stdout
