@@ -5,10 +5,12 @@ with K and M as :class:`~pipeline.distributed.operators.RowMatrix` stand-ins, so
 
 Per rank, memory: its part of the mesh and an FE space on it (rank 0 meshes the body
 and sends each rank the elements touching its points, :mod:`pipeline.distributed.submesh`;
-rank 0 alone keeps the whole mesh's points and elements, which it writes), its rows of
-K and M (1/size of them, plus one element layer), its part of
-MUMPS' factor, and its rows of the mode shapes (a :class:`RowBlock`, 8 n_free n_modes /
-size bytes); the reduce stage and the writer work from those rows
+rank 0 alone keeps the whole mesh's points and elements, which it writes), its own
+rows' free-DOF order (:meth:`~pipeline.distributed.partition.RowPartition.local`: the
+free DOFs themselves only as their count, :class:`~pipeline.distributed.partition.FreeDofs`;
+rank 0 the held DOFs it writes), its rows of K and M (1/size of them, plus one element
+layer), its part of MUMPS' factor, and its rows of the mode shapes (a
+:class:`RowBlock`, 8 n_free n_modes / size bytes); the reduce stage and the writer work from those rows
 (:mod:`pipeline.distributed.reduce`), rank 0 writing the shapes and stress modes one
 block of points at a time (:class:`~pipeline.distributed.blocks.PointBlocks`).
 """
