@@ -189,7 +189,8 @@ def cut_worker(size: float, case: str) -> None:
     for kind in ("slab", "graph"):
         t0 = time.perf_counter()
         part = slab_partition(space.node_points, free, comm.size) if kind == "slab" else \
-            graph_partition(PETSc, comm, space.element_nodes, space.node_points, free)
+            comm.bcast(graph_partition(PETSc, comm, space.element_nodes, space.node_points,
+                                       free), root=0)  # rank 0's: every rank cuts here
         seconds = time.perf_counter() - t0
         mesh = next(islice(split_mesh(space, config_materials(space, cfg), free, part,
                                       comm.size), comm.rank, None))

@@ -6,16 +6,88 @@ every rank that its mode shapes are its own rows only (a RowBlock of hi - lo row
 ranks' rows add up to the free DOFs, none holds them all), that the shapes dataset is
 written from the ranks' own points (each rank's share smaller than the mesh), that
 only rank 0 ran gmsh and every other rank holds a part of the mesh, not all of it,
-and prints one line per rank: ``rank R rows N of F points P of Q gmsh G part H of Q
+that no rank other than 0 received an array as long as the mesh's points, its DOFs or
+its free DOFs (every message of the stage's communicator is inspected:
+:class:`ReceivedArrays`), and prints one line
+per rank: ``rank R rows N of F points P of Q gmsh G part H of Q
 elements E of T`` (H, E: the points and elements of its part of the mesh).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+class ReceivedArrays:
+    """A communicator that records the shape of every numpy array this rank receives
+    (bcast, recv, scatter, allgather, alltoall, gather at the root, Allgatherv's buffer), found
+    in tuples, lists, dicts and dataclasses, and passes everything else through."""
+
+    def __init__(self, comm):
+        self._comm, self.shapes = comm, []
+
+    def __getattr__(self, name):
+        return getattr(self._comm, name)
+
+    def _record(self, obj, depth=0):
+        import numpy as np
+
+        if isinstance(obj, np.ndarray):
+            self.shapes.append(obj.shape)
+        elif depth > 6:
+            return
+        elif isinstance(obj, (tuple, list)):
+            for item in obj:
+                self._record(item, depth + 1)
+        elif isinstance(obj, dict):
+            for item in obj.values():
+                self._record(item, depth + 1)
+        elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            for f in dataclasses.fields(obj):
+                self._record(getattr(obj, f.name), depth + 1)
+
+    def _received(self, obj, mine: bool):
+        if not mine:
+            self._record(obj)
+        return obj
+
+    def bcast(self, obj, root=0):
+        return self._received(self._comm.bcast(obj, root=root), self.rank == root)
+
+    def recv(self, *args, **kwargs):
+        return self._received(self._comm.recv(*args, **kwargs), False)
+
+    def scatter(self, obj, root=0):
+        return self._received(self._comm.scatter(obj, root=root), self.rank == root)
+
+    def _pieces(self, got, mine: bool):
+        """A gathered list: its items, and their concatenation if they are arrays."""
+        import numpy as np
+
+        if not mine and got and all(isinstance(g, np.ndarray) and g.ndim for g in got):
+            self.shapes.append((sum(g.shape[0] for g in got),))
+        return self._received(got, mine)
+
+    def allgather(self, obj):
+        return self._pieces(self._comm.allgather(obj), False)
+
+    def gather(self, obj, root=0):
+        return self._pieces(self._comm.gather(obj, root=root), self.rank != root)
+
+    def alltoall(self, obj):
+        return self._pieces(self._comm.alltoall(obj), False)
+
+    def Allgatherv(self, send, recv):
+        self._comm.Allgatherv(send, recv)
+        self._record(recv[0])
+
+    def whole_length(self, *lengths: int) -> list:
+        """The received shapes with an axis of one of ``lengths``."""
+        return [s for s in self.shapes if any(n in s for n in lengths)]
 
 
 def main(argv: list[str]) -> None:
@@ -41,9 +113,10 @@ def main(argv: list[str]) -> None:
         seen["gmsh"] += 1
         return mesh_body(*args, **kwargs)
 
+    comm = ReceivedArrays(stage.world())
     stage.compute_modes, model.mesh_body = spy, meshing  # mesh_config's gmsh call
+    stage.world = lambda: comm  # every message of the stages passes through it
     run.run_pipeline(cfg, argv[0])
-    comm = stage.world()
     modes, n_free, n_points = seen["modes"], seen["n_free"], seen["n_points"]
     shapes, blocks = modes.shapes, modes.shapes_full
     assert isinstance(shapes, RowBlock), type(shapes)
@@ -56,6 +129,10 @@ def main(argv: list[str]) -> None:
     assert seen["gmsh"] == (1 if comm.rank == 0 else 0), seen["gmsh"]
     assert comm.size == 1 or (seen["part_points"] < n_points
                               and seen["part_elements"] < seen["n_elements"])
+    # whole-length arrays are rank 0's alone: the free DOFs, the PETSc row order, the
+    # label step's points and weights, any (n_free, k) block
+    whole = comm.whole_length(n_points, n_free, 3 * n_points)
+    assert comm.rank == 0 or not whole, f"rank {comm.rank} received {whole}"
     print(f"rank {comm.rank} rows {rows} of {n_free} points {blocks.points.size} of "
           f"{n_points} gmsh {seen['gmsh']} part {seen['part_points']} of {n_points} "
           f"elements {seen['part_elements']} of {seen['n_elements']}", flush=True)

@@ -59,3 +59,37 @@ def test_principal_axes_name_the_global_axis_they_align_with():
     rot = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]])
     _, _, names = principal_frame(x @ rot.T, np.ones(len(x)))
     assert "z" in names and sum(n.startswith("p") for n in names) == 2
+
+
+def _labels_over_shares(x, w, shapes, n_rigid, shares):
+    """label_modes evaluated on disjoint ``shares`` of the points (index arrays) as the
+    ranks of the distributed path evaluate it: the body's frame from every point, each
+    share's sums added (an emulated MPI_Allreduce: every share is evaluated once to
+    collect its sums, then the totals are handed out in the same order)."""
+    from pipeline.solve.labels import label_frame
+
+    frame = label_frame(x, w)
+    collected = []
+    for idx in shares:
+        sums = []
+        label_modes(x[idx], shapes[idx], n_rigid, w[idx], frame=frame,
+                    reduce_sum=lambda a, sums=sums: sums.append(a) or a)
+        collected.append(sums)
+    totals = iter([sum(parts) for parts in zip(*collected)])
+    return [label_modes(x[idx], shapes[idx], n_rigid, w[idx], frame=frame,
+                        reduce_sum=lambda a: next(totals)) for idx in shares[:1]][0]
+
+
+def test_labels_from_shares_of_the_points_are_the_whole_bodys():
+    """The distributed path's labels: each share of the points (a rank's) sums over its
+    own points, the body's geometry (LabelFrame) made once from every point; a beam-like
+    and a stocky body give the labels of the whole point set. Each share's modes are
+    random fields here, so the labels test the sums, not a physical classification."""
+    rng = np.random.default_rng(7)
+    for extent in ([0.5, 0.02, 0.05], [0.06, 0.05, 0.04]):
+        x = rng.uniform(0, 1, size=(900, 3)) * extent
+        w = rng.uniform(0.5, 2.0, size=900)
+        shapes = rng.standard_normal((900, 3, 8))
+        whole = label_modes(x, shapes, 1, w)
+        shares = np.array_split(rng.permutation(900), 3)
+        assert _labels_over_shares(x, w, shapes, 1, shares) == whole

@@ -105,7 +105,7 @@ def test_stress_modes_of_the_ranks_rows_add_up_to_the_whole(tmp_path):
     stress, strain = np.zeros_like(whole.stress), np.zeros_like(whole.strain)
     for r, mesh in enumerate(split_mesh(space, materials, free, part, size)):
         rows = RowBlock(SimpleNamespace(rank=r), part, U[free][part.owned_free(r)])
-        s_r, e_r = stress_blocks(mesh, space.n_nodes, free,
+        s_r, e_r = stress_blocks(mesh, space.n_nodes,
                                  SimpleNamespace(basis=rows, correction_shapes=None))
         assert s_r.points.size < space.n_nodes  # a share, not the whole mesh
         stress[s_r.points] += s_r.values
@@ -384,7 +384,7 @@ def test_each_ranks_rigid_rows_are_the_serial_rigid_fields(tmp_path):
                                         part, size)):
         lo, hi = part.rows(r)
         like = RowBlock(SimpleNamespace(rank=r), part, np.zeros((hi - lo, 0)))
-        rows[part.owned_free(r)] = rigid_rows(sent, mesh, free, like).local
+        rows[part.owned_free(r)] = rigid_rows(sent, mesh, like).local
     expected = rigid.fields[free]
     np.testing.assert_allclose(rows, expected, rtol=0, atol=1e-14 * np.abs(expected).max())
 

@@ -227,3 +227,30 @@ def test_console_script_entry_point_tunes_before_running(monkeypatch):
     assert {name: os.environ.get(name) for name in PROCESS_SETTINGS} == PROCESS_SETTINGS
     assert "from pipeline.cli import main" in (Path(pipeline.cli.__file__).parents[1]
                                                / "__main__.py").read_text()
+
+
+def _fake_cgroup(tmp_path, monkeypatch, limit: str, current: int, inactive: int) -> None:
+    """A cgroup v2 memory.max / memory.current / memory.stat under tmp_path, read by
+    available_memory_bytes instead of the machine's."""
+    (tmp_path / "memory.max").write_text(limit + "\n")
+    (tmp_path / "memory.current").write_text(f"{current}\n")
+    (tmp_path / "memory.stat").write_text(f"anon {current - inactive}\n"
+                                          f"inactive_file {inactive}\nactive_file 0\n")
+    monkeypatch.setattr(resources, "CGROUP_MEMORY", (
+        (str(tmp_path / "memory.max"), str(tmp_path / "memory.current"),
+         str(tmp_path / "memory.stat"), "inactive_file"),))
+
+
+def test_a_cgroup_limit_leaves_the_limit_less_what_the_cgroup_uses(tmp_path, monkeypatch):
+    """Under a cgroup limit the memory still available is the limit less the cgroup's
+    usage (its reclaimable inactive file pages not counted), not the limit: a caller
+    adding what its processes hold to it counted that memory twice."""
+    free_now = resources.available_memory_bytes()
+    mb = 1 << 20
+    _fake_cgroup(tmp_path, monkeypatch, str(10_000 * mb), 9_800 * mb, 50 * mb)
+    assert resources.cgroup_left_bytes() == 250 * mb
+    assert resources.available_memory_bytes() == min(free_now, 250 * mb)
+    _fake_cgroup(tmp_path, monkeypatch, str(10_000 * mb), 10_100 * mb, 0)  # over it
+    assert resources.available_memory_bytes() == 0
+    _fake_cgroup(tmp_path, monkeypatch, "max", 9_800 * mb, 0)  # no limit
+    assert resources.cgroup_left_bytes() is None

@@ -187,8 +187,54 @@ def retained_heap(new_bytes: float):
         _retaining[0] = False
 
 
+#: a cgroup's memory files, v2 then v1: (its limit, its usage, its statistics, the
+#: statistic of the inactive file pages it may reclaim)
+CGROUP_MEMORY = (
+    ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current",
+     "/sys/fs/cgroup/memory.stat", "inactive_file"),
+    ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+     "/sys/fs/cgroup/memory/memory.usage_in_bytes",
+     "/sys/fs/cgroup/memory/memory.stat", "total_inactive_file"),
+)
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        text = open(path).read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None  # "max": no limit
+
+
+def cgroup_left_bytes() -> int | None:
+    """What this process's cgroup memory limit still leaves (bytes): the limit minus
+    the cgroup's usage (every process in it, this one included) less its inactive file
+    pages, which the kernel reclaims before it refuses memory; the smallest over the
+    cgroup files found (:data:`CGROUP_MEMORY`), None without a limit."""
+    left = None
+    for limit_file, usage_file, stat_file, inactive_key in CGROUP_MEMORY:
+        limit = _read_int(limit_file)
+        if limit is None:
+            continue
+        used = _read_int(usage_file) or 0
+        try:
+            with open(stat_file) as fh:
+                for line in fh:
+                    key, _, value = line.partition(" ")
+                    if key == inactive_key and value.strip().isdigit():
+                        used -= int(value)
+                        break
+        except OSError:
+            pass
+        here = max(0, limit - max(used, 0))
+        left = here if left is None else min(left, here)
+    return left
+
+
 def available_memory_bytes() -> int:
-    """Memory this process may use: MemAvailable, capped by a cgroup limit if any."""
+    """Memory this process may still take (bytes): MemAvailable, capped by what a
+    cgroup limit leaves (:func:`cgroup_left_bytes`: the limit less what the cgroup
+    uses, not the limit itself, which counted the memory already held twice)."""
     avail = None
     try:
         with open("/proc/meminfo") as fh:
@@ -200,13 +246,9 @@ def available_memory_bytes() -> int:
         pass
     if avail is None:
         avail = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    for cg in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = open(cg).read().strip()
-            if text.isdigit():
-                avail = min(avail, int(text))
-        except OSError:
-            continue
+    left = cgroup_left_bytes()
+    if left is not None:
+        avail = min(avail, left)
     return int(avail)
 
 

@@ -43,7 +43,7 @@ class RowBlock:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return int(self.part.order.size), int(self.local.shape[1])
+        return self.part.n_free, int(self.local.shape[1])
 
     def like(self, local: np.ndarray) -> "RowBlock":
         """A block of the same rows holding ``local`` (hi - lo, k')."""
@@ -68,6 +68,16 @@ class RowBlock:
     def free_rows(self) -> np.ndarray:
         """(hi - lo,) the free-DOF index (serial order) of each local row."""
         return self.part.owned_free(self.comm.rank)
+
+    def dofs(self) -> np.ndarray:
+        """(hi - lo,) the DOF (3 p + c of point p) of each local row."""
+        return self.part.owned_dofs(self.comm.rank)
+
+    def dof_sensor_product(self, T) -> np.ndarray:
+        """(n_y, k) T X for a replicated sparse (n_y, n_dofs) T on every DOF (its
+        columns of the fixed DOFs never read): each rank its own rows' columns."""
+        own = dof_rows(T.T, self.dofs())  # (hi - lo, n_y)
+        return allreduce_sum(self.comm, np.asarray(own.T @ self.local))
 
     def sensor_product(self, T) -> np.ndarray:
         """(n_y, k) T X for a replicated sparse (n_y, n_free) T (free order)."""
@@ -99,16 +109,31 @@ class RowBlock:
         signs[signs == 0] = 1.0
         return signs
 
-    def on_points(self, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def on_points(self) -> tuple[np.ndarray, np.ndarray]:
         """(points (p,), values (p, 3, k)): this rank's rows as displacements of the mesh
-        points they belong to (``free`` (n_free,): the DOF of each free row, DOF 3 p + c
-        of point p), zero in the components other ranks own or the supports hold;
-        points ascending."""
-        dofs = np.asarray(free)[self.free_rows()]
+        points they belong to (:meth:`dofs`), zero in the components other ranks own or
+        the supports hold; points ascending."""
+        dofs = self.dofs()
         points, where = np.unique(dofs // 3, return_inverse=True)
         values = np.zeros((points.size, 3, self.local.shape[1]))
         values[where, dofs % 3] = self.local
         return points, values
+
+
+def dof_rows(A, dofs: np.ndarray):
+    """(len(dofs), n_cols) CSR: the rows ``dofs`` (any order, distinct) of the sparse
+    (n_dofs, n_cols) ``A`` (a few stored entries: port loads, sensor rows), from its
+    entries alone (no array of A's n_dofs rows is made, as row indexing a CSC or
+    converting to CSR would)."""
+    import scipy.sparse as sp
+
+    B = sp.coo_matrix(A)
+    by_dof = np.argsort(dofs, kind="stable")
+    sorted_dofs = np.asarray(dofs)[by_dof]
+    at = np.minimum(np.searchsorted(sorted_dofs, B.row), max(sorted_dofs.size - 1, 0))
+    keep = (sorted_dofs[at] == B.row) if sorted_dofs.size else np.zeros(B.nnz, bool)
+    return sp.csr_matrix((B.data[keep], (by_dof[at[keep]], B.col[keep])),
+                         shape=(len(dofs), B.shape[1]))
 
 
 class PointBlocks:

@@ -139,11 +139,14 @@ def clamped_entries(interfaces: tuple[Interface, ...], node_points: np.ndarray,
     return out, tr.n_z
 
 
-def _scatter_entries(comm, interfaces, node_points, free: np.ndarray, part: RowPartition):
+def _scatter_entries(comm, interfaces, node_points, part: RowPartition):
     """(this rank's entries of T_c, n_z): rank 0 makes every rank's rows
-    (:func:`clamped_entries`) and sends them (collective)."""
-    sources, n_z = (clamped_entries(interfaces, node_points, free, part)
+    (:func:`clamped_entries`, from the whole partition, gathered on rank 0 for it) and
+    sends them (collective)."""
+    whole = part.whole(comm, root=0)
+    sources, n_z = (clamped_entries(interfaces, node_points, whole.free_dofs(), whole)
                     if comm.rank == 0 else (None, None))
+    del whole
     return comm.scatter(sources, root=0), comm.bcast(n_z, root=0)
 
 
@@ -167,24 +170,23 @@ def _clamped_pencil_modes(cfg: Config, entries, n_z: int, n_children: int, K: Ro
     return omega2, shapes, residuals, Phi_C
 
 
-def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
+def connection_models(cfg: Config, space, props, K: RowMatrix,
                       M: RowMatrix, modes, models):
     """``models`` (a :class:`~pipeline.reduce.models.Models` record) with the connection
     model at the parent point, its state space and summary lines (module; collective).
     ``space``: the :class:`~pipeline.distributed.submesh.DistributedSpace` with the
     interfaces (rank 0: the whole mesh's points) and, when the clamped pencil is not the
     run's, the unsupported body's part (``space.unsupported``); ``props``: the body's
-    properties (``rigid_mass`` about the origin); ``free`` (n_free,) the free DOFs;
-    ``K``, ``M``: the run's distributed matrices with their PETSc matrices; ``modes``:
+    properties (``rigid_mass`` about the origin); ``K``, ``M``: the run's distributed matrices with their PETSc matrices; ``modes``:
     the run's."""
     if space.unsupported is not None:
-        return _unsupported_models(cfg, space, props, free, K, M, modes, models)
+        return _unsupported_models(cfg, space, props, K, M, modes, models)
     interfaces = space.connections
     parent, children = interfaces[0], interfaces[1:]
     comm = K.comm
     entries = n_z = None
     if children or cfg.craig_bampton_modes > 0:  # rank 0 sends each rank its rows of T_c
-        entries, n_z = _scatter_entries(comm, interfaces, space.node_points, free, K.part)
+        entries, n_z = _scatter_entries(comm, interfaces, space.node_points, K.part)
     if children:  # the clamped pencil of the free-floating children: its own solve
         omega2, shapes, residuals, Phi_C = _clamped_pencil_modes(cfg, entries, n_z,
                                                                  len(children), K, M)
@@ -195,15 +197,15 @@ def connection_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
     model, ss, lines = _model(cfg, interfaces, props, omega2, L_P, shapes, Phi_C, residuals)
     cb = None
     if cfg.craig_bampton_modes > 0:
-        cb, basis = craig_bampton_on_ranks(cfg, space, free, K, M, entries, n_z,
+        cb, basis = craig_bampton_on_ranks(cfg, space, K, M, entries, n_z,
                                            model.rigid.D_P)
         keep, names, units = craig_bampton_columns(cb, 0)
-        inv = modes_invariants(space, free, K, M, basis.columns(keep), props.rigid_mass,
+        inv = modes_invariants(space, K, M, basis.columns(keep), props.rigid_mass,
                                (craig_bampton_kind(cb), names, units))
         lines.append(craig_bampton_line(cfg))
     else:
-        inv = modes_invariants(space, free, K, M, modes.shapes, props.rigid_mass)
-    return _with(models, model, ss, cb, inv, _fe_shares(comm, space, free, K.part),
+        inv = modes_invariants(space, K, M, modes.shapes, props.rigid_mass)
+    return _with(models, model, ss, cb, inv, _fe_shares(comm, space, K.part),
                  lines)
 
 
@@ -219,14 +221,14 @@ def _model(cfg, interfaces, props, omega2, L_P, shapes, Phi_C, residuals):
     return model, ss, lines
 
 
-def _fe_shares(comm, space, free: np.ndarray, part: RowPartition) -> tuple:
+def _fe_shares(comm, space, part: RowPartition) -> tuple:
     """The unsupported K and M (``/fe``) as each rank's share: the elements whose mass
-    its part sums, and its rows of the added masses (their upper triangle, the DOF of
-    PETSc row i is ``free[part.order[i]]``)."""
+    its part sums, and its rows of the added masses (their upper triangle; the DOF of
+    every PETSc row, gathered for it: the added masses' columns are any rank's rows)."""
     mesh = space.local
     K, M = element_share(mesh, space.n_dofs)
     if mesh.added is not None:
-        dof = np.asarray(free)[part.order]
+        dof = part.whole(comm).dofs
         A = mesh.added.tocoo()
         rows, cols = dof[mesh.lo + A.row], dof[A.col]
         up = rows <= cols
@@ -240,7 +242,7 @@ def _with(models, model, ss, cb, inv, fe, lines):
                    ffrf=inv, fe_matrices=fe, summary=models.summary + tuple(lines))
 
 
-def _unsupported_models(cfg: Config, space, props, free: np.ndarray, K: RowMatrix,
+def _unsupported_models(cfg: Config, space, props, K: RowMatrix,
                         M: RowMatrix, modes, models):
     """:func:`connection_models` on the unsupported pair (module): the run's K and M when
     no DOF is held (``space.unsupported.mesh`` None), else a second pair assembled on
@@ -251,30 +253,30 @@ def _unsupported_models(cfg: Config, space, props, free: np.ndarray, K: RowMatri
     own = un.mesh is not None
     if own:
         K, M = assemble_pair(comm, un)
-        free, space = np.arange(space.n_dofs), replace(space, local=un.mesh)
+        space = replace(space, local=un.mesh)
     try:
-        entries, n_z = _scatter_entries(comm, interfaces, space.node_points, free, K.part)
+        entries, n_z = _scatter_entries(comm, interfaces, space.node_points, K.part)
         omega2, shapes, residuals, Phi_C = _clamped_pencil_modes(cfg, entries, n_z,
                                                                  len(children), K, M)
-        R_P = shapes.like(interface_rows(space.local, free, shapes, parent, every=True))
+        R_P = shapes.like(interface_rows(space.local, shapes, parent, every=True))
         L_P = shapes.gram(M.apply(R_P))  # M R_P: M holds every DOF, the added masses too
         model, ss, lines = _model(cfg, interfaces, props, omega2, L_P, shapes, Phi_C,
                                   residuals)
         cb = None
         if cfg.craig_bampton_modes > 0:  # on the same pair, nothing held
-            cb, basis = craig_bampton_on_ranks(cfg, space, free, K, M, entries, n_z, None)
+            cb, basis = craig_bampton_on_ranks(cfg, space, K, M, entries, n_z, None)
             keep, names, units = craig_bampton_columns(cb, 0)
-            inv = modes_invariants(space, free, K, M, basis.columns(keep), props.rigid_mass,
+            inv = modes_invariants(space, K, M, basis.columns(keep), props.rigid_mass,
                                    (craig_bampton_kind(cb), names, units))
             lines.append(craig_bampton_line(cfg))
         else:  # of the run's elastic modes (serial /ffrf), zero on the held DOFs
             run = padded(modes.shapes, un.part) if own else modes.shapes
             keep = np.arange(modes.n_rigid, run.shape[1])
-            inv = modes_invariants(space, free, K, M, run.columns(keep), props.rigid_mass,
+            inv = modes_invariants(space, K, M, run.columns(keep), props.rigid_mass,
                                    modes_basis_labels(keep, bool(cfg.supports)))
     finally:
         if own:
             K.petsc.destroy()
             M.petsc.destroy()
-    return _with(models, model, ss, cb, inv, _fe_shares(comm, space, free, K.part),
+    return _with(models, model, ss, cb, inv, _fe_shares(comm, space, K.part),
                  lines)

@@ -107,13 +107,13 @@ class DistributedConstraint:
                  T_local: sp.csr_matrix, what: str):
         self.comm, self.u_part, self.q_part = comm, u_part, q_part
         self.T_local, self.what = T_local, what
-        self.held = int(u_part.order.size - q_part.order.size)
+        self.held = u_part.n_free - q_part.n_free
         self.T = self.TtT = self.K = self.M = None
         self._gram_lu = None
 
     @property
     def n_q(self) -> int:
-        return int(self.q_part.order.size)
+        return self.q_part.n_free
 
     def project(self, PETSc, K: RowMatrix, M: RowMatrix) -> tuple[RowMatrix, RowMatrix]:
         """(K_q, M_q) = (T^T K T, T^T M T) as row matrices on q's partition with their
@@ -123,7 +123,7 @@ class DistributedConstraint:
         u_lo, u_hi = self.u_part.rows(self.comm.rank)
         T = self.T_local
         self.T = PETSc.Mat().createAIJ(
-            size=((u_hi - u_lo, self.u_part.order.size), (q_hi - q_lo, self.n_q)),
+            size=((u_hi - u_lo, self.u_part.n_free), (q_hi - q_lo, self.n_q)),
             csr=(T.indptr.astype(PETSc.IntType), T.indices.astype(PETSc.IntType), T.data),
             comm=PETSc.COMM_WORLD)
         self.T.assemble()
@@ -253,12 +253,12 @@ def rows_of_T(rows: np.ndarray, keys: np.ndarray, values: np.ndarray, own: np.nd
     return T, order
 
 
-def build_rows(comm, source: ConstraintSource, free: np.ndarray, part: RowPartition
-               ) -> DistributedConstraint:
+def build_rows(comm, source: ConstraintSource, whole: RowPartition) -> DistributedConstraint:
     """This rank's rows of T and q's partition (collective: the column keys are gathered
-    on every rank) from its ``source`` (:func:`constraint_sources`), the sorted ``free``
-    DOFs and u's partition ``part``."""
-    return from_entries(comm, rank_entries(source, free, part, comm.rank), part, source.what)
+    on every rank) from its ``source`` (:func:`constraint_sources`) and u's ``whole``
+    partition (the constraint keeps this rank's own, :meth:`RowPartition.local`)."""
+    entries = rank_entries(source, whole.free_dofs(), whole, comm.rank)
+    return from_entries(comm, entries, whole.local(comm.rank), source.what)
 
 
 def from_entries(comm, entries, part: RowPartition, what: str) -> DistributedConstraint:
@@ -273,14 +273,17 @@ def from_entries(comm, entries, part: RowPartition, what: str) -> DistributedCon
     return DistributedConstraint(comm, part, RowPartition(order, starts), T, what)
 
 
-def distribute_constraint(comm, inputs, n_dofs: int, free: np.ndarray,
-                          part: RowPartition) -> DistributedConstraint | None:
+def distribute_constraint(comm, inputs, n_dofs: int, part: RowPartition
+                          ) -> DistributedConstraint | None:
     """Every rank's :class:`DistributedConstraint`, or None without one (collective;
     ``inputs``: :func:`pipeline.fe.model.constraint_inputs` on rank 0, ignored
-    elsewhere): rank 0 cuts each rank's source and sends it."""
-    sources = None
-    if comm.rank == 0 and inputs is not None:
-        sources = constraint_sources(*inputs, n_dofs, free, part)
-    if not comm.bcast(sources is not None, root=0):
+    elsewhere; ``part``: this rank's partition): rank 0 cuts each rank's source and
+    sends it; while each rank builds its rows, it holds u's whole partition (gathered:
+    the owner of every free DOF)."""
+    if not comm.bcast(comm.rank == 0 and inputs is not None, root=0):
         return None
-    return build_rows(comm, comm.scatter(sources, root=0), free, part)
+    whole = part.whole(comm)
+    sources = None
+    if comm.rank == 0:
+        sources = constraint_sources(*inputs, n_dofs, whole.free_dofs(), whole)
+    return build_rows(comm, comm.scatter(sources, root=0), whole)

@@ -74,18 +74,18 @@ def clamped_solve(cfg: Config, con: DistributedConstraint, count: int):
             stats.pop("eps"))
 
 
-def interface_rows(mesh, free: np.ndarray, rows: RowBlock, iface, every: bool = False
+def interface_rows(mesh, rows: RowBlock, iface, every: bool = False
                    ) -> np.ndarray:
     """(hi - lo, 6) this rank's rows (PETSc order) of the rigid-body modes about the
     interface point, on the rows of the interface's region (``every``: on every row)."""
-    dofs = np.asarray(free)[rows.free_rows()]
+    dofs = rows.dofs()
     nodes = dofs // 3
     points = mesh.space.node_points[mesh.local_nodes(nodes)]
     R = rigid_body_modes(points, iface.point)[3 * np.arange(dofs.size) + dofs % 3]
     return R if every else R * np.isin(nodes, iface.nodes)[:, None]
 
 
-def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMatrix,
+def craig_bampton_on_ranks(cfg, space, K: RowMatrix, M: RowMatrix,
                            entries, n_z: int, D_P: np.ndarray | None
                            ) -> tuple[CraigBamptonModel, RowBlock]:
     """The :class:`CraigBamptonModel` with ``cfg.craig_bampton_modes`` fixed-interface
@@ -111,9 +111,9 @@ def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMat
     try:
         omega2, phi_z, residuals, eps = clamped_solve(cfg, con, cfg.craig_bampton_modes)
         u = RowBlock(comm, K.part, np.zeros((K.hi - K.lo, 0)))  # u's rows
-        E_P = (-interface_rows(space.local, free, u, parent, every=True) if held
-               else interface_rows(space.local, free, u, parent))
-        E = u.like(np.hstack([E_P] + [interface_rows(space.local, free, u, c)
+        E_P = (-interface_rows(space.local, u, parent, every=True) if held
+               else interface_rows(space.local, u, parent))
+        E = u.like(np.hstack([E_P] + [interface_rows(space.local, u, c)
                                       for c in children]))
         rhs = con.to_q(K.apply(E))
         X = rhs.like(-KspSolve(eps.getST().getKSP(), con.K).solve_rows(rhs.local))
@@ -134,15 +134,15 @@ def craig_bampton_on_ranks(cfg, space, free: np.ndarray, K: RowMatrix, M: RowMat
     log.info("Craig-Bampton: %d interface(s), %d boundary + %d modal coordinates on %d "
              "rank(s)", len(interfaces), nb, n, comm.size)
     return CraigBamptonModel(interfaces, 0.5 * (Mr + Mr.T), 0.5 * (Kr + Kr.T), names,
-                             units, _shapes(space, free, B, c, parent, held), omega2,
+                             units, _shapes(space, B, c, parent, held), omega2,
                              residuals), B
 
 
-def _shapes(space, free, B: RowBlock, c: np.ndarray, parent, held: bool) -> PointBlocks:
+def _shapes(space, B: RowBlock, c: np.ndarray, parent, held: bool) -> PointBlocks:
     """The basis on every point: b~ + R_P c on each rank's free points, R_P c on the
     held points (rank 0; ``held`` False: B holds every point)."""
-    full = B.like(B.local + interface_rows(space.local, free, B, parent, every=True) @ c)
-    points, values = full.on_points(free)
+    full = B.like(B.local + interface_rows(space.local, B, parent, every=True) @ c)
+    points, values = full.on_points()
     if held and B.comm.rank == 0:
         held = parent.nodes
         R = rigid_body_modes(space.node_points[held], parent.point) @ c

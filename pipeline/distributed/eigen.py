@@ -55,17 +55,19 @@ def petsc_matrix(PETSc, local, n: int):
 
 
 #: PETSc option of MUMPS' workspace margin (ICNTL(14), percent above its analysis'
-#: estimate) for the shift-invert factor, and the margins tried after a factorisation
-#: that ran out of workspace (INFOG(1) = -9 or -8: cantilever_materials at mesh.size
-#: 0.02 on 3 ranks needs more than MUMPS' default)
-MUMPS_WORKSPACE_OPTION = "st_mat_mumps_icntl_14"
+#: estimate) after a factor's options prefix (the shift-invert factor's
+#: ``-st_mat_mumps_icntl_14``, the inertia relief's ``-relief_mat_mumps_icntl_14``), and
+#: the margins tried after a factorisation that ran out of workspace (INFOG(1) = -9 or
+#: -8: cantilever_materials at mesh.size 0.02 on 3 ranks needs more than MUMPS' default)
+MUMPS_WORKSPACE_OPTION = "mat_mumps_icntl_14"
 MUMPS_WORKSPACE_RETRIES = (100, 300)
 #: MUMPS' analysis by blocks (ICNTL(15)), which PETSc turns on (-3: blocks of a point's
 #: three DOFs) for a matrix of block size 3, made PORD (the one ordering Debian's MUMPS
 #: has for a distributed matrix) order the slender beam (25k DOFs) into a 4.4 GB factor
 #: that took 347 s; without it: 56 MB, 1.5 s, and the 100k-DOF cantilever 505 MB against
-#: 516 MB with it. Set to 0 unless the user set it.
-MUMPS_BLOCK_ANALYSIS_OPTION = "st_mat_mumps_icntl_15"
+#: 516 MB with it. Set to 0 unless the user set it (the option after a factor's
+#: prefix: ``-st_mat_mumps_icntl_15``).
+MUMPS_BLOCK_ANALYSIS_OPTION = "mat_mumps_icntl_15"
 #: the options prefix of the inertia relief's factor (:func:`shifted_cholesky`), and its
 #: MUMPS workspace and block-analysis options
 RELIEF_PREFIX = "relief_"
@@ -278,8 +280,8 @@ def mumps_cholesky(PETSc, A, prefix: str, what: str):
             raise
         return ksp
 
-    return _with_workspace_retries(PETSc, prefix + "mat_mumps_icntl_14", True, attempt,
-                                   prefix + "mat_mumps_icntl_15")
+    return _with_workspace_retries(PETSc, prefix + MUMPS_WORKSPACE_OPTION, True, attempt,
+                                   prefix + MUMPS_BLOCK_ANALYSIS_OPTION)
 
 
 def shifted_cholesky(PETSc, K, M, shift: float):

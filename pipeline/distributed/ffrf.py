@@ -38,26 +38,26 @@ from pipeline.reduce.ffrf import (FFRFInvariants, invariants_from_products, mode
 __all__ = ["modes_invariants"]
 
 
-def _node_major(block: RowBlock, free: np.ndarray) -> np.ndarray:
+def _node_major(block: RowBlock) -> np.ndarray:
     """(3 p, k) this rank's rows of ``block`` as node-major fields on its points."""
-    _, values = block.on_points(free)
+    _, values = block.on_points()
     return values.reshape(-1, values.shape[2])
 
 
-def _field_rows(mesh, free: np.ndarray, block: RowBlock, fields: np.ndarray) -> np.ndarray:
+def _field_rows(mesh, block: RowBlock, fields: np.ndarray) -> np.ndarray:
     """(hi - lo, k) this rank's rows (PETSc order) of nodal ``fields`` (n_loc, 3, k)
     given on the part's local nodes."""
-    dofs = np.asarray(free)[block.free_rows()]
+    dofs = block.dofs()
     return fields[mesh.local_nodes(dofs // 3), dofs % 3]
 
 
-def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes: RowBlock,
+def modes_invariants(space, K: RowMatrix, M: RowMatrix, shapes: RowBlock,
                      rigid_mass: np.ndarray, labels: tuple | None = None) -> FFRFInvariants:
     """The invariants about the origin of the basis ``shapes`` (the run's modes of a
     body clamped on a region, (n_free, n) rows on the ranks; module), as
     :func:`pipeline.reduce.ffrf.build_ffrf` makes them serially for a supported body
     without Craig-Bampton. ``space``: the DistributedSpace (its ``local`` part);
-    ``free`` (n_free,) the free DOFs; ``K``, ``M``: the run's distributed matrices with
+    ``K``, ``M``: the run's distributed matrices with
     their PETSc matrices; ``rigid_mass`` (6, 6) R_O^T M R_O; ``labels``: (basis kind,
     coordinate names, units) of another basis zero on the held points (default: the
     run's modes). ``basis`` of the record is the RowBlock itself. Collective."""
@@ -68,13 +68,13 @@ def modes_invariants(space, free: np.ndarray, K: RowMatrix, M: RowMatrix, shapes
     x = mesh.space.node_points[:, :, None]  # positions about the origin, (n_loc, 3, 1)
     R_O = rigid_body_modes(mesh.space.node_points).reshape(-1, 3, 6)
     if M.shape[0] == space.n_dofs:  # the unsupported M itself (added masses too)
-        Mx, MR = (M.apply(shapes.like(_field_rows(mesh, free, shapes, f))) for f in (x, R_O))
+        Mx, MR = (M.apply(shapes.like(_field_rows(mesh, shapes, f))) for f in (x, R_O))
     else:  # the rows of M that couple to the held points, from the part's elements
         Mx, MR = (shapes.like(full_mass_rows(mesh, f)) for f in (x, R_O))
-    psi, m_psi = _node_major(shapes, free), _node_major(M_psi, free)
+    psi, m_psi = _node_major(shapes), _node_major(M_psi)
     psi_t = skew_columns(psi)
     coupling = MR.gram(shapes)
-    x_psi = allreduce_sum(comm, skew_columns(_node_major(Mx, free)).T @ psi_t)
+    x_psi = allreduce_sum(comm, skew_columns(_node_major(Mx)).T @ psi_t)
     psi_psi = allreduce_sum(comm, psi_t.T @ skew_columns(m_psi))
     psi_m_psi = allreduce_sum(comm, psi_t.T @ m_psi)
     return invariants_from_products(

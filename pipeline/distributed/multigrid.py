@@ -90,41 +90,90 @@ def midpoint_vertices(element_nodes: np.ndarray, n_nodes: int) -> np.ndarray:
     return ends
 
 
-def prolongation_rows(mesh, free_of_row: np.ndarray, coarse_of_row: np.ndarray,
-                      n_vertices: int) -> sp.csr_matrix:
+def _midpoint_ends(mesh, dofs: np.ndarray, n_vertices: int):
+    """(at (q,): the local rows of ``dofs`` (a rank's rows' DOFs) at edge midpoints,
+    (q, 2) the PETSc rows of the same component at the edge's two vertices, -1 where
+    held)."""
+    nodes, comps = dofs // 3, dofs % 3
+    at = np.flatnonzero(nodes >= n_vertices)
+    if not at.size:
+        return at, np.zeros((0, 2), dtype=np.int64)
+    local = mesh.local_nodes(nodes[at])
+    ends = midpoint_vertices(mesh.space.element_nodes, mesh.space.node_points.shape[0])
+    if np.any(ends[local] < 0):
+        raise AssertionError("a midpoint node without its element on this rank")
+    return at, np.stack([mesh.dof_rows[3 * ends[local, side] + comps[at]]
+                         for side in (0, 1)], axis=1)
+
+
+def prolongation_rows(mesh, dofs: np.ndarray, coarse, n_vertices: int,
+                      n_coarse: int) -> sp.csr_matrix:
     """This rank's rows ``mesh.lo:mesh.hi`` of P (module doc) as CSR
     (hi - lo, n_coarse) with the global coarse column numbers.
 
-    mesh: the rank's :class:`~pipeline.distributed.submesh.RankMesh`; free_of_row
-    (n_free,): the free DOF (3 node + component) of each PETSc row; coarse_of_row:
-    :func:`coarse_numbering`; n_vertices: the whole mesh's vertex count (global nodes
-    below it are vertices)."""
+    mesh: the rank's :class:`~pipeline.distributed.submesh.RankMesh`; dofs (hi - lo,):
+    the free DOF (3 node + component) of each of its rows; coarse: the coarse DOF of
+    PETSc rows, ``coarse[rows]`` (:func:`coarse_numbering` of every row, or a
+    :class:`CoarseRows`); n_vertices: the whole mesh's vertex count (global nodes
+    below it are vertices); n_coarse: the coarse DOFs."""
     lo, hi = mesh.lo, mesh.hi
-    dofs = np.asarray(free_of_row[lo:hi], dtype=np.int64)
-    nodes, comps = dofs // 3, dofs % 3
-    n_coarse = int(coarse_of_row.max(initial=-1)) + 1
+    dofs = np.asarray(dofs, dtype=np.int64)
     rows, cols, vals = [], [], []
-    vertex = nodes < n_vertices
-    at = np.flatnonzero(vertex)
+    at = np.flatnonzero(dofs // 3 < n_vertices)
     rows.append(at)
-    cols.append(coarse_of_row[lo + at])
+    cols.append(coarse[lo + at])
     vals.append(np.ones(at.size))
-    at = np.flatnonzero(~vertex)
-    if at.size:
-        local = mesh.local_nodes(nodes[at])
-        ends = midpoint_vertices(mesh.space.element_nodes, mesh.space.node_points.shape[0])
-        if np.any(ends[local] < 0):
-            raise AssertionError("a midpoint node without its element on this rank")
-        for side in (0, 1):
-            end_rows = mesh.dof_rows[3 * ends[local, side] + comps[at]]
-            held = end_rows < 0
-            rows.append(at[~held])
-            cols.append(coarse_of_row[end_rows[~held]])
-            vals.append(np.full(int((~held).sum()), 0.5))
+    at, end_rows = _midpoint_ends(mesh, dofs, n_vertices)
+    for side in (0, 1):
+        held = end_rows[:, side] < 0
+        rows.append(at[~held])
+        cols.append(coarse[end_rows[~held, side]])
+        vals.append(np.full(int((~held).sum()), 0.5))
     P = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                       shape=(hi - lo, n_coarse))
     P.sum_duplicates()
     return P
+
+
+class CoarseRows:
+    """The coarse DOF (:func:`coarse_numbering` of every row) of this rank's rows
+    ``lo:hi`` (``own``) and of the few other rows its prolongation rows read
+    (``others``, ascending, and their ``others_coarse``); ``self[rows]`` for any of
+    them. n_coarse: the coarse DOFs over all ranks."""
+
+    def __init__(self, lo: int, own: np.ndarray, others: np.ndarray,
+                 others_coarse: np.ndarray, n_coarse: int):
+        self.lo, self.own, self.n_coarse = lo, own, n_coarse
+        self.others, self.others_coarse = others, others_coarse
+
+    def __getitem__(self, rows) -> np.ndarray:
+        rows = np.asarray(rows, dtype=np.int64)
+        mine = (rows >= self.lo) & (rows < self.lo + self.own.size)
+        out = np.empty(rows.shape, dtype=np.int64)
+        out[mine] = self.own[rows[mine] - self.lo]
+        out[~mine] = self.others_coarse[np.searchsorted(self.others, rows[~mine])]
+        return out
+
+
+def coarse_rows(comm, part, mesh, n_vertices: int) -> CoarseRows:
+    """The :class:`CoarseRows` of this rank (collective): its own rows' coarse DOFs from
+    the vertex rows' counts of the ranks before it, the other rows' (the vertex ends of
+    its midpoint rows, owned by its neighbours) asked of their owners (MPI_Alltoall):
+    no rank holds every row's."""
+    lo, hi = part.rows(comm.rank)
+    dofs = part.owned_dofs(comm.rank)
+    vertex = dofs // 3 < n_vertices
+    counts = comm.allgather(int(np.count_nonzero(vertex)))
+    own = np.where(vertex, sum(counts[:comm.rank]) + np.cumsum(vertex) - 1, -1)
+    ends = _midpoint_ends(mesh, dofs, n_vertices)[1].ravel()
+    others = np.unique(ends[(ends >= 0) & ((ends < lo) | (ends >= hi))])
+    owner = np.searchsorted(part.starts, others, side="right") - 1
+    asked = comm.alltoall([others[owner == r] for r in range(comm.size)])
+    told = comm.alltoall([own[rows - lo] for rows in asked])
+    others_coarse = np.empty(others.size, dtype=np.int64)
+    for r in range(comm.size):
+        others_coarse[owner == r] = told[r]
+    return CoarseRows(lo, own, others, others_coarse, int(sum(counts)))
 
 
 def petsc_prolongation(PETSc, rows: sp.csr_matrix, coarse_rows: int):
@@ -139,16 +188,15 @@ def petsc_prolongation(PETSc, rows: sp.csr_matrix, coarse_rows: int):
     return P
 
 
-def prolongation(PETSc, space, free: np.ndarray, part, rank: int):
+def prolongation(PETSc, space, part, comm):
     """The MPIAIJ P (module doc) of the distributed quadratic ``space``
-    (:class:`~pipeline.distributed.submesh.DistributedSpace`) with sorted ``free`` DOFs
-    and the row partition ``part``; collective."""
-    free_of_row = np.asarray(free, dtype=np.int64)[part.order]
-    coarse_of_row = coarse_numbering(free_of_row < 3 * space.body.n_vertices)
-    lo, hi = part.rows(rank)
-    rows = prolongation_rows(space.local, free_of_row, coarse_of_row,
-                             space.body.n_vertices)
-    return petsc_prolongation(PETSc, rows, int(np.count_nonzero(coarse_of_row[lo:hi] >= 0)))
+    (:class:`~pipeline.distributed.submesh.DistributedSpace`) on the row partition
+    ``part`` (this rank's own rows' suffice: :func:`coarse_rows`); collective."""
+    n_vertices = space.body.n_vertices
+    coarse = coarse_rows(comm, part, space.local, n_vertices)
+    rows = prolongation_rows(space.local, part.owned_dofs(comm.rank), coarse, n_vertices,
+                             coarse.n_coarse)
+    return petsc_prolongation(PETSc, rows, int(np.count_nonzero(coarse.own >= 0)))
 
 
 class CoarseFactor:

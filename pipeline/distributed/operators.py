@@ -63,7 +63,7 @@ class RowMatrix:
 
     def __init__(self, comm, local: sp.csr_matrix, part: RowPartition):
         self.comm, self.local, self.part = comm, local, part
-        n = int(part.order.size)
+        n = part.n_free
         self.shape = (n, n)
         self.lo, self.hi = part.rows(comm.rank)
 
@@ -73,15 +73,23 @@ class RowMatrix:
         return int(self.comm.allreduce(int(self.local.nnz)))
 
     def to_petsc_order(self, X: np.ndarray) -> np.ndarray:
-        return np.asarray(X, dtype=np.float64)[self.part.order]
+        """A replicated (n_free, ...) X (free order) in PETSc's row order (collective:
+        every row's order is gathered for it, as the replicated X is whole anyway)."""
+        return np.asarray(X, dtype=np.float64)[self.part.whole(self.comm).order]
 
     def from_petsc_order(self, Y: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`to_petsc_order` (collective)."""
         out = np.empty_like(Y)
-        out[self.part.order] = Y
+        out[self.part.whole(self.comm).order] = Y
         return out
 
+    def own_rows(self, X: np.ndarray) -> np.ndarray:
+        """This rank's rows (PETSc order) of a replicated (n_free, ...) X (free order)."""
+        return np.asarray(X, dtype=np.float64)[self.part.owned_free(self.comm.rank)]
+
     def gather(self, local_rows: np.ndarray) -> np.ndarray:
-        """Every rank's (n_i, ...) rows (PETSc order) -> the whole block in free order."""
+        """Every rank's (n_i, ...) rows (PETSc order) -> the whole block in free order
+        (collective)."""
         return self.from_petsc_order(allgather_rows(self.comm, local_rows))
 
     def __matmul__(self, X):
@@ -162,7 +170,7 @@ class KspSolve:
     def solve(self, B: np.ndarray) -> np.ndarray:
         B = np.asarray(B, dtype=np.float64)
         cols = B.reshape(B.shape[0], -1)
-        Bp = self.matrix.to_petsc_order(cols)[self.matrix.lo:self.matrix.hi]
+        Bp = self.matrix.own_rows(cols)
         return self.matrix.gather(self.solve_rows(Bp)).reshape(B.shape)
 
     def solve_rows(self, Bp: np.ndarray) -> np.ndarray:

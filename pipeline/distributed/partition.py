@@ -28,20 +28,90 @@ import numpy as np
 
 @dataclass(frozen=True)
 class RowPartition:
-    """order: (n_free,) free-DOF index of each PETSc row; starts: (size + 1,) first row
-    of each rank (starts[-1] = n_free); rank_of_row is implied by starts."""
+    """The PETSc rows of each rank: ``starts`` (size + 1,) the first row of each rank
+    (starts[-1] = n_free); ``order`` the free-DOF index (serial order) of each row and
+    ``dofs`` the DOF (3 p + c of point p) of each row, or None where the rows are not
+    DOFs (a constraint's coordinates). The whole partition (``rank`` None) holds every
+    row's, (n_free,) each, as rank 0 makes it; a rank's own partition
+    (:meth:`local`, ``rank`` its number) holds only its rows' (hi - lo,), which is what
+    every rank keeps (16 bytes a row of its own); :meth:`whole` gathers the rest where
+    a step needs every row's (collective)."""
 
     order: np.ndarray
     starts: np.ndarray
+    dofs: np.ndarray | None = None
+    rank: int | None = None
+
+    @property
+    def n_free(self) -> int:
+        """Rows over all ranks (free DOFs)."""
+        return int(self.starts[-1])
 
     def rows(self, rank: int) -> tuple[int, int]:
         """[lo, hi): the PETSc rows rank ``rank`` owns."""
         return int(self.starts[rank]), int(self.starts[rank + 1])
 
+    def _own(self, values: np.ndarray | None, rank: int) -> np.ndarray | None:
+        if self.rank is None:
+            lo, hi = self.rows(rank)
+            return None if values is None else values[lo:hi]
+        if rank != self.rank:
+            raise ValueError(f"the partition of rank {self.rank} holds its own rows only, "
+                             f"not rank {rank}'s")
+        return values
+
     def owned_free(self, rank: int) -> np.ndarray:
         """Free-DOF indices of the rows rank ``rank`` owns, in PETSc order."""
-        lo, hi = self.rows(rank)
-        return self.order[lo:hi]
+        return self._own(self.order, rank)
+
+    def owned_dofs(self, rank: int) -> np.ndarray:
+        """The DOF (3 p + c) of each row rank ``rank`` owns, in PETSc order."""
+        if self.dofs is None:
+            raise ValueError("the rows of this partition are not DOFs")
+        return self._own(self.dofs, rank)
+
+    def local(self, rank: int) -> "RowPartition":
+        """Rank ``rank``'s own partition: its rows' order and DOFs only."""
+        return RowPartition(self.owned_free(rank), self.starts,
+                            None if self.dofs is None else self.owned_dofs(rank), rank)
+
+    def whole(self, comm, root: int | None = None) -> "RowPartition | None":
+        """The whole partition: itself if whole; else gathered from every rank's own rows
+        (collective), on every rank (``root`` None: O(n_free) on each for as long as the
+        caller keeps it) or on ``root`` only (None elsewhere)."""
+        if self.rank is None:
+            return self if root is None or comm.rank == root else None
+        if root is None:
+            parts = [comm.allgather(self.order), comm.allgather(self.dofs)]
+        else:
+            parts = [comm.gather(self.order, root=root), comm.gather(self.dofs, root=root)]
+            if comm.rank != root:
+                return None
+        order, dofs = parts
+        return RowPartition(np.concatenate(order), self.starts,
+                            None if self.dofs is None else np.concatenate(dofs))
+
+    def free_dofs(self) -> np.ndarray:
+        """(n_free,) the free DOFs, ascending (the serial ``free``), of a whole partition."""
+        if self.rank is not None or self.dofs is None:
+            raise ValueError("free_dofs needs the whole partition of DOF rows")
+        free = np.empty_like(self.dofs)
+        free[self.order] = self.dofs
+        return free
+
+
+@dataclass(frozen=True)
+class FreeDofs:
+    """The free DOFs as a rank of the distributed path holds them: their count only
+    (``size``, as the serial path's (n_free,) array has), nothing per DOF. The DOFs of
+    a rank's own rows are its partition's (:meth:`RowPartition.owned_dofs`); a step that
+    needs every free DOF gathers them (:meth:`RowPartition.whole`, collective)."""
+
+    size: int
+
+    def __array__(self, *args, **kwargs):
+        raise TypeError("the free DOFs are not held on every rank: use the partition's own "
+                        "rows (RowPartition.owned_dofs) or RowPartition.whole(comm)")
 
 
 def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowPartition:
@@ -59,7 +129,7 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
         else 1
     starts = np.array([step * (((n // step) * r) // size) for r in range(size + 1)],
                       dtype=np.int64)
-    return RowPartition(order=order, starts=starts)
+    return RowPartition(order=order, starts=starts, dofs=free[order])
 
 
 def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
@@ -71,9 +141,9 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     None): it builds the graph rows of each rank's slab of points (the initial
     distribution) and sends them, PETSc moves the points to ``size`` parts of nearly
     equal count with few cut edges, rank 0 gathers each point's part and makes the
-    partition, which every rank receives (its ``order``: one integer per free DOF).
-    Within a part the rows keep the slab order, a point's DOFs together; rank r owns
-    part r."""
+    partition (the whole one, on rank 0; None elsewhere: each rank receives its own,
+    :meth:`RowPartition.local`). Within a part the rows keep the slab order, a point's
+    DOFs together; rank r owns part r."""
     size, rank = comm.size, comm.rank
     if rank == 0:
         vertex, vorder, rows = _slab_graph_rows(element_nodes, node_points, free, size)
@@ -106,8 +176,9 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
         v_of_dof = vertex[free // 3]
         order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
         counts = np.bincount(owner[v_of_dof], minlength=size)
-        part = RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]))
-    return comm.bcast(part, root=0)
+        part = RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]),
+                            dofs=free[order])
+    return part
 
 
 def _slab_graph_rows(element_nodes: np.ndarray, node_points: np.ndarray, free: np.ndarray,

@@ -57,7 +57,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Config, Ports
 from pipeline.distributed.assemble import with_int32_indices
-from pipeline.distributed.blocks import RowBlock
+from pipeline.distributed.blocks import RowBlock, dof_rows
 from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen, solve_eigen_again
 from pipeline.distributed.multigrid import TwoGridSweep
@@ -188,7 +188,7 @@ class Halo:
         self.lo, self.hi = part.rows(comm.rank)
         rows = np.asarray(mesh.dof_rows, dtype=np.int64)
         self.rows, self.n_loc = rows, rows.size
-        self.n_free = int(part.order.size)
+        self.n_free = part.n_free
         owned = (rows >= self.lo) & (rows < self.hi)
         self.owned = np.flatnonzero(owned)  # local DOFs of the owned rows
         self.halo = np.flatnonzero((rows >= 0) & ~owned)
@@ -284,15 +284,15 @@ def rotation_model(cfg: Config, space, regions, free, K: RowMatrix, M: RowMatrix
     if area is not None:  # the area masses' rows of its nodes (their triangles' nodes)
         node_mass = (node_mass + on_part(area, mesh.points)).tocsr()
     masses = RankPointMasses(comm, point_masses, point, petsc_numbering(
-        space.n_dofs, free, K.part) if point_masses else None, halo.lo, halo.hi)
+        space.n_dofs, K.part.whole(comm)) if point_masses else None, halo.lo, halo.hi)
     loads = halo.block(centrifugal_loads(part_space, node_mass, point))  # (n_s, 6) rows
     loads = loads.like(loads.local + masses.loads())
     names = tuple(p.name for p in preload_ports(cfg).inputs)
     rhs = loads
     if names:
         cols = [space.ports.input_names.index(n) for n in names]
-        F = sp.csr_matrix(space.ports.F)[:, cols][np.asarray(free)].tocsr()
-        rhs = loads.like(np.hstack([loads.local, F[loads.free_rows()].toarray()]))
+        F = dof_rows(sp.csc_matrix(space.ports.F)[:, cols], loads.dofs())
+        rhs = loads.like(np.hstack([loads.local, F.toarray()]))
     factor = modes.factorization
     # u = T q: the static solves run on the coordinates, X = T K_q^-1 T^T F
     on = Unconstrained(K, M) if modes.constraint is None else modes.constraint

@@ -37,7 +37,7 @@ import logging
 import numpy as np
 
 from pipeline.config import Config
-from pipeline.distributed.blocks import PointBlocks, RowBlock
+from pipeline.distributed.blocks import PointBlocks, RowBlock, dof_rows
 from pipeline.distributed.constraints import Unconstrained
 from pipeline.distributed.eigen import shifted_cholesky
 from pipeline.distributed.mpi import allreduce_sum, petsc
@@ -142,27 +142,41 @@ def relief_rows(K, M, F: RowBlock, R: RowBlock, shift: float) -> RowBlock:
 def build_statespace(cfg: Config, space, regions, K, M, free, modes, solve=None):
     """The distributed twin of :func:`pipeline.reduce.build.build_statespace`: (ports,
     reduced, filtered) with the reduced model's ``basis`` and ``correction_shapes`` as
-    :class:`RowBlock` (rows on their ranks)."""
+    :class:`RowBlock` (rows on their ranks). Each rank reads the port loads and sensor
+    rows of its own rows' DOFs only (``free``: unused, every rank's free DOFs are its
+    partition's)."""
     from pipeline.reduce.filters import filtered_model
 
     Phi: RowBlock = modes.shapes
     ports = space.ports  # rank 0's, from the whole mesh (pipeline.distributed.stage)
-    F_free = ports.F[free].tocsr()
-    T = ports.T[:, free].tocsr()
-    loaded = np.unique(F_free.nonzero()[0])  # the column maxima of the loaded rows only
-    check_ports_act(cfg, ports, F_free[loaded].toarray(), T)
-    F = Phi.like(F_free[Phi.free_rows()].toarray())
-    reduced = _reduce_rows(cfg, K, M, Phi, modes, F, T, ports)
+    dofs = Phi.dofs()  # this rank's rows: the DOF of each
+    F_own = dof_rows(ports.F, dofs)  # (hi - lo, n_u)
+    T_own = dof_rows(ports.T.T, dofs).T  # (n_y, hi - lo)
+    # each port's largest entry on the free DOFs: the largest over the ranks' own rows
+    F_max = allreduce_sum(Phi.comm, _abs_max(F_own, 0), "MAX")
+    T_max = allreduce_sum(Phi.comm, _abs_max(T_own, 1), "MAX")
+    check_ports_act(cfg, ports, F_max[None, :], T_max[:, None])
+    F = Phi.like(F_own.toarray())
+    reduced = _reduce_rows(cfg, K, M, Phi, modes, F, ports.T, ports)
     filtered = None
     if cfg.filter.kind != "none":
         filtered = filtered_model(reduced, cfg.filter.kind, cfg.filter.cutoff_hz)
     return ports, reduced, filtered
 
 
+def _abs_max(A, axis: int) -> np.ndarray:
+    """The largest |entry| of each column (``axis`` 0) or row (1) of the sparse ``A``,
+    zero for an empty one."""
+    if A.shape[axis] == 0:
+        return np.zeros(A.shape[1 - axis])
+    return abs(A).max(axis=axis).toarray().ravel()
+
+
 def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
                  ) -> ReducedModel:
     """:func:`pipeline.reduce.modal.reduce_model` on row blocks (every static correction:
-    ``augment``'s Ritz basis by :func:`pipeline.reduce.augment.augment` on the blocks)."""
+    ``augment``'s Ritz basis by :func:`pipeline.reduce.augment.augment` on the blocks);
+    T (n_y, n_dofs): the sensor rows on every DOF."""
     spec: DampingSpec = _damping_spec(cfg)
     correction = cfg.reduction.static_correction
     omega2 = np.asarray(modes.omega2, dtype=float)
@@ -183,7 +197,7 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
         X = on.from_q(relief_rows(on.K, on.M, on.to_q(F),
                                   on.coordinates(basis.columns(slice(0, n_rigid))),
                                   -1e-3 * float(omega2[n_rigid])))
-        G_relief = X.sensor_product(T)
+        G_relief = X.dof_sensor_product(T)
     elif n_rigid:
         if correction != "none":
             raise ConfigError(f"reduction.static_correction: {correction}, expected none: the "
@@ -194,12 +208,12 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
                     n_rigid)
     else:
         X = on.from_q(static_rows(on.K, modes.factorization, on.to_q(F)))
-        G = X.sensor_product(T)
+        G = X.dof_sensor_product(T)
     if correction == "augment":  # the Ritz basis of [Phi, X], rows on their ranks
         w2, basis = augment(K.apply, M.apply, basis, X, list(ports.input_names), w2)
     xi = spec.ratios_for(_omega(w2), n_listed=n_modes)
     Sigma = basis.gram(F)
-    Theta = basis.sensor_product(T)
+    Theta = basis.dof_sensor_product(T)
     residual = shapes = None
     if correction == "residual":
         # rigid modes (omega^2 = 0, inertia relief) carry no static deflection
@@ -219,27 +233,33 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
     return model
 
 
-def label_rows(space, free, Phi: RowBlock, n_rigid: int) -> list[str]:
+def label_rows(space, Phi: RowBlock, n_rigid: int) -> list[str]:
     """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
-    every sum over the mesh points is summed over the ranks. The slices along the body
-    need every point's position and volume weight: rank 0 sends them for this step only
-    (32 bytes a point; ``space``: a :class:`~pipeline.distributed.submesh.DistributedSpace`)."""
-    from pipeline.solve.labels import label_modes
+    rank 0 makes the body's :class:`~pipeline.solve.labels.LabelFrame` from every point
+    (a few numbers per slice, sent to every rank), and each rank sums over the points of
+    its own rows, their positions and volume weights from its part of the mesh (``space``:
+    a :class:`~pipeline.distributed.submesh.DistributedSpace`; the part holds every
+    element around those points, so each weight is the whole mesh's, bit for bit); the
+    sums are added over the ranks. No rank but 0 holds every point."""
+    from pipeline.fe.body import node_volume_weights
+    from pipeline.solve.labels import label_frame, label_modes
 
-    points, values = Phi.on_points(free)
-    whole = (space.node_points, space.node_weights) if Phi.comm.rank == 0 else None
-    node_points, weights = Phi.comm.bcast(whole, root=0)
-    return label_modes(node_points, values, n_rigid, weights, nodes=points,
+    points, values = Phi.on_points()
+    frame = Phi.comm.bcast(label_frame(space.node_points, space.node_weights)
+                           if Phi.comm.rank == 0 else None, root=0)
+    mesh = space.local
+    local = mesh.local_nodes(points)
+    weights = node_volume_weights(mesh.space)[local]
+    return label_modes(mesh.space.node_points[local], values, n_rigid, weights, frame=frame,
                        reduce_sum=lambda a: allreduce_sum(Phi.comm, a))
 
 
-def shapes_blocks(n_points: int, free, Phi: RowBlock) -> PointBlocks:
-    """The ``/modes/shapes`` dataset (n_points, 3, m), written from the ranks' rows
-    (free: (n_free,) the DOF of each free row)."""
-    return PointBlocks(Phi.comm, n_points, *Phi.on_points(free))
+def shapes_blocks(n_points: int, Phi: RowBlock) -> PointBlocks:
+    """The ``/modes/shapes`` dataset (n_points, 3, m), written from the ranks' rows."""
+    return PointBlocks(Phi.comm, n_points, *Phi.on_points())
 
 
-def stress_blocks(mesh: RankMesh, n_points: int, free, reduced: ReducedModel
+def stress_blocks(mesh: RankMesh, n_points: int, reduced: ReducedModel
                   ) -> tuple[PointBlocks, PointBlocks]:
     """(stress, strain) datasets (n_points, 6, n_b + n_u) of the basis and the correction
     shapes, each rank recovering its own rows' share (module) on its part of the mesh
@@ -248,7 +268,7 @@ def stress_blocks(mesh: RankMesh, n_points: int, free, reduced: ReducedModel
     cols = [reduced.basis] + ([reduced.correction_shapes]
                               if reduced.correction_shapes is not None else [])
     block = cols[0].like(np.hstack([c.local for c in cols]))
-    points, values = block.on_points(free)
+    points, values = block.on_points()
     points = mesh.local_nodes(points)
     space = mesh.space
     node_row = np.full(space.n_nodes, points.size)  # others' points: the zero row below

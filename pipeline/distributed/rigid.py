@@ -25,13 +25,13 @@ from pipeline.distributed.mpi import allreduce_sum
 from pipeline.solve.stage import check_rigid_found
 
 
-def rigid_rows(rigid, mesh, free: np.ndarray, like: RowBlock) -> RowBlock:
+def rigid_rows(rigid, mesh, like: RowBlock) -> RowBlock:
     """(n_free, r) the rigid motions ``rigid`` (a
     :class:`~pipeline.fe.supports.RigidFreedoms`, m per unit twist) on the rows of
     ``like``: this rank's rows, from the coordinates of its own points (``mesh``: its
-    :class:`~pipeline.distributed.submesh.RankMesh`; ``free`` (n_free,): the DOF 3 p + c
-    of each free row)."""
-    dofs = np.asarray(free)[like.free_rows()]
+    :class:`~pipeline.distributed.submesh.RankMesh`; the DOF 3 p + c of each row: its
+    partition's)."""
+    dofs = like.dofs()
     points, where = np.unique(dofs // 3, return_inverse=True)
     x = mesh.space.node_points[mesh.local_nodes(points)]
     fields = rigid.fields_at(x).reshape(points.size, 3, rigid.count)

@@ -5,10 +5,12 @@ with K and M as :class:`~pipeline.distributed.operators.RowMatrix` stand-ins, so
 
 Per rank, memory: its part of the mesh and an FE space on it (rank 0 meshes the body
 and sends each rank the elements touching its points, :mod:`pipeline.distributed.submesh`;
-rank 0 alone keeps the whole mesh's points and elements, which it writes), its rows of
-K and M (1/size of them, plus one element layer), its part of
-MUMPS' factor, and its rows of the mode shapes (a :class:`RowBlock`, 8 n_free n_modes /
-size bytes); the reduce stage and the writer work from those rows
+rank 0 alone keeps the whole mesh's points and elements, which it writes), its own
+rows' free-DOF order (:meth:`~pipeline.distributed.partition.RowPartition.local`: the
+free DOFs themselves only as their count, :class:`~pipeline.distributed.partition.FreeDofs`;
+rank 0 the held DOFs it writes), its rows of K and M (1/size of them, plus one element
+layer), its part of MUMPS' factor, and its rows of the mode shapes (a
+:class:`RowBlock`, 8 n_free n_modes / size bytes); the reduce stage and the writer work from those rows
 (:mod:`pipeline.distributed.reduce`), rank 0 writing the shapes and stress modes one
 block of points at a time (:class:`~pipeline.distributed.blocks.PointBlocks`).
 """
@@ -32,7 +34,8 @@ from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
-from pipeline.distributed.partition import cut_measures, graph_partition, slab_partition
+from pipeline.distributed.partition import (FreeDofs, cut_measures, graph_partition,
+                                            slab_partition)
 from pipeline.fe.body import (body_properties, node_volume_weights,
                               properties_from_rigid_mass, rigid_body_modes)
 from pipeline.fe.ports import check_gauges, port_matrices
@@ -236,27 +239,31 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
     check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
     with stage("assemble"):
-        free = None if whole is None else whole.free
-        part = partition(whole, comm)
-        parts = None if whole is None else split_mesh(whole.space, whole.materials, free,
-                                                      part, comm.size, whole.added,
-                                                      whole.springs)
+        whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
+        parts = None if whole is None else split_mesh(whole.space, whole.materials,
+                                                      whole.free, whole_part, comm.size,
+                                                      whole.added, whole.springs)
         mesh = scatter_parts(comm, parts)
         del parts
         small = None if whole is None else (
-            whole.free, whole.fixed, whole.ports, whole.mesh_path, whole.mesh_sha256,
+            whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
-        free, fixed, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+        n_free, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+        # every rank holds the count of the free DOFs and its own rows' (``part``);
+        # rank 0 the held DOFs, which it writes
+        free = FreeDofs(n_free)
+        fixed = np.zeros(0, np.int64) if whole is None else whole.fixed
         spin_masses = comm.bcast(None if whole is None else
                                  rotation_masses(cfg, whole.space, whole.regions), root=0)
         interfaces = comm.bcast(None if whole is None else connection_interfaces(
             cfg, whole.space, whole.regions), root=0)
         unsupported = None  # the connection model's own pair (K, M): its part
         if cfg.connections and not clamped_by_supports(cfg):
-            unsupported = unsupported_parts(comm, whole, part)
+            unsupported = unsupported_parts(comm, whole, whole_part)
+        del whole_part
         # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
         constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
-                                           3 * n_nodes, free, part)
+                                           3 * n_nodes, part)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
@@ -277,7 +284,8 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                                            comm)
         if mesh.springs is not None:  # springs and bushings: its owned rows added to K
             K = RowMatrix(comm, with_int32_indices(rows.K + mesh.springs), part)
-        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass, fixed.size, free.size)
+        log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass,
+                 3 * n_nodes - free.size, free.size)
         if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
             space = DistributedSpace(
                 whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
@@ -313,7 +321,9 @@ def partition(whole: WholeMesh | None, comm):
     """The rows of each rank (collective; ``whole`` on rank 0, None elsewhere): PT-Scotch's
     graph partition of the points
     (:func:`~pipeline.distributed.partition.graph_partition`), or slabs along the
-    longest extent on one rank or with the PETSc option ``-pipeline_partition slab``."""
+    longest extent on one rank or with the PETSc option ``-pipeline_partition slab``.
+    Returns (the whole partition on rank 0, None elsewhere; this rank's own
+    :meth:`~pipeline.distributed.partition.RowPartition.local`, sent by rank 0)."""
     PETSc, _ = petsc()
     kind = PETSc.Options().getString("pipeline_partition", "graph")
     if kind not in ("graph", "slab"):
@@ -323,11 +333,14 @@ def partition(whole: WholeMesh | None, comm):
     if comm.size == 1 or kind == "slab":
         part = None if whole is None else \
             slab_partition(whole.space.node_points, whole.free, comm.size)
-        return comm.bcast(part, root=0)
-    if whole is None:
-        return graph_partition(PETSc, comm, None, None, None)
-    return graph_partition(PETSc, comm, whole.space.element_nodes, whole.space.node_points,
-                           whole.free)
+    elif whole is None:
+        part = graph_partition(PETSc, comm, None, None, None)
+    else:
+        part = graph_partition(PETSc, comm, whole.space.element_nodes,
+                               whole.space.node_points, whole.free)
+    own = comm.scatter(None if part is None else [part.local(r) for r in range(comm.size)],
+                       root=0)
+    return part, own
 
 
 def compute_modes(fe: FEModel, cfg: Config) -> Modes:
@@ -361,7 +374,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         check_count_above_rigid(count, fe.n_rigid, fe.rigid.names)
     shift = of_diagonals(lambda Kd, Md: default_shift(Kd, Md, supported), K, M)
     if two_grid:  # LOBPCG preconditioned by the two-grid cycle: no factor of K
-        P = prolongation(PETSc, fe.space, fe.free, fe.K.part, world().rank)
+        P = prolongation(PETSc, fe.space, fe.K.part, world())
         if con is not None:  # the coarse space on q: T^T P (the serial path's)
             P_u, P = P, con.T.transposeMatMult(P)
             P_u.destroy()
@@ -387,7 +400,7 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
     n_rigid = int(rigid.sum())
     names: list[str] = []
     if partly:  # the motions themselves, from each rank's own points
-        R = rigid_rows(fe.rigid, fe.space.local, fe.free,
+        R = rigid_rows(fe.rigid, fe.space.local,
                        RowBlock(comm, fe.K.part, np.zeros((fe.K.hi - fe.K.lo, 0))))
         omega2, shapes = with_rigid_rows(omega2, shapes, M,
                                          R if con is None else con.coordinates(R),
@@ -410,14 +423,14 @@ def compute_modes(fe: FEModel, cfg: Config) -> Modes:
         factor.release_solver()
     # the shapes stay distributed: ``shapes`` is a RowBlock (this rank's rows), and
     # ``shapes_full`` the (n_points, 3, m) dataset rank 0 writes block by block
-    labels = label_rows(fe.space, fe.free, shapes, n_rigid)
+    labels = label_rows(fe.space, shapes, n_rigid)
     labels[:len(names)] = names
     for f, lab in zip(np.sqrt(omega2) / (2 * np.pi), labels):
         log.info("mode %-14s %12.4f Hz", lab, f)
     return Modes(omega2=omega2, frequencies_hz=np.sqrt(omega2) / (2 * np.pi), shapes=shapes,
                  residuals=residuals, n_rigid=n_rigid, backend=BACKEND, shift=shift,
                  seconds=time.perf_counter() - t0, stats=stats, factorization=factor,
-                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, fe.free, shapes),
+                 labels=tuple(labels), shapes_full=shapes_blocks(fe.space.n_nodes, shapes),
                  constraint=con)
 
 
@@ -430,13 +443,13 @@ def connection_models(cfg: Config, space, props, free, K: RowMatrix, M: RowMatri
     rank's resident memory 593 -> 290 MB here, rank peaks 1318 / 1257 -> 882 / 886 MB)."""
     if modes.factorization is not None:
         modes.factorization.release_solver()
-    return models_of_connections(cfg, space, props, free, K, M, modes, models)
+    return models_of_connections(cfg, space, props, K, M, modes, models)
 
 
 def stress_modes_tree(cfg: Config, space, free, models) -> dict:
     """The ``stress_modes`` group from the distributed basis (rank 0 writes it block by
     block, :func:`pipeline.distributed.reduce.stress_blocks`)."""
-    stress, strain = stress_blocks(space.local, space.n_nodes, free, models.reduced)
+    stress, strain = stress_blocks(space.local, space.n_nodes, models.reduced)
     return stress_modes_datasets(stress, strain, models.reduced, models.input_units)
 
 

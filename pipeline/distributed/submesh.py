@@ -117,20 +117,20 @@ class DistributedSpace:
         return self.local.space.cell_type  # the part's elements are the mesh's kind
 
 
-def petsc_numbering(n_dofs: int, free: np.ndarray, part: RowPartition) -> np.ndarray:
-    """(n_dofs,) PETSc row of every DOF, -1 for a fixed one."""
+def petsc_numbering(n_dofs: int, part: RowPartition) -> np.ndarray:
+    """(n_dofs,) PETSc row of every DOF, -1 for a fixed one (``part``: the whole
+    partition)."""
     rows = np.full(n_dofs, -1, dtype=np.int64)
-    inverse = np.empty(part.order.size, dtype=np.int64)
-    inverse[part.order] = np.arange(part.order.size)
-    rows[np.asarray(free)] = inverse
+    rows[part.dofs] = np.arange(part.n_free)
     return rows
 
 
-def point_ranks(n_nodes: int, free: np.ndarray, part: RowPartition, size: int) -> np.ndarray:
-    """(n_nodes,) the rank owning each point's free DOFs, ``size`` for a point without."""
+def point_ranks(n_nodes: int, part: RowPartition, size: int) -> np.ndarray:
+    """(n_nodes,) the rank owning each point's free DOFs, ``size`` for a point without
+    (``part``: the whole partition)."""
     owner = np.full(n_nodes, size, dtype=np.int64)
     for r in range(size):
-        owner[np.asarray(free)[part.owned_free(r)] // 3] = r
+        owner[part.owned_dofs(r) // 3] = r
     return owner
 
 
@@ -144,12 +144,12 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
     free = np.asarray(free)
     en = space.element_nodes
     nb = en.shape[1]
-    owner = point_ranks(space.n_nodes, free, part, size)
+    owner = point_ranks(space.n_nodes, part, size)
     element_rank = owner[en].min(axis=1)
     element_rank[element_rank == size] = 0  # no free point: rank 0 sums its mass
     node_volume = np.bincount(en.ravel(), weights=np.repeat(element_volumes(space), nb),
                               minlength=space.n_nodes)
-    rows = petsc_numbering(space.n_dofs, free, part)
+    rows = petsc_numbering(space.n_dofs, part)
     added = None if added is None else sp.csr_matrix(added)
     springs = None if springs is None else sp.csr_matrix(springs)
     for r in range(size):
@@ -158,7 +158,7 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
         local = local.reshape(elements.size, nb).astype(en.dtype, copy=False)
         n_vertices = int(np.searchsorted(points, space.body.n_vertices))
         lo, hi = part.rows(r)
-        owned = free[part.owned_free(r)]
+        owned = part.owned_dofs(r)
         yield RankMesh(
             space=sub_space(space.order, space.node_points[points], local, n_vertices),
             points=points, dof_rows=rows.reshape(-1, 3)[points].ravel(), lo=lo, hi=hi,

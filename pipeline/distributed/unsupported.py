@@ -51,8 +51,9 @@ __all__ = ["Unsupported", "held_partition", "unsupported_parts", "assemble_pair"
 @dataclass(frozen=True)
 class Unsupported:
     """One rank's share of the unsupported body (module): ``mesh`` its part on the
-    partition ``part`` of every DOF (PETSc row -> DOF), or both None when the run's
-    matrices are the unsupported ones (no DOF held, no spring)."""
+    partition of every DOF and ``part`` its own rows of it (PETSc row -> DOF,
+    :meth:`~pipeline.distributed.partition.RowPartition.local`), or both None when the
+    run's matrices are the unsupported ones (no DOF held, no spring)."""
 
     mesh: RankMesh | None
     part: RowPartition | None
@@ -65,7 +66,7 @@ def held_partition(part: RowPartition, free: np.ndarray, n_dofs: int,
     ``element_nodes`` (n_el, nb) place a held point without a free DOF."""
     free = np.asarray(free)
     n_nodes = n_dofs // 3
-    owner = point_ranks(n_nodes, free, part, size)  # size: no free DOF
+    owner = point_ranks(n_nodes, part, size)  # size: no free DOF
     alone = owner == size
     if alone.any() and element_nodes.size:  # the lowest rank among its elements' points
         nb = element_nodes.shape[1]
@@ -78,11 +79,11 @@ def held_partition(part: RowPartition, free: np.ndarray, n_dofs: int,
     held_rank = owner[held // 3]
     order, starts = [], [0]
     for r in range(size):
-        mine = np.concatenate([free[part.owned_free(r)], held[held_rank == r]])
+        mine = np.concatenate([part.owned_dofs(r), held[held_rank == r]])
         order.append(mine)
         starts.append(starts[-1] + mine.size)
-    return RowPartition(order=np.concatenate(order).astype(np.int64),
-                        starts=np.asarray(starts, dtype=np.int64))
+    order = np.concatenate(order).astype(np.int64)  # every DOF is a row: its own index
+    return RowPartition(order=order, starts=np.asarray(starts, dtype=np.int64), dofs=order)
 
 
 def unsupported_parts(comm, whole, part: RowPartition) -> Unsupported:
@@ -99,8 +100,11 @@ def unsupported_parts(comm, whole, part: RowPartition) -> Unsupported:
                               comm.size)
         parts = split_mesh(space, whole.materials, np.arange(space.n_dofs), full,
                            comm.size, whole.added)
-    full = comm.bcast(full, root=0)
-    return Unsupported(scatter_parts(comm, parts), full)
+    mesh = scatter_parts(comm, parts)
+    # each rank keeps its own rows of the partition (the whole one: O(n_dofs))
+    own = comm.scatter(None if full is None else [full.local(r) for r in range(comm.size)],
+                       root=0)
+    return Unsupported(mesh, own)
 
 
 def assemble_pair(comm, un: Unsupported) -> tuple[RowMatrix, RowMatrix]:
@@ -108,7 +112,7 @@ def assemble_pair(comm, un: Unsupported) -> tuple[RowMatrix, RowMatrix]:
     PETSc matrices attached (collective; the caller destroys them)."""
     PETSc, _ = petsc()
     rows = local_rows(un.mesh)
-    n = un.part.order.size
+    n = un.part.n_free
     K, M = RowMatrix(comm, rows.K, un.part), RowMatrix(comm, rows.M, un.part)
     K.petsc, M.petsc = petsc_matrix(PETSc, rows.K, n), petsc_matrix(PETSc, rows.M, n)
     return K, M
