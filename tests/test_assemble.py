@@ -372,3 +372,25 @@ def test_the_stiffness_pattern_hook_runs_before_the_element_pairs_are_looked_up(
     fe = model.build_fe_model(cfg, tmp_path, on_stiffness_pattern=hook)
     assert events == ["pattern", "slots"]
     assert np.array_equal(seen[0][0], fe.K.indptr) and np.array_equal(seen[0][1], fe.K.indices)
+
+
+def test_the_late_imports_beside_gmsh_leave_no_thread_behind(tmp_path, monkeypatch):
+    """run_pipeline imports the modules the stages after gmsh need on a second thread
+    while gmsh meshes; the run joins it, so no thread of the library outlives it."""
+    import threading
+
+    from conftest import ROOT
+    from pipeline import run
+    from pipeline.config import load_config
+
+    names = []
+    monkeypatch.setattr(run, "AFTER_MESH_MODULES", ("json", "no_such_module_here"))
+    preload = run.preload_stage_modules
+    monkeypatch.setattr(run, "preload_stage_modules",
+                        lambda modules=run.STAGE_MODULES: names.append(
+                            (threading.current_thread().name, modules)) or preload(modules))
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml",
+                      ["mesh.size=0.02", "modes.count=4"])
+    run.run_pipeline(cfg, tmp_path / "out.h5")
+    assert names == [("pipeline-imports", ("json", "no_such_module_here"))]
+    assert not any(t.name == "pipeline-imports" for t in threading.enumerate())
