@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import logging
 import resource
+import threading
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -79,13 +80,19 @@ STAGE_MODULES = ("numpy", "scipy.sparse", "scipy.sparse.linalg", "scipy.linalg",
                  "pipeline.reduce.build")
 
 
-def preload_stage_modules() -> None:
+#: the third-party modules the stages after gmsh import on first use (the mesh reader,
+#: the FE space, the HDF5 writer; about 0.2 s): :func:`_run` imports them on a second
+#: thread while gmsh meshes on one (its calls release the GIL)
+AFTER_MESH_MODULES = ("meshio", "skfem", "h5py", "yaml", "threadpoolctl")
+
+
+def preload_stage_modules(names: tuple[str, ...] = STAGE_MODULES) -> None:
     """Import every module a run needs (heavy: gmsh, scikit-fem, MKL), so that processes
-    forked afterwards (batch cases) start at once. A module that cannot be imported is
-    skipped: the run itself reports real problems."""
+    forked afterwards (batch cases) start at once; ``names``: these instead. A module
+    that cannot be imported is skipped: the run itself reports real problems."""
     import importlib
 
-    for name in STAGE_MODULES:
+    for name in names:
         try:
             importlib.import_module(name)
         except Exception:  # an optional module (e.g. no PARDISO)
@@ -165,8 +172,13 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
         if distributed is not None:
             fe = distributed.build_fe_model(cfg, mesh_dir, lambda name: _stage(name, times))
         else:
+            importing = threading.Thread(target=preload_stage_modules,
+                                         args=(AFTER_MESH_MODULES,), name="pipeline-imports",
+                                         daemon=True)
+            importing.start()
             fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
                                 on_stiffness_pattern=analyse_ahead)
+            importing.join()
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress

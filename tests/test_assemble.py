@@ -347,3 +347,50 @@ def test_the_stiffness_pattern_hook_gets_the_final_structure_of_k(tmp_path):
                         seen.append((indptr.copy(), indices.copy())))
     assert len(seen) == 1
     assert np.array_equal(seen[0][0], fe.K.indptr) and np.array_equal(seen[0][1], fe.K.indices)
+
+
+def test_the_stiffness_pattern_hook_runs_before_the_element_pairs_are_looked_up(
+        tmp_path, monkeypatch):
+    """K's structure comes from the node graph alone, so the solver's analysis of it
+    starts before the element slots are looked up and before any element value is
+    summed (it then overlaps both); the pattern the hook gets is still exactly K's."""
+    from conftest import ROOT
+    from pipeline.config import load_config
+    from pipeline.fe import model
+
+    events = []
+    slots = model.element_slots
+    monkeypatch.setattr(model, "element_slots",
+                        lambda *a, **k: events.append("slots") or slots(*a, **k))
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml", ["mesh.size=0.02"])
+    seen = []
+
+    def hook(indptr, indices):
+        events.append("pattern")
+        seen.append((indptr.copy(), indices.copy()))
+
+    fe = model.build_fe_model(cfg, tmp_path, on_stiffness_pattern=hook)
+    assert events == ["pattern", "slots"]
+    assert np.array_equal(seen[0][0], fe.K.indptr) and np.array_equal(seen[0][1], fe.K.indices)
+
+
+def test_the_late_imports_beside_gmsh_leave_no_thread_behind(tmp_path, monkeypatch):
+    """run_pipeline imports the modules the stages after gmsh need on a second thread
+    while gmsh meshes; the run joins it, so no thread of the library outlives it."""
+    import threading
+
+    from conftest import ROOT
+    from pipeline import run
+    from pipeline.config import load_config
+
+    names = []
+    monkeypatch.setattr(run, "AFTER_MESH_MODULES", ("json", "no_such_module_here"))
+    preload = run.preload_stage_modules
+    monkeypatch.setattr(run, "preload_stage_modules",
+                        lambda modules=run.STAGE_MODULES: names.append(
+                            (threading.current_thread().name, modules)) or preload(modules))
+    cfg = load_config(ROOT / "configs" / "cantilever.yaml",
+                      ["mesh.size=0.02", "modes.count=4"])
+    run.run_pipeline(cfg, tmp_path / "out.h5")
+    assert names == [("pipeline-imports", ("json", "no_such_module_here"))]
+    assert not any(t.name == "pipeline-imports" for t in threading.enumerate())

@@ -14,6 +14,7 @@ PARDISO's analysis and before its factorisation, is checked again
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 
@@ -61,8 +62,11 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+@functools.lru_cache(maxsize=1)
 def _libc():
-    """The C library (ctypes), or None."""
+    """The C library (ctypes), or None; looked up once (``find_library`` runs
+    ``ldconfig`` in a subprocess, about 4 ms a call in a run at 100k DOFs, where
+    :func:`release_free_heap` is called half a dozen times)."""
     import ctypes
     import ctypes.util
 

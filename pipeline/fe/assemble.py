@@ -119,14 +119,16 @@ def _assemble_elements(space: FESpace, R: np.ndarray, mass_ref: np.ndarray,
 def assemble_on_nodes(space: FESpace, material: Material | ElementMaterials, nodes: np.ndarray | None = None,
                       pattern: BlockPattern | None = None, chunk_size: int = 2048,
                       progress=None, threads: int | None = None,
-                      on_layout=None) -> Assembled:
+                      on_layout=None, layout: StiffnessLayout | None = None) -> Assembled:
     """K (N/m) and M (kg) on the sorted ``nodes`` (all three DOFs of each; None: every
     node), and the whole body's node-level mass (:class:`Assembled`); CSR, sorted, 32-bit
     indices where they fit. ``pattern`` defaults to :func:`block_pattern`.
     ``progress``, if given, is called with the number of elements done after each chunk.
     ``on_layout(indptr, indices)``, if given, is called with K's CSR structure as soon as
     it is known, before any value is summed (the solver can analyse the pattern
-    meanwhile: :class:`pipeline.solve.backends.pardiso.PatternAnalysis`).
+    meanwhile: :class:`pipeline.solve.backends.pardiso.PatternAnalysis`). ``layout``:
+    :func:`~pipeline.fe.pattern.stiffness_layout` of ``pattern`` on ``nodes``, made
+    already (the caller started the analysis from it before the slots were looked up).
     ``material``: one isotropic Material, or the per-element materials
     (:func:`pipeline.fe.materials.assign_materials`; one uniform isotropic law takes the
     single-material path, bit for bit).
@@ -149,7 +151,8 @@ def assemble_on_nodes(space: FESpace, material: Material | ElementMaterials, nod
         threads = usable_cores()
     if pattern is None:
         pattern = block_pattern(space, threads)
-    layout = stiffness_layout(pattern, nodes, threads)
+    if layout is None:
+        layout = stiffness_layout(pattern, nodes, threads)
     if on_layout is not None:
         on_layout(layout.indptr, layout.indices)
     R, mass_ref = reference_data(space.order)

@@ -24,7 +24,7 @@ import scipy.sparse as sp
 
 from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
-from pipeline.fe.pattern import block_pattern
+from pipeline.fe.pattern import element_slots, node_graph, stiffness_layout
 from pipeline.fe.ports import check_gauges
 from pipeline.fe.added_mass import added_mass_matrix, rigid_couplings
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
@@ -177,13 +177,19 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
         if not grounded and cfg.supports and rigid_freedoms(
                 space.node_points, space.node_points.mean(axis=0), fixed).count:
             on_stiffness_pattern = None
-        pattern = block_pattern(space)
+        # K's structure comes from the node graph alone: the solver's analysis of it
+        # (on_stiffness_pattern) starts before the element pairs are looked up in the
+        # graph, so that it runs beside that look-up and the whole element loop
+        graph = node_graph(space)
+        layout = stiffness_layout(graph, nodes)
+        if on_stiffness_pattern is not None and nodes is not None and not grounded:
+            on_stiffness_pattern(layout.indptr, layout.indices)
+        pattern = element_slots(graph, space)
+        del graph
         with progress("assemble", n_tetrahedra, "elem") as update:
-            assembled = assemble_on_nodes(
-                space, materials, nodes, pattern=pattern, progress=update,
-                on_layout=on_stiffness_pattern if nodes is not None and not grounded
-                else None)
-        del pattern
+            assembled = assemble_on_nodes(space, materials, nodes, pattern=pattern,
+                                          progress=update, layout=layout)
+        del pattern, layout
         props = body_properties(assembled.node_mass, space.node_points)
         K, M = assembled.K, assembled.M
         del assembled

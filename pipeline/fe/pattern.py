@@ -22,7 +22,8 @@ import scipy.sparse as sp
 from pipeline._util.resources import release_free_heap, usable_cores
 from pipeline.fe.space import FESpace
 
-__all__ = ["INT32_MAX", "index_dtype", "BlockPattern", "block_pattern", "StiffnessLayout",
+__all__ = ["INT32_MAX", "index_dtype", "BlockPattern", "block_pattern", "NodeGraph",
+           "node_graph", "element_slots", "StiffnessLayout",
            "stiffness_layout", "mass_csr", "side_by_side"]
 
 INT32_MAX = 2**31 - 1
@@ -57,35 +58,72 @@ class BlockPattern:
     def n_blocks(self) -> int:
         return int(self.indices.size)
 
+    @property
+    def n_pairs(self) -> int:
+        return int(self.slots.size)
 
-def block_pattern(space: FESpace, threads: int | None = None) -> BlockPattern:
-    """The node-pair pattern of ``space`` (every pair of nodes sharing an element).
 
-    The node graph is the pattern of E^T E, E the (n_t, n_nodes) boolean incidence of
-    elements and nodes: scipy's sparse product counts each row's distinct columns, so
-    only the result is ever held (no array of the 100 n_t pairs). Every pair's block
-    index is then looked up in the sorted rows by element chunks (:func:`_lookup_slots`),
-    on ``threads`` cores (default: the usable ones). This writes about a fifth of the
-    memory of a counting sort of all pairs, and the first write of fresh memory is most
-    of either's cost (docs/performance.md has the figures).
+@dataclass(frozen=True)
+class NodeGraph:
+    """The node-pair pattern alone, before any element's pairs are looked up in it
+    (:func:`node_graph`): enough for K's structure (:func:`stiffness_layout`), so that
+    the solver can analyse K's pattern while the slots and the values are computed.
+
+    indptr (n_nodes + 1,), indices (n_blocks,): :class:`BlockPattern`'s.
+    n_pairs: element node pairs the slots will hold (n_t nb^2).
     """
-    en = np.ascontiguousarray(space.element_nodes)
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    n_nodes: int
+    n_pairs: int
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.indices.size)
+
+
+def node_graph(space: FESpace) -> NodeGraph:
+    """The node graph of ``space`` (every pair of nodes sharing an element), sorted.
+
+    The pattern of E^T E, E the (n_t, n_nodes) boolean incidence of elements and nodes:
+    scipy's sparse product counts each row's distinct columns, so only the result is
+    ever held (no array of the 100 n_t pairs).
+    """
+    en = space.element_nodes
     n_t, nb = en.shape
     n = space.n_nodes
     # boolean data: the product's sums are logical ors, so no count can wrap to zero
     # (scipy drops the zeros of a product)
-    E = sp.csr_matrix((np.ones(en.size, dtype=bool), en.reshape(-1),
+    E = sp.csr_matrix((np.ones(en.size, dtype=bool), np.ascontiguousarray(en).reshape(-1),
                        np.arange(0, en.size + 1, nb, dtype=np.int64)), shape=(n_t, n))
     graph = (E.T.tocsr() @ E).tocsr()
     del E
     graph.sort_indices()
     btype = index_dtype(max(int(graph.nnz), n))
-    indptr = graph.indptr.astype(btype, copy=False)
-    indices = graph.indices.astype(btype, copy=False)
-    del graph
-    slots = _lookup_slots(indptr, indices, en.astype(btype, copy=False), n,
-                          usable_cores() if threads is None else threads)
-    return BlockPattern(indptr, indices, slots, n)
+    return NodeGraph(graph.indptr.astype(btype, copy=False),
+                     graph.indices.astype(btype, copy=False), n, n_t * nb * nb)
+
+
+def element_slots(graph: NodeGraph, space: FESpace, threads: int | None = None
+                  ) -> BlockPattern:
+    """:class:`BlockPattern` of ``graph`` (:func:`node_graph` of ``space``): every
+    element pair's block index looked up in the sorted rows by element chunks
+    (:func:`_lookup_slots`), on ``threads`` cores (default: the usable ones)."""
+    en = space.element_nodes.astype(graph.indices.dtype, copy=False)
+    slots = _lookup_slots(graph.indptr, graph.indices, np.ascontiguousarray(en),
+                          graph.n_nodes, usable_cores() if threads is None else threads)
+    return BlockPattern(graph.indptr, graph.indices, slots, graph.n_nodes)
+
+
+def block_pattern(space: FESpace, threads: int | None = None) -> BlockPattern:
+    """The node-pair pattern of ``space`` (every pair of nodes sharing an element) and
+    every element pair's place in it: :func:`node_graph`, then :func:`element_slots`.
+    This writes about a fifth of the memory of a counting sort of all pairs, and the
+    first write of fresh memory is most of either's cost (docs/performance.md has the
+    figures).
+    """
+    return element_slots(node_graph(space), space, threads)
 
 
 def _lookup_slots(indptr: np.ndarray, indices: np.ndarray, en: np.ndarray, n: int,
@@ -161,7 +199,7 @@ class StiffnessLayout:
         return int(self.indptr.size - 1)
 
 
-def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
+def stiffness_layout(pattern: BlockPattern | NodeGraph, nodes: np.ndarray | None = None,
                      threads: int | None = None) -> StiffnessLayout:
     """:class:`StiffnessLayout` of K on the sorted ``nodes`` (all three DOFs of each;
     None: every node). Dropping a clamped body's fixed nodes here means the full K is
@@ -177,7 +215,7 @@ def stiffness_layout(pattern: BlockPattern, nodes: np.ndarray | None = None,
     threads = usable_cores() if threads is None else threads
     n_nodes = pattern.n_nodes
     # one integer type for every index below: K's nnz and the element rows must fit
-    itype = index_dtype(max(9 * pattern.n_blocks + 3, 3 * pattern.slots.size + 1))
+    itype = index_dtype(max(9 * pattern.n_blocks + 3, 3 * pattern.n_pairs + 1))
     indptr = pattern.indptr.astype(itype, copy=False)
     indices = pattern.indices.astype(itype, copy=False)
     new_node = None

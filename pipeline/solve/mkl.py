@@ -44,25 +44,24 @@ INTERFACE_ILP64 = 1
 THREADING_INTEL = 0
 
 
-def _candidates() -> list[str]:
-    """Paths to try for ``libmkl_rt``, most specific first."""
+def _candidates() -> Iterator[str]:
+    """Paths to try for ``libmkl_rt``, most specific first; the system's search
+    (``find_library``: a subprocess, about 10 ms) only when those before it fail."""
     from ctypes.util import find_library
 
     # find_library runs gcc on a named temporary file: an interrupt there would leave it
     from pipeline._util.atomic import signals_held
 
-    found = []
     if os.environ.get("PYPARDISO_MKL_RT"):
-        found.append(os.environ["PYPARDISO_MKL_RT"])
+        yield os.environ["PYPARDISO_MKL_RT"]
     for prefix in (sys.prefix, sys.base_prefix):
-        found += sorted(glob.glob(os.path.join(prefix, "lib", "libmkl_rt.so*")), key=len)
-        found += sorted(glob.glob(os.path.join(prefix, "Library", "bin", "mkl_rt*.dll")),
-                        key=len)
+        yield from sorted(glob.glob(os.path.join(prefix, "lib", "libmkl_rt.so*")), key=len)
+        yield from sorted(glob.glob(os.path.join(prefix, "Library", "bin", "mkl_rt*.dll")),
+                          key=len)
     with signals_held():
         name = find_library("mkl_rt")
     if name:
-        found.append(name)
-    return found
+        yield name
 
 
 def interface_is_lp64(lib: Any) -> bool:
