@@ -48,8 +48,13 @@ def test_factor_path_splits_the_modes_stage(bench):
     assert cells["passes over the factor"] == "1.25"
     # 3.0 - (1.0 + 1.25 + 0.0625 + 0.25 + 0.125) = 0.3125
     assert cells["modes, other"] == "0.31"
-    # 6.0 - 0.75 - 4.875
-    assert cells["start, checks, exit"] == "0.38"
+    # 6.0 - 0.75 - 4.875: no checks_s (an earlier JSON's row): all of it in the last
+    assert cells["bench's checks"] == "-"
+    assert cells["start, exit"] == "0.38"
+    row = dict(_row(bench, stats), checks_s=0.25)
+    cells = _cells(bench.breakdown([row]))
+    assert cells["bench's checks"] == "0.25"
+    assert cells["start, exit"] == "0.12"  # 0.375 - 0.25
     assert cells["refinement"] == "-"
 
 
