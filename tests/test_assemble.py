@@ -394,3 +394,27 @@ def test_the_late_imports_beside_gmsh_leave_no_thread_behind(tmp_path, monkeypat
     run.run_pipeline(cfg, tmp_path / "out.h5")
     assert names == [("pipeline-imports", ("json", "no_such_module_here"))]
     assert not any(t.name == "pipeline-imports" for t in threading.enumerate())
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_diagonal_in_row_halves_equals_scipys(matrices, monkeypatch, dtype):
+    """K's and M's diagonal scanned as two row halves side by side (from
+    DIAGONAL_HALVES_ROWS rows, lowered here) is scipy's ``diagonal()`` bit for bit,
+    also for a row without a stored diagonal entry, an odd row count and a row whose
+    only entry is the diagonal."""
+    from pipeline._util import sparse
+
+    monkeypatch.setattr(sparse, "DIAGONAL_HALVES_ROWS", 4)
+    for A in matrices:
+        odd = A.shape[0] - 1 - A.shape[0] % 2
+        A = A.astype(dtype)[:odd, :odd].tolil()
+        A[5, 5] = 0.0  # a row without a diagonal entry
+        A[7, :] = 0.0
+        A[7, 7] = -2.5  # a row holding only its diagonal
+        A = A.tocsr()
+        A.eliminate_zeros()
+        assert A.shape[0] % 2 == 1
+        got = sparse.csr_diagonal(A, threads=2)
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got, A.diagonal())
+        assert got[5] == 0.0 and got[7] == -2.5

@@ -25,6 +25,7 @@ import scipy.sparse as sp
 from pipeline.config import Config
 from pipeline.fe.assemble import assemble_on_nodes, restrict, whole_nodes
 from pipeline.fe.pattern import element_slots, node_graph, stiffness_layout
+from pipeline._util.sparse import csr_diagonal
 from pipeline.fe.ports import check_gauges
 from pipeline.fe.added_mass import added_mass_matrix, rigid_couplings
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
@@ -206,10 +207,10 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
             if K.shape[0] != free.size:
                 K, M = restrict(K, free, overwrite=True), restrict(M, free, overwrite=True)
         diagonal = np.zeros(space.n_dofs)
-        diagonal[free] = K.diagonal()
+        diagonal[free] = csr_diagonal(K)
         if extra.springs is not None:
             K = (K + restrict(extra.springs, free)).tocsr()
-        ratio = diagonal[free] / np.maximum(M.diagonal(), np.finfo(float).tiny)
+        ratio = diagonal[free] / np.maximum(csr_diagonal(M), np.finfo(float).tiny)
         rigid = rigid_freedoms(space.node_points, props.center_of_mass, fixed, extra.springs,
                                extra.constraint, props.rigid_mass,
                                SOFT_SUPPORT * float(np.median(ratio)) if free.size else 0.0)

@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from pipeline.config.rotation import tensor_weights
 from pipeline.errors import SolverError
@@ -86,6 +85,8 @@ def reduced_frequencies(model: RotationModel, speeds_rad_s=None, axis=None,
     spin (``speeds_rad_s`` (n_speeds,) rad/s about ``axis``; defaults: the model's),
     with the input ``preload`` values (n_in,) (None: none). A speed where the reduced
     stiffness is not positive definite raises SolverError naming it."""
+    import scipy.linalg as sla  # here: the file readers import this module (0.3 s)
+
     speeds = model.speeds_rad_s if speeds_rad_s is None else np.asarray(speeds_rad_s, float)
     axis = unit(model.axis if axis is None else axis)
     out = np.empty((speeds.size, model.stiffness.shape[0]))

@@ -21,6 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.errors import SolverError
+from pipeline._util.sparse import csr_diagonal
 from pipeline.solve.blas import constraint_coordinates, scaled_inf_norms
 from pipeline.solve.factorization import factorize as factorize_matrix
 from pipeline.solve.refine import BACKWARD_ERROR_TOL, refined_solve
@@ -77,7 +78,7 @@ def static_shapes(K, F, solve: Solve | None = None, factorize=None, *,
                            lowest_omega2=lowest_omega2, stiffness_scale=stiffness_scale)
         return np.asarray(T @ Xq, dtype=float)
     solver = _solver(K, solve, factorize)
-    d = np.sqrt(np.abs(K.diagonal()))
+    d = np.sqrt(np.abs(csr_diagonal(K)))
     d = np.where(d > 0, d, 1.0)
     norm_K, norm_Ks = scaled_inf_norms(K, None, 1.0 / d)  # one pass over K for both
     X, report = refined_solve(K, solver, Fd, norm_A=norm_K)

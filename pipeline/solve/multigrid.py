@@ -68,6 +68,7 @@ import scipy.sparse as sp
 
 from pipeline._util.resources import retained_heap
 from pipeline.errors import SolverError
+from pipeline._util.sparse import csr_diagonal
 from pipeline.solve.blas import (axpby, by_rows, galerkin_product, scaled_inf_norm,
                                  sparse_times_dense)
 from pipeline.solve.factorization import (Factorization, SolverFactorization, factorize,
@@ -137,7 +138,7 @@ class TwoGrid:
         # float32 D^-1 A and lambda_max's power steps), its numerical factor after them
         ahead = _analysis_ahead(coarse, backend)
         try:
-            d = self.A.diagonal()
+            d = csr_diagonal(self.A)
             if not np.all(d > 0):
                 raise SolverError("multigrid: the stiffness matrix has a non-positive "
                                   "diagonal entry; expected a positive definite K")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline._util.sparse import csr_diagonal
+
 #: A matrix whose estimated condition number times eps exceeds this is singular to
 #: working precision: its solutions may be wrong by 100 % in the direction of the
 #: (near-)null space, however small the residual.
@@ -20,8 +22,8 @@ def stiffness_scale(K: sp.spmatrix, M: sp.spmatrix) -> float:
     scaling (van der Sluis), so a few stiff sliver elements (a 0.5 mm strip meshed at 5 mm
     has max/median ~1e2) do not make K harder to solve. With the lowest eigenvalue
     lambda_1 it estimates the condition number that governs solves with K."""
-    d_k = np.abs(K.diagonal())
-    d_m = np.abs(M.diagonal())
+    d_k = np.abs(csr_diagonal(K))
+    d_m = np.abs(csr_diagonal(M))
     ok = d_m > 0
     return float(np.median(d_k[ok] / d_m[ok])) if ok.any() else float(d_k.max(initial=0.0))
 
