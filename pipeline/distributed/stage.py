@@ -31,7 +31,7 @@ from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
-from pipeline.distributed.mpi import allreduce_sum, petsc, world
+from pipeline.distributed.mpi import allreduce_sum, log_resident, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import (FreeDofs, cut_measures, graph_partition,
@@ -43,8 +43,8 @@ from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
 from pipeline.fe.regions import fixed_dofs, free_dofs
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import RowBlock
-from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
-                                          split_mesh)
+from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, compact_nodes,
+                                          scatter_parts, split_mesh)
 from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
@@ -232,6 +232,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     with stage("mesh"):
         if comm.rank == 0:
             whole = mesh_whole(cfg, mesh_dir)
+            log_resident(log, comm, "whole mesh evaluated")
             space = whole.space
             log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", space.body.n_tetrahedra,
                      space.cell_type, space.n_nodes, space.n_dofs, comm.size)
@@ -240,11 +241,13 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
     with stage("assemble"):
         whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
+        log_resident(log, comm, "partitioned")
         parts = None if whole is None else split_mesh(whole.space, whole.materials,
                                                       whole.free, whole_part, comm.size,
                                                       whole.added, whole.springs)
         mesh = scatter_parts(comm, parts)
         del parts
+        log_resident(log, comm, "parts sent")
         small = None if whole is None else (
             whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
@@ -267,7 +270,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
+        log_resident(log, comm, "small results sent")
         rows = local_rows(mesh)
+        log_resident(log, comm, "rows assembled")
         cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
         log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries (%d cut, %d halo "
                  "columns)", comm.rank, rows.lo, rows.hi, free.size, rows.n_elements,
@@ -286,13 +291,10 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
             K = RowMatrix(comm, with_int32_indices(rows.K + mesh.springs), part)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass,
                  3 * n_nodes - free.size, free.size)
-        if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
-            space = DistributedSpace(
-                whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
-                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
-                rotation_masses=spin_masses, connections=interfaces,
-                unsupported=unsupported)
-            regions, materials = whole.regions, whole.materials
+        if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
+            space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
+                                                   ports, spin_masses, interfaces,
+                                                   unsupported)
         else:
             nb = mesh.space.element_nodes.shape[1]
             space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
@@ -301,11 +303,36 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                 unsupported=unsupported)
             regions, materials = {}, mesh.materials
         del whole
+    log_resident(log, comm, "whole mesh dropped")
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=K, M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
                    n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials,
                    constraint=constraint)
+
+
+def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCounts,
+               mesh, ports, spin_masses, interfaces, unsupported):
+    """Rank 0's (DistributedSpace, regions, element materials) once the parts are sent:
+    of the whole mesh only what the writer stores, compact, so that nothing else of
+    ``whole`` (the FE space with its scikit-fem mesh and edges, gmsh's body, the nodal
+    volume weights, the int64 elements) outlives the FE stage: the points (n_points, 3)
+    float64 (the writer's, the labels' and the connection models' exact positions), the
+    elements (:func:`~pipeline.distributed.submesh.compact_nodes`: int32 up to 2^31
+    points, 40 bytes a quadratic element instead of 80), the regions (surface cells) and
+    the element materials where ``/materials`` stores them (``materials`` or ``masses``
+    in the config; else the part's, as on the other ranks). The body's label frame is
+    made here from every point and its volume weight (a few numbers a slice)."""
+    from pipeline.solve.labels import label_frame
+
+    space = whole.space
+    frame = label_frame(space.node_points, node_volume_weights(space))
+    kept = DistributedSpace(space.order, n_nodes, mesh_counts, space.node_points,
+                            compact_nodes(space.element_nodes, n_nodes), mesh, ports,
+                            label_frame=frame, rotation_masses=spin_masses,
+                            connections=interfaces, unsupported=unsupported)
+    written = cfg.materials or cfg.masses
+    return kept, whole.regions, whole.materials if written else mesh.materials
 
 
 def added_rigid_mass(space, added) -> np.ndarray:
