@@ -8,9 +8,10 @@ regions, the held DOFs and, where ``/materials`` is written, the element materia
 The check runs the CLI on 2 ranks with a spy: on rank 0 it takes weak references to
 the whole-mesh objects (the :class:`~pipeline.distributed.stage.WholeMesh`, its FE
 space, scikit-fem mesh, gmsh body, int64 elements and edges, its element materials) as
-:func:`~pipeline.distributed.stage.mesh_whole` returns them, and asserts at the start
-of the modes stage, without a garbage collection (reference counts free them at the
-hand-off, not some later collection), that every one is dead, and that the whole-mesh
+:func:`~pipeline.distributed.stage.mesh_whole` returns them, and asserts, when rank 0
+starts to assemble its rows (the FE stage's peak) and again when the modes stage
+starts, without a garbage collection (reference counts free them at the hand-off, not
+some later collection), that every one is dead, and that the whole-mesh
 arrays left are the points (24 bytes a point) and the int32 elements (4 bytes a node
 of an element). With the whole element materials in the file (a ``materials`` config)
 they are kept, and nothing else.
@@ -33,7 +34,7 @@ import numpy as np
 from pipeline.distributed import stage
 
 refs, seen = {}, {}
-mesh_whole, compute_modes = stage.mesh_whole, stage.compute_modes
+mesh_whole, compute_modes, local_rows = stage.mesh_whole, stage.compute_modes, stage.local_rows
 
 def whole_refs(cfg, mesh_dir):
     whole = mesh_whole(cfg, mesh_dir)
@@ -45,9 +46,14 @@ def whole_refs(cfg, mesh_dir):
     seen.update(n_points=space.n_nodes, elements=space.element_nodes.shape)
     return whole
 
+def at_assembly(mesh):
+    seen["assembly"] = sorted(name for name, ref in refs.items() if ref() is not None)
+    return local_rows(mesh)
+
 def at_modes(fe, cfg):
     comm = stage.world()
-    alive = sorted(name for name, ref in refs.items() if ref() is not None)
+    alive = sorted(set(seen.get("assembly", [])) |
+                   {name for name, ref in refs.items() if ref() is not None})
     kept = expected = 0
     if comm.rank == 0:  # the whole-mesh arrays kept: the points and the elements
         space = fe.space
@@ -59,7 +65,7 @@ def at_modes(fe, cfg):
           flush=True)
     return compute_modes(fe, cfg)
 
-stage.mesh_whole, stage.compute_modes = whole_refs, at_modes
+stage.mesh_whole, stage.compute_modes, stage.local_rows = whole_refs, at_modes, at_assembly
 from pipeline.cli import main
 sys.exit(main(sys.argv[1:]))
 """
