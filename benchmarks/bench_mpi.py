@@ -426,6 +426,26 @@ def extrapolate(model: dict, n: float) -> list[str]:
     return lines
 
 
+def _run_cases(args) -> list[dict] | None:
+    """The cases of ``main``'s arguments (None: no mpiexec, or ``--cuts`` only)."""
+    if shutil.which("mpiexec") is None:
+        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
+        return None
+    for line in ([] if args.no_cuts else cut_table(args.cut_size, [2, 4], args.timeout)):
+        print(line)
+    if args.cuts:
+        return None
+    rows = [run_case(int(p), args.size, args.method, args.timeout)
+            for p in args.ranks.split(",")]
+    rows += [run_case(2, float(h), args.method, args.timeout)
+             for h in args.fit_sizes.split(",") if h and float(h) != args.size]
+    if args.split_size and float(args.split_size) != args.size:
+        if float(args.split_size) not in [float(h) for h in args.fit_sizes.split(",") if h]:
+            rows.append(run_case(2, float(args.split_size), args.method, args.timeout))
+        rows.append(run_case(4, float(args.split_size), args.method, args.timeout))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=float, default=0.005, help="mesh.size, m (0.005: 100k DOFs)")
@@ -440,6 +460,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
+    ap.add_argument("--from-json", default=None,
+                    help="no runs: tabulate and fit the rows an earlier --json wrote")
     ap.add_argument("--cuts", action="store_true",
                     help="only compare the slab and graph partitions (no solve)")
     ap.add_argument("--cut-size", type=float, default=0.01, help="mesh.size of --cuts, m")
@@ -456,21 +478,14 @@ def main(argv=None) -> int:
     if args.cut_worker:
         cut_worker(args.size, args.case)
         return 0
-    if shutil.which("mpiexec") is None:
-        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
-        return 1
-    for line in ([] if args.no_cuts else cut_table(args.cut_size, [2, 4], args.timeout)):
-        print(line)
-    if args.cuts:
-        return 0
-    rows = [run_case(int(p), args.size, args.method, args.timeout)
-            for p in args.ranks.split(",")]
-    rows += [run_case(2, float(h), args.method, args.timeout)
-             for h in args.fit_sizes.split(",") if h and float(h) != args.size]
-    if args.split_size and float(args.split_size) != args.size:
-        if float(args.split_size) not in [float(h) for h in args.fit_sizes.split(",") if h]:
-            rows.append(run_case(2, float(args.split_size), args.method, args.timeout))
-        rows.append(run_case(4, float(args.split_size), args.method, args.timeout))
+    if args.from_json:
+        rows = json.loads(Path(args.from_json).read_text())
+    else:
+        rows = _run_cases(args)
+        if rows is None:
+            return 1 if shutil.which("mpiexec") is None else 0
+        if args.json:  # before the tables: a fit that fails keeps the runs
+            Path(args.json).write_text(json.dumps(rows, indent=1))
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
     print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
           f"{'peak MB per rank':>20} {'MUMPS entries':>13} {'MUMPS MB all/max':>16}")
@@ -484,12 +499,12 @@ def main(argv=None) -> int:
     print("resident memory per rank at the end of each stage (MB; rank 0 / the largest "
           "other / the peak so far of the largest rank)")
     for r in rows:
-        names = [st[0] for st in r.get("stages_mb", [[]])[0]]
+        names = [st[0] for st in r.get("stages_mb", [[]])[0]]  # rank 0's steps: all of them
         cells = []
-        for i, name in enumerate(names):
-            ranks = [st[i] for st in r["stages_mb"]]
-            others = max((x[1] for x in ranks[1:]), default=0)
-            cells.append(f"{name} {ranks[0][1]}/{others}/{max(x[2] for x in ranks)}")
+        for name in names:
+            ranks = [stage_mb(r, k, name) for k in range(r["ranks"])]
+            others = max((x[0] for x in ranks[1:] if x), default=0)
+            cells.append(f"{name} {ranks[0][0]}/{others}/{max(x[1] for x in ranks if x)}")
         print(f"{r['ranks']:>5} {r['n_free']:>10}  " + ", ".join(cells))
     if {1, 2, 4} <= {r["ranks"] for r in rows} and all(r["mumps"] for r in rows):
         model = memory_model(rows)
@@ -518,8 +533,6 @@ def main(argv=None) -> int:
                   + f": m0 = {mesh['m0']:.0f} MB, m = {mesh['m']:.1f} MB at N0")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
 
 

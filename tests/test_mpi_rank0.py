@@ -105,3 +105,40 @@ def test_rank0_keeps_the_element_materials_it_writes_and_nothing_else(tmp_path):
     held = _held_on_ranks(tmp_path, "configs/cantilever_materials.yaml")
     assert {r: h[0] for r, h in held.items()} == {0: ["materials"], 1: []}, held
     assert held[0][1] == held[0][2] > 0, held
+
+
+_ESTIMATES = """
+from pipeline._util import resources as res
+from pipeline.config import load_config
+from pipeline.distributed.mpi import world
+from pipeline.distributed.stage import HANDOFF_MESHES, check_rank_memory, kept_bytes
+
+comm = world()
+for n_nodes, n_el, extra in ((40000, 25000, []), (40000, 25000, ["mesh.size=0.02"]),
+                             (40000, 25000, ["modes.method=multigrid"])):
+    cfg = load_config("configs/cantilever.yaml", ["modes.solver=slepc", *extra])
+    both = comm.gather(check_rank_memory(n_nodes, n_el, cfg, comm), root=0)
+    if comm.rank == 0:
+        share = both[1] - res.BASELINE_BYTES
+        handoff = HANDOFF_MESHES * (res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el)
+        print(both[0] - both[1], share + kept_bytes(n_nodes, n_el, cfg), handoff, share)
+"""
+
+
+@pytest.mark.mpi
+def test_the_rank_memory_estimate_counts_rank0s_kept_mesh_not_a_whole_one():
+    """check_rank_memory: rank 0's estimate is rank 1's plus the kept points and int32
+    elements (24 bytes a point, 40 a quadratic element), or its hand-off phase where
+    that is larger; no longer a whole mesh (600 bytes a point) on top of its share."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
+           "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
+    proc = subprocess.run([*_mpiexec(2), str(MPI_PYTHON), "-c", _ESTIMATES], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for line in proc.stdout.split("\n"):
+        if not line.strip():
+            continue
+        more, solve, handoff, share = map(float, line.split())
+        # int() of each rank's bytes: exact to a byte or two
+        assert abs(more - (max(solve, handoff) - share)) <= 2.0, line
+        assert more < 24 * 40000 + 40 * 25000 + 2.0 or handoff > solve, line
