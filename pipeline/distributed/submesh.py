@@ -1,6 +1,7 @@
 """Each rank's part of the mesh: rank 0 meshes the body, every rank gets only its elements.
 
-Rank 0 holds the whole mesh (it writes it to the file) and evaluates once what needs
+Rank 0 holds the whole mesh until the parts are sent (then only the points and the
+elements it writes to the file, :func:`compact_nodes`) and evaluates once what needs
 the whole of it: regions, supports, ports, materials, added masses and the partition
 of the free DOFs into the ranks' rows (:class:`~pipeline.distributed.partition.RowPartition`).
 Then it cuts out the part of rank r (:func:`split_mesh`):
