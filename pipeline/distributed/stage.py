@@ -366,10 +366,11 @@ def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCou
     """Rank 0's (DistributedSpace, regions, element materials) once the parts are sent:
     of the whole mesh only what the writer stores, compact, so that nothing else of
     ``whole`` (the FE space with its scikit-fem mesh and edges, gmsh's body, the nodal
-    volume weights, the int64 elements) outlives the FE stage: the points (n_points, 3)
-    float64 (the writer's, the labels' and the connection models' exact positions), the
-    elements (:func:`~pipeline.distributed.submesh.compact_nodes`: int32 up to 2^31
-    points, 40 bytes a quadratic element instead of 80), the regions (surface cells) and
+    volume weights, the int64 elements) is alive when rank 0 assembles its rows: the
+    points (n_points, 3) float64 (the writer's, the labels' and the connection models'
+    exact positions), the elements (:func:`~pipeline.distributed.submesh.compact_nodes`:
+    int32 up to 2^31 points, 40 bytes a quadratic element instead of 80), the regions
+    (surface cells) and
     the element materials where ``/materials`` stores them (``materials`` or ``masses``
     in the config; else the part's, as on the other ranks). The body's label frame is
     made here from every point and its volume weight (a few numbers a slice)."""
