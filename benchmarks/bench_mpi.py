@@ -18,13 +18,21 @@ The memory model per rank, at N free DOFs on P ranks, fitted to the cases at N0 
 DOFs, ``--size``) on 1, 2 and 4 ranks, at a second size on 2 and 4 ranks
 (``--split-size``) and MUMPS' own figures at several sizes:
 
-    m(P, N) = c + r0 + r N / N0 + [rank 0, P > 1] w N / N0 + ((s + l) N / N0 + k F(N)) / P
+    m(P, N) = c + r0 + r N / N0 + [rank 0, P > 1] (w0 + w N / N0) + ((s + l) N / N0 + k F(N)) / P
 
 c: the stack (measured); r0 + r N / N0 = R(N): what every rank holds whatever P is, its
-constant and linear parts; w: what rank 0 alone holds besides when P > 1 (it meshes the
-body with gmsh, builds the whole FE space to evaluate regions, ports and the partition,
-cuts out the parts and keeps the points and elements it writes; on one rank the whole
-mesh is its part). R and the divided part d at N come from the ranks other than 0 on 2
+constant and linear parts; w0 + w N / N0: what rank 0 alone holds besides during the
+assembly, the solve and the reduce stage when P > 1 (on one rank the whole mesh is its
+part): w, counted, the whole mesh's points and elements it keeps for the writer (24
+bytes a point, 4 bytes a node of an element: int32,
+:func:`pipeline.distributed.stage.handed_off`), and w0 the rest of rank 0's peak over
+the others' mean (gmsh's library state after meshing, a constant, and MUMPS' shares,
+which differ between ranks by tens of MB). Rank 0's mesh phase comes before that and
+apart from it: it meshes the body with gmsh, builds the whole FE space to evaluate
+regions, ports and the partition and cuts out the parts; its peak until the parts are
+sent (VmHWM at the "parts sent" step) is fitted as M(N) = c + m0 + m N / N0 on the
+2-rank cases (:func:`mesh_phase_fit`) and extrapolated beside the solve phase.
+R and the divided part d at N come from the ranks other than 0 on 2
 and 4 ranks (each peaks at c + R + d / P: :func:`rank_split`; 4 ranks oversubscribe the
 2 cores, which moves their times, not their memory): rank 0 is left out, so w does not
 leak into R, and the 1-rank case is the check (c + R + d against its peak). R at two
@@ -98,16 +106,23 @@ def _status_mb() -> dict[str, float]:
 
 class _StageMemory(logging.Handler):
     """Each stage's resident memory at its end and the peak so far (VmRSS, VmHWM; MB),
-    from the records of :func:`pipeline.run.run_pipeline` ("<stage> done in ...")."""
+    from the records of :func:`pipeline.run.run_pipeline` ("<stage> done in ..."), and
+    at the FE stage's steps (:func:`pipeline.distributed.mpi.log_resident`'s DEBUG
+    records of :mod:`pipeline.distributed.stage`: "parts sent" ...)."""
 
     def __init__(self):
-        super().__init__(logging.INFO)
+        super().__init__(logging.DEBUG)
         self.stages = []
 
     def emit(self, record) -> None:
         if record.msg.startswith("%s done in"):
-            now = _status_mb()
-            self.stages.append([record.args[0], round(now["VmRSS"]), round(now["VmHWM"])])
+            name = record.args[0]
+        elif record.msg.startswith("rank %d at %s: resident"):
+            name = record.args[1]
+        else:
+            return
+        now = _status_mb()
+        self.stages.append([name, round(now["VmRSS"]), round(now["VmHWM"])])
 
 
 def _load_stack() -> None:
@@ -143,6 +158,9 @@ def worker(size: float, output: str, method: str) -> None:
     run_log = logging.getLogger("pipeline.run")
     run_log.addHandler(stages)
     run_log.setLevel(logging.INFO)
+    step_log = logging.getLogger("pipeline.distributed.stage")
+    step_log.addHandler(stages)
+    step_log.setLevel(logging.DEBUG)
     t0 = time.perf_counter()
     result = run_config(CONFIG, output=output,
                         overrides=[f"mesh.size={size}", "modes.solver=slepc",
@@ -154,10 +172,42 @@ def worker(size: float, output: str, method: str) -> None:
     if comm.rank == 0:
         print("BENCH " + json.dumps({
             "ranks": comm.size, "n_free": result.n_free, "wall_s": wall,
+            "kept_mb": kept_mb(result.n_dofs // 3, result.n_elements,
+                               result.config.mesh.order),
             "times": result.times, "peak_mb": peaks, "import_mb": bases,
             "stages_mb": by_stage,
             "f1_hz": float(result.frequencies_hz[0]), "mumps": figures.factors}),
             flush=True)
+
+
+def kept_mb(n_points: int, n_elements: int, order: int) -> float:
+    """MB (2^20 bytes, as the peaks) of the whole mesh that rank 0 keeps for the writer
+    from the hand-off on: the points (float64) and the elements (int32)."""
+    nodes = 10 if order == 2 else 4
+    return (24.0 * n_points + 4.0 * nodes * n_elements) / 2**20
+
+
+def stage_mb(row: dict, rank: int, name: str) -> tuple[int, int] | None:
+    """(VmRSS, VmHWM) MB of ``rank`` at the step or stage end ``name`` of a case, or None."""
+    return next(((st[1], st[2]) for st in row.get("stages_mb", [[]] * (rank + 1))[rank]
+                 if st[0] == name), None)
+
+
+def mesh_phase_fit(rows: list[dict]) -> dict | None:
+    """Rank 0's mesh phase (its peak until the parts are sent, less the stack c) on the
+    2-rank cases, fitted as m0 + m N / N0 by least squares ({"m0", "m", "points"}; N0:
+    the 1-rank case's size), or None without two sizes."""
+    import numpy as np
+
+    n0 = next(r["n_free"] for r in rows if r["ranks"] == 1)
+    points = sorted((r["n_free"], stage_mb(r, 0, "parts sent")[1] - max(r["import_mb"]))
+                    for r in rows if r["ranks"] == 2 and stage_mb(r, 0, "parts sent"))
+    if len({n for n, _ in points}) < 2:
+        return None
+    n = np.array([p[0] for p in points], float) / n0
+    m = np.array([p[1] for p in points], float)
+    (m0, slope), *_ = np.linalg.lstsq(np.stack([np.ones_like(n), n], axis=1), m, rcond=None)
+    return {"m0": float(m0), "m": float(slope), "points": points}
 
 
 #: the partition comparison (``--cuts``): the slender cantilever and a compact cube
@@ -288,14 +338,16 @@ def rank_split(rows: list[dict], n_free: int) -> tuple[float, float] | None:
 
 
 def memory_model(rows: list[dict]) -> dict:
-    """c, r0, r, w, d, s, l (MB), k, and MUMPS' fit (:func:`factor_fit`) of the module's
+    """c, r0, r, w0, w, d, s, l (MB), k, MUMPS' fit (:func:`factor_fit`) and rank 0's
+    mesh phase (:func:`mesh_phase_fit`, or None) of the module's
     model. At N0 (the 1-rank case's size) the ranks other than 0 on 2 and 4 ranks give what
     every rank holds, R(N0) = r0 + r, and the divided part d (:func:`rank_split`; rank 0
     is left out: it holds the whole mesh besides, but only when P > 1, so the 1-rank case
     cannot separate w from R); at a second size N1 with 2- and 4-rank cases R(N1) =
     r0 + r N1 / N0 splits R into its constant and linear parts (without one, all of R is
-    taken as linear). w: rank 0's peak over the mean of the others' on 2 and 4 ranks
-    (their mean; MUMPS' shares differ between ranks by tens of MB). Of d, F(N0) is
+    taken as linear). w: the whole mesh rank 0 keeps at N0, counted (``kept_mb``); w0:
+    rank 0's peak over the mean of the others' on 2 and 4 ranks (their mean; MUMPS'
+    shares differ between ranks by tens of MB), less w. Of d, F(N0) is
     MUMPS' (2 ranks) and s the mode shapes'. ``one_mb``: the model's 1-rank peak
     (c + R + d) beside the measured ``one_measured_mb``."""
     one = next(r for r in rows if r["ranks"] == 1)
@@ -319,8 +371,10 @@ def memory_model(rows: list[dict]) -> dict:
     total, largest = mumps_mb(two)
     factor = total / 2**20 * 1e6  # MiB, as the peaks
     return {"c": c, "r0": max(R - r, 0.0), "r": r, "R": R, "R1": R1, "n1": n1,
-            "w": max(sum(r["peak_mb"][0] - sum(r["peak_mb"][1:]) / (r["ranks"] - 1)
-                         for r in split_rows) / len(split_rows), 0.0),
+            "w": two["kept_mb"],
+            "w0": max(sum(r["peak_mb"][0] - sum(r["peak_mb"][1:]) / (r["ranks"] - 1)
+                          for r in split_rows) / len(split_rows) - two["kept_mb"], 0.0),
+            "mesh": mesh_phase_fit(rows),
             "d": max(d, shapes + factor), "s": shapes,
             "l": max(d - shapes - factor, 0.0), "k": 2.0 * largest / total,
             "fit": fit, "factor": factor, "n0": n0, "one_mb": c + R + d,
@@ -339,7 +393,7 @@ def extrapolate(model: dict, n: float) -> list[str]:
     node of rank 0, which holds the whole mesh besides, is the one that must fit)."""
     s = n / model["n0"]
     fixed = model["c"] + model["r0"] + model["r"] * s
-    whole = model.get("w", 0.0) * s
+    whole = model.get("w0", 0.0) + model.get("w", 0.0) * s
     factor = model["k"] * mumps_factor_mb(model, n)
     shared = (model["s"] + model["l"]) * s + factor
     usable = NODE_GB * 1024 * NODE_USABLE
@@ -348,7 +402,15 @@ def extrapolate(model: dict, n: float) -> list[str]:
              f"replicated {model['r'] * s / 1024:.1f} GB) "
              f"+ {shared / 1024:.0f} GB / P divided among P ranks (of it MUMPS' factor "
              f"{factor / 1024:.0f} GB / P, the mode shapes {model['s'] * s / 1024:.1f} GB / P),"
-             f" rank 0 {whole / 1024:.1f} GB more (the whole mesh)"]
+             f" rank 0 {whole / 1024:.2f} GB more (the whole mesh's points and elements "
+             f"{model.get('w', 0.0) * s / 1024:.2f} GB)"]
+    mesh = model.get("mesh")
+    if mesh:
+        phase = model["c"] + mesh["m0"] + mesh["m"] * s
+        lines.append(f"  rank 0's mesh phase (gmsh, the whole FE space, the partition, "
+                     f"cutting the parts; before the assembly): {phase / 1024:.1f} GB, "
+                     "beside the other ranks' stack on its node"
+                     + ("" if phase < usable else ": more than a node holds"))
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed + whole >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
@@ -362,6 +424,26 @@ def extrapolate(model: dict, n: float) -> list[str]:
                      f"{fixed / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB per rank, "
                      f"rank 0 {(fixed + whole) / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB)")
     return lines
+
+
+def _run_cases(args) -> list[dict] | None:
+    """The cases of ``main``'s arguments (None: no mpiexec, or ``--cuts`` only)."""
+    if shutil.which("mpiexec") is None:
+        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
+        return None
+    for line in ([] if args.no_cuts else cut_table(args.cut_size, [2, 4], args.timeout)):
+        print(line)
+    if args.cuts:
+        return None
+    rows = [run_case(int(p), args.size, args.method, args.timeout)
+            for p in args.ranks.split(",")]
+    rows += [run_case(2, float(h), args.method, args.timeout)
+             for h in args.fit_sizes.split(",") if h and float(h) != args.size]
+    if args.split_size and float(args.split_size) != args.size:
+        if float(args.split_size) not in [float(h) for h in args.fit_sizes.split(",") if h]:
+            rows.append(run_case(2, float(args.split_size), args.method, args.timeout))
+        rows.append(run_case(4, float(args.split_size), args.method, args.timeout))
+    return rows
 
 
 def main(argv=None) -> int:
@@ -378,6 +460,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="factor", choices=["factor", "multigrid"])
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", default=None, help="also write the rows to this file")
+    ap.add_argument("--from-json", default=None,
+                    help="no runs: tabulate and fit the rows an earlier --json wrote")
     ap.add_argument("--cuts", action="store_true",
                     help="only compare the slab and graph partitions (no solve)")
     ap.add_argument("--cut-size", type=float, default=0.01, help="mesh.size of --cuts, m")
@@ -394,21 +478,14 @@ def main(argv=None) -> int:
     if args.cut_worker:
         cut_worker(args.size, args.case)
         return 0
-    if shutil.which("mpiexec") is None:
-        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
-        return 1
-    for line in ([] if args.no_cuts else cut_table(args.cut_size, [2, 4], args.timeout)):
-        print(line)
-    if args.cuts:
-        return 0
-    rows = [run_case(int(p), args.size, args.method, args.timeout)
-            for p in args.ranks.split(",")]
-    rows += [run_case(2, float(h), args.method, args.timeout)
-             for h in args.fit_sizes.split(",") if h and float(h) != args.size]
-    if args.split_size and float(args.split_size) != args.size:
-        if float(args.split_size) not in [float(h) for h in args.fit_sizes.split(",") if h]:
-            rows.append(run_case(2, float(args.split_size), args.method, args.timeout))
-        rows.append(run_case(4, float(args.split_size), args.method, args.timeout))
+    if args.from_json:
+        rows = json.loads(Path(args.from_json).read_text())
+    else:
+        rows = _run_cases(args)
+        if rows is None:
+            return 1 if shutil.which("mpiexec") is None else 0
+        if args.json:  # before the tables: a fit that fails keeps the runs
+            Path(args.json).write_text(json.dumps(rows, indent=1))
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
     print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
           f"{'peak MB per rank':>20} {'MUMPS entries':>13} {'MUMPS MB all/max':>16}")
@@ -422,12 +499,12 @@ def main(argv=None) -> int:
     print("resident memory per rank at the end of each stage (MB; rank 0 / the largest "
           "other / the peak so far of the largest rank)")
     for r in rows:
-        names = [st[0] for st in r.get("stages_mb", [[]])[0]]
+        names = [st[0] for st in r.get("stages_mb", [[]])[0]]  # rank 0's steps: all of them
         cells = []
-        for i, name in enumerate(names):
-            ranks = [st[i] for st in r["stages_mb"]]
-            others = max((x[1] for x in ranks[1:]), default=0)
-            cells.append(f"{name} {ranks[0][1]}/{others}/{max(x[2] for x in ranks)}")
+        for name in names:
+            ranks = [stage_mb(r, k, name) for k in range(r["ranks"])]
+            others = max((x[0] for x in ranks[1:] if x), default=0)
+            cells.append(f"{name} {ranks[0][0]}/{others}/{max(x[1] for x in ranks if x)}")
         print(f"{r['ranks']:>5} {r['n_free']:>10}  " + ", ".join(cells))
     if {1, 2, 4} <= {r["ranks"] for r in rows} and all(r["mumps"] for r in rows):
         model = memory_model(rows)
@@ -445,13 +522,17 @@ def main(argv=None) -> int:
               f"{model['one_measured_mb']:.0f} MB")
         print(f"fit: c = {model['c']:.0f} MB (imports), r0 = {model['r0']:.0f} MB (constant), "
               f"r = {model['r']:.0f} MB (replicated, linear in N), "
-              f"w = {model['w']:.0f} MB (rank 0's whole mesh), d = {model['d']:.0f} MB "
+              f"w0 = {model['w0']:.0f} MB and w = {model['w']:.1f} MB (rank 0's constant "
+              f"and its whole mesh's points and elements), d = {model['d']:.0f} MB "
               f"(divided: MUMPS' factor {model['factor']:.0f} MB, the mode shapes "
               f"{model['s']:.0f} MB, the rest l = {model['l']:.0f} MB) at {model['n0']} free DOFs")
+        if model["mesh"]:
+            mesh = model["mesh"]
+            print("rank 0's mesh phase on 2 ranks (peak until the parts are sent, less c; "
+                  "MB) at N = " + ", ".join(f"{n}: {m:.0f}" for n, m in mesh["points"])
+                  + f": m0 = {mesh['m0']:.0f} MB, m = {mesh['m']:.1f} MB at N0")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
 
 

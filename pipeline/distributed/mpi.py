@@ -62,3 +62,16 @@ def allreduce_sum(comm, local: np.ndarray, op: str = "SUM") -> np.ndarray:
     out = np.empty_like(local)
     comm.Allreduce([local, MPI.DOUBLE], [out, MPI.DOUBLE], op=getattr(MPI, op))
     return out
+
+
+def log_resident(logger, comm, where: str) -> None:
+    """A DEBUG line of ``logger``: this rank's resident memory (MB) at ``where``, a step
+    inside a stage (``benchmarks/bench_mpi.py`` tabulates them per rank beside the
+    stages' ends; nothing is read when DEBUG is off)."""
+    import logging
+
+    if logger.isEnabledFor(logging.DEBUG):
+        from pipeline._util.resources import resident_bytes
+
+        logger.debug("rank %d at %s: resident %.0f MB", comm.rank, where,
+                     resident_bytes() / 1e6)

@@ -235,18 +235,17 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
 
 def label_rows(space, Phi: RowBlock, n_rigid: int) -> list[str]:
     """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
-    rank 0 makes the body's :class:`~pipeline.solve.labels.LabelFrame` from every point
-    (a few numbers per slice, sent to every rank), and each rank sums over the points of
+    rank 0 made the body's :class:`~pipeline.solve.labels.LabelFrame` from every point
+    in the FE stage (``space.label_frame``, a few numbers per slice, sent to every rank), and each rank sums over the points of
     its own rows, their positions and volume weights from its part of the mesh (``space``:
     a :class:`~pipeline.distributed.submesh.DistributedSpace`; the part holds every
     element around those points, so each weight is the whole mesh's, bit for bit); the
     sums are added over the ranks. No rank but 0 holds every point."""
     from pipeline.fe.body import node_volume_weights
-    from pipeline.solve.labels import label_frame, label_modes
+    from pipeline.solve.labels import label_modes
 
     points, values = Phi.on_points()
-    frame = Phi.comm.bcast(label_frame(space.node_points, space.node_weights)
-                           if Phi.comm.rank == 0 else None, root=0)
+    frame = Phi.comm.bcast(space.label_frame if Phi.comm.rank == 0 else None, root=0)
     mesh = space.local
     local = mesh.local_nodes(points)
     weights = node_volume_weights(mesh.space)[local]

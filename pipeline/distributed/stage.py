@@ -31,7 +31,7 @@ from pipeline.config import Config
 from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
-from pipeline.distributed.mpi import allreduce_sum, petsc, world
+from pipeline.distributed.mpi import allreduce_sum, log_resident, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import (FreeDofs, cut_measures, graph_partition,
@@ -43,8 +43,8 @@ from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
 from pipeline.fe.regions import fixed_dofs, free_dofs
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import RowBlock
-from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, scatter_parts,
-                                          split_mesh)
+from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, compact_nodes,
+                                          scatter_parts, split_mesh)
 from pipeline.distributed.prestress import (preload_ports,  # noqa: F401
                                             rotation_masses, rotation_model)  # (run.py's)
 from pipeline.distributed.rigid import rigid_rows, with_rigid_rows
@@ -109,8 +109,12 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     :mod:`pipeline._util.resources` for the whole problem (factor method; ``n_nodes``
     mesh points, ``n_el`` elements), its K, M and factor share and its three (n_dofs,
     n_modes) arrays of mode shapes divided by the rank count, plus what every rank holds
-    (baseline); each rank's part of the mesh is the whole mesh / ranks, and rank 0 holds
-    the whole mesh besides (it meshes and writes). A rotation sweep (factor path, a
+    (baseline); each rank's part of the mesh is the whole mesh / ranks. Rank 0 holds
+    besides, from the assembly on, the whole mesh's points and elements it writes
+    (:func:`kept_bytes`), and before that, while it cuts out the parts, the whole mesh
+    and the parts (the serial model's mesh term and one more share of it): its peak is
+    the larger of the two phases. gmsh's library state after meshing (18 MB on rank 0
+    alone, a constant) is within the baseline. A rotation sweep (factor path, a
     speed other than 0) factorises K(Omega), K's pattern, while the run's factor of K
     is alive (the static correction solves with it afterwards): one more factor's share
     (:func:`~pipeline._util.resources.factor_bytes`). The other factors made after the
@@ -136,7 +140,10 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     divided = (whole - res.BASELINE_BYTES + shapes + second) / comm.size
     if cfg.connections and not clamped_by_supports(cfg):  # the connection model's own K, M
         divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
-    per_rank = int(res.BASELINE_BYTES + divided + (mesh if comm.rank == 0 else 0))
+    own = divided  # on one rank the whole mesh is its part
+    if comm.rank == 0 and comm.size > 1:  # the hand-off, or the kept arrays from then on
+        own = max(HANDOFF_MESHES * mesh, divided + kept_bytes(n_nodes, n_el, cfg))
+    per_rank = int(res.BASELINE_BYTES + own)
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     node_ranks = node.size
     need = comm.allreduce(node.allreduce(per_rank), op=MPI.MAX)
@@ -153,6 +160,23 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
             f"ranks of one node, but only {have / 1e9:.1f} GB is available; expected more "
             "nodes (fewer ranks per node) or a larger mesh.size")
     return per_rank
+
+
+#: rank 0's peak while it partitions and cuts out the parts (the whole mesh, the
+#: partition's graph rows, the parts), in serial mesh terms
+#: (:data:`pipeline._util.resources.MESH_BYTES_PER_NODE` a point, 64 bytes an element):
+#: measured 2.1 of them at 100k and 620k DOFs (docs/distributed.md, "Rank 0's memory")
+HANDOFF_MESHES = 2.2
+
+
+def kept_bytes(n_nodes: int, n_el: int, cfg: Config) -> float:
+    """Bytes of the whole mesh that rank 0 keeps from the hand-off to the writer
+    (:func:`handed_off`): the points (float64, 24 bytes a point), the elements (int32,
+    4 bytes a node of an element) and, where ``/materials`` stores them, each element's
+    law and density (12 bytes an element)."""
+    nodes = 10 if cfg.mesh.order == 2 else 4
+    written = cfg.materials or cfg.masses
+    return 24.0 * n_nodes + (4.0 * nodes + (12.0 if written else 0.0)) * n_el
 
 
 @dataclass(frozen=True)
@@ -200,23 +224,44 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
                      mesh_sha256, springs, constraint)
 
 
-def supports_rigid_freedoms(whole: WholeMesh | None, props, K: RowMatrix, M: RowMatrix,
-                            comm):
+@dataclass(frozen=True)
+class SupportInputs:
+    """What rank 0 keeps of the whole mesh past the hand-off to judge, after the
+    assembly, the rigid motions the supports leave (:func:`supports_rigid_freedoms`):
+    the held DOFs (n_c,), the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m,
+    nonzero at their points only, or None), the held local directions ((n_h, n_dofs)
+    CSR, or None) and whether any DOF is free; the points are the kept space's."""
+
+    fixed: np.ndarray
+    springs: Any
+    held: Any
+    any_free: bool
+
+
+def support_inputs(whole: WholeMesh) -> SupportInputs:
+    """:class:`SupportInputs` of ``whole``."""
+    return SupportInputs(whole.fixed, whole.springs,
+                         None if whole.constraint is None else whole.constraint[0],
+                         bool(whole.free.size))
+
+
+def supports_rigid_freedoms(inputs: SupportInputs | None, node_points: np.ndarray, props,
+                            K: RowMatrix, M: RowMatrix, comm):
     """The rigid motions that the held DOFs and the springs leave free, as the serial
     FE stage judges them (:func:`pipeline.fe.supports.rigid_freedoms` with the body's
     centre of mass, rigid mass and the floor SOFT_SUPPORT * median(K_ii / M_ii) of K
-    before the springs): evaluated on rank 0 (``whole``), the same on every rank, which
-    receives them without their (n_dofs, r) fields
+    before the springs): evaluated on rank 0 (``inputs``, and every point at
+    ``node_points`` (n_points, 3) m), the same on every rank, which receives them
+    without their (n_dofs, r) fields
     (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank evaluates them
     on its own points)."""
     median = of_diagonals(lambda Kd, Md: float(np.median(
         Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
     left = None
-    if whole is not None:
-        held = None if whole.constraint is None else whole.constraint[0]
-        left = rigid_freedoms(whole.space.node_points, props.center_of_mass, whole.fixed,
-                              whole.springs, held, props.rigid_mass,
-                              SOFT_SUPPORT * median if whole.free.size else 0.0)
+    if inputs is not None:
+        left = rigid_freedoms(node_points, props.center_of_mass, inputs.fixed,
+                              inputs.springs, inputs.held, props.rigid_mass,
+                              SOFT_SUPPORT * median if inputs.any_free else 0.0)
         left = left.without_fields()
     return comm.bcast(left, root=0)
 
@@ -225,13 +270,17 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     """Rank 0 meshes and evaluates the whole mesh once (:func:`mesh_whole`), partitions
     the points and sends every rank its part (:mod:`pipeline.distributed.submesh`); each
     rank assembles its rows of K and M from its part, and the body's mass properties are
-    summed over the ranks. Only rank 0 ever holds the whole mesh."""
+    summed over the ranks. Only rank 0 ever holds the whole mesh, and only until the
+    parts and the small results are sent: it then keeps what the writer stores
+    (:func:`handed_off`) and what judging the supports needs (:class:`SupportInputs`),
+    and drops the rest before it assembles its rows."""
     check_supported(cfg)
     comm = world()
     whole = None
     with stage("mesh"):
         if comm.rank == 0:
             whole = mesh_whole(cfg, mesh_dir)
+            log_resident(log, comm, "whole mesh evaluated")
             space = whole.space
             log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", space.body.n_tetrahedra,
                      space.cell_type, space.n_nodes, space.n_dofs, comm.size)
@@ -240,11 +289,13 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
     with stage("assemble"):
         whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
+        log_resident(log, comm, "partitioned")
         parts = None if whole is None else split_mesh(whole.space, whole.materials,
                                                       whole.free, whole_part, comm.size,
                                                       whole.added, whole.springs)
         mesh = scatter_parts(comm, parts)
         del parts
+        log_resident(log, comm, "parts sent")
         small = None if whole is None else (
             whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
             None if whole.added is None else added_rigid_mass(whole.space, whole.added))
@@ -267,7 +318,24 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
+        log_resident(log, comm, "small results sent")
+        judge = None  # rank 0: what judging the supports needs after the assembly
+        if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
+            space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
+                                                   ports, spin_masses, interfaces,
+                                                   unsupported)
+            judge = support_inputs(whole)
+        else:
+            nb = mesh.space.element_nodes.shape[1]
+            space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
+                                     np.zeros((0, nb), np.int64), mesh, ports,
+                                     rotation_masses=spin_masses, connections=interfaces,
+                unsupported=unsupported)
+            regions, materials = {}, mesh.materials
+        del whole  # the whole mesh: gone before the assembly (tests/test_mpi_rank0.py)
+        log_resident(log, comm, "whole mesh dropped")
         rows = local_rows(mesh)
+        log_resident(log, comm, "rows assembled")
         cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
         log.info("rank %d: rows %d:%d of %d, %d elements, K %d entries (%d cut, %d halo "
                  "columns)", comm.rank, rows.lo, rows.hi, free.size, rows.n_elements,
@@ -280,32 +348,42 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
         K = RowMatrix(comm, rows.K, part)
         left = None  # a free body: six rigid-body modes (FEModel.n_rigid)
         if cfg.supports:  # the motions they leave: the serial FE stage's judgement
-            left = supports_rigid_freedoms(whole, props, K, RowMatrix(comm, rows.M, part),
-                                           comm)
+            left = supports_rigid_freedoms(judge, space.node_points, props, K,
+                                           RowMatrix(comm, rows.M, part), comm)
         if mesh.springs is not None:  # springs and bushings: its owned rows added to K
             K = RowMatrix(comm, with_int32_indices(rows.K + mesh.springs), part)
         log.info("body mass %.6g kg; %d DOFs fixed, %d free", props.mass,
                  3 * n_nodes - free.size, free.size)
-        if whole is not None:  # rank 0 keeps the mesh it writes, not its FE space
-            space = DistributedSpace(
-                whole.space.order, n_nodes, mesh_counts, whole.space.node_points,
-                whole.space.element_nodes, mesh, ports, node_volume_weights(whole.space),
-                rotation_masses=spin_masses, connections=interfaces,
-                unsupported=unsupported)
-            regions, materials = whole.regions, whole.materials
-        else:
-            nb = mesh.space.element_nodes.shape[1]
-            space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
-                                     np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses, connections=interfaces,
-                unsupported=unsupported)
-            regions, materials = {}, mesh.materials
-        del whole
     return FEModel(space=space, regions=regions, fixed=fixed, free=free,
                    K=K, M=RowMatrix(comm, rows.M, part),
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
                    n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials,
                    constraint=constraint)
+
+
+def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCounts,
+               mesh, ports, spin_masses, interfaces, unsupported):
+    """Rank 0's (DistributedSpace, regions, element materials) once the parts are sent:
+    of the whole mesh only what the writer stores, compact, so that nothing else of
+    ``whole`` (the FE space with its scikit-fem mesh and edges, gmsh's body, the nodal
+    volume weights, the int64 elements) is alive when rank 0 assembles its rows: the
+    points (n_points, 3) float64 (the writer's, the labels' and the connection models'
+    exact positions), the elements (:func:`~pipeline.distributed.submesh.compact_nodes`:
+    int32 up to 2^31 points, 40 bytes a quadratic element instead of 80), the regions
+    (surface cells) and
+    the element materials where ``/materials`` stores them (``materials`` or ``masses``
+    in the config; else the part's, as on the other ranks). The body's label frame is
+    made here from every point and its volume weight (a few numbers a slice)."""
+    from pipeline.solve.labels import label_frame
+
+    space = whole.space
+    frame = label_frame(space.node_points, node_volume_weights(space))
+    kept = DistributedSpace(space.order, n_nodes, mesh_counts, space.node_points,
+                            compact_nodes(space.element_nodes, n_nodes), mesh, ports,
+                            label_frame=frame, rotation_masses=spin_masses,
+                            connections=interfaces, unsupported=unsupported)
+    written = cfg.materials or cfg.masses
+    return kept, whole.regions, whole.materials if written else mesh.materials
 
 
 def added_rigid_mass(space, added) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Each rank's part of the mesh: rank 0 meshes the body, every rank gets only its elements.
 
-Rank 0 holds the whole mesh (it writes it to the file) and evaluates once what needs
+Rank 0 holds the whole mesh until the parts are sent (then only the points and the
+elements it writes to the file, :func:`compact_nodes`) and evaluates once what needs
 the whole of it: regions, supports, ports, materials, added masses and the partition
 of the free DOFs into the ranks' rows (:class:`~pipeline.distributed.partition.RowPartition`).
 Then it cuts out the part of rank r (:func:`split_mesh`):
@@ -87,9 +88,13 @@ class MeshCounts:
 class DistributedSpace:
     """The FE space as the stages after the FE stage see it on a rank of the distributed
     path: the whole mesh's counts on every rank, its points and elements (the file's
-    ``/mesh``) on rank 0 only ((0, 3) and (0, nb) elsewhere), this rank's part
-    (``local``), the port matrices rank 0 made (None: no reduction) and (rank 0) the
-    nodal volume weights of the mode labels; a rotating body's added masses (rank 0's
+    ``/mesh``) on rank 0 only ((0, 3) and (0, nb) elsewhere; the elements in the
+    narrowest integer type that holds every node number, :func:`compact_nodes`: the
+    writer stores them as int64), this rank's part (``local``), the port matrices rank 0
+    made (None: no reduction) and (rank 0) the body's
+    :class:`~pipeline.solve.labels.LabelFrame` of the mode labels (a few numbers a
+    slice, made from every point before the whole FE space is dropped); a rotating
+    body's added masses (rank 0's
     :func:`pipeline.distributed.prestress.rotation_masses`, on every rank) or None."""
 
     order: int
@@ -99,7 +104,7 @@ class DistributedSpace:
     element_nodes: np.ndarray
     local: RankMesh
     ports: Any = None
-    node_weights: np.ndarray | None = None
+    label_frame: Any = None
     rotation_masses: Any = None
     #: the interfaces of a connection model, parent first
     #: (:mod:`pipeline.distributed.connection`), or None
@@ -115,6 +120,16 @@ class DistributedSpace:
     @property
     def cell_type(self) -> str:
         return self.local.space.cell_type  # the part's elements are the mesh's kind
+
+
+def compact_nodes(element_nodes: np.ndarray, n_nodes: int) -> np.ndarray:
+    """``element_nodes`` (n_el, nb) as int32 where every node number below ``n_nodes``
+    fits (a copy: 4 bytes an entry instead of 8), else unchanged. Rank 0 keeps the whole
+    mesh's elements this way from the hand-off to the writer, which widens them back
+    (the same int64 values)."""
+    if n_nodes <= np.iinfo(np.int32).max and element_nodes.dtype != np.int32:
+        return element_nodes.astype(np.int32)
+    return element_nodes
 
 
 def petsc_numbering(n_dofs: int, part: RowPartition) -> np.ndarray:
