@@ -3,29 +3,32 @@
 
 The reference is the single-process run (PARDISO and scipy) in this interpreter; the
 2-rank file must equal it with test_mpi.py's tolerances (frequencies 1e-8 relative,
-every other float 1e-8 of its largest entry). Measured on 2 ranks (cantilever_connection
-without Craig-Bampton, mesh.size 0.01): with its parent point only, the clamped
-frequencies and omega 2e-12, L_P and B 3e-12, D_P0 2e-13; with the distributing tip
-child, frequencies 3e-12, Phi_C and the state space's B, C, D 5e-12; D_P and the mass
-properties 1e-15 to 1.5e-14 of each dataset's largest entry. The floating-frame invariants of the run's modes
-(sums over each rank's points): 1e-11 (J2, G, the couplings), modal stiffness 2e-13,
-mass properties 3e-15. The shipped config with Craig-Bampton (20 fixed-interface
-modes): fixed-interface frequencies 1.4e-13, K 1.4e-14, M 1.5e-11, the basis on every
-point 1.7e-11, the free frequencies 2e-11, the invariants of its basis 3e-12. The unsupported body's FE matrices (``/fe``) are summed from
+every other float 1e-8 of its largest entry). The default suite runs each case at
+mesh.size 0.02 (4.5k DOFs: the rank boundaries, the clamped pencil's PtAP and the
+unsupported pair are the same code at any size); ``make test-all`` adds mesh.size 0.01
+(16.8k DOFs). Measured on 2 ranks at 0.02 (at 0.01 in brackets): with the parent point
+only, L_P and B 5e-12 (3e-12), the frequencies 1.9e-10 relative (lowest mode); with the
+distributing tip child, L_P 1e-11, Phi_C and the state space's B, C, D 3e-12 (5e-12);
+D_P and the mass properties 1e-15 to 1.5e-14 of each dataset's largest entry. The
+floating-frame invariants of the run's modes (sums over each rank's points): 3e-12
+(1e-11). The shipped config with Craig-Bampton (20 fixed-interface modes): the free
+frequencies 1.1e-11 (2e-11), the basis on every point 6e-12 (1.7e-11), M 3e-12
+(1.5e-11). The unsupported body's FE matrices (``/fe``) are summed from
 each rank's elements and written by rank 0 a block of rows at a time: M equal to 5e-16
 of its largest entry with the same stored pattern; K to 3e-16, but entries that cancel
 (1e-10 N/m against 4e9 N/m, 1e-19 of the largest) are exact zeros in one summation
-order and not in the other (929 and 90 of 591514 entries), so /fe is compared as
+order and not in the other (929 and 90 of 591514 entries at 0.01), so /fe is compared as
 matrices and the rest of the file with _same_file. Without MPI: each emulated rank's rows of M R_P
 are the serial ones, and the partition of every DOF keeps each rank's run rows.
 
 When the clamped pencil is not the run's (a distributing parent, other supports, added
-masses: the unsupported pair of pipeline.distributed.unsupported), measured on 2 ranks
-at mesh.size 0.01: a distributing parent with a point mass, L_P and B 1.1e-11, the
-invariants 1e-11, /fe 6e-16; with a distributing tip child, 20 Craig-Bampton modes and
-the rotation beside it, K 1.3e-14, M 8e-12, the basis 3.5e-11, the invariants 8e-12,
-the rotation's datasets 1.5e-9 (the geometric stiffness); a bushing at the root and the tip held along x, L_P 6e-12; no supports
-on 3 ranks, Phi_C and the state space 3e-12.
+masses: the unsupported pair of pipeline.distributed.unsupported), measured on 2 ranks:
+with a distributing tip child, a point mass, 20 Craig-Bampton modes and the rotation
+beside it, the basis 5e-11 (3.5e-11), the invariants 7e-12 (8e-12), the rotation's
+datasets 1e-9 to 5e-9 at either size from run to run (the geometric stiffness, built
+from the static shapes' small remainders: test_mpi_rotation.py); a bushing at the root
+and the tip held along x, L_P 8e-12 (6e-12); no supports on 3 ranks, Phi_C and the state
+space 3e-12.
 """
 
 from __future__ import annotations
@@ -53,6 +56,10 @@ PARENT_ONLY = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025
 #: stored patterns differ where entries cancel to round-off (module docstring)
 NOT_ON_RANKS = ("fe",)
 FE_TOL = 1e-12  # measured 5e-16 (M) and 3e-16 (K) of the largest entry
+#: the mesh of every 2- and 3-rank run: 0.02 in the default suite, 0.01 (four times the
+#: DOFs, three times the time) in ``make test-all`` (module docstring)
+MESHES = [pytest.param("mesh.size=0.02", id="h0.02"),
+          pytest.param("mesh.size=0.01", id="h0.01", marks=pytest.mark.slow)]
 
 
 def _without(path, groups, out):
@@ -133,11 +140,12 @@ def test_held_partition_appends_each_ranks_held_dofs_to_its_run_rows(tmp_path):
 
 
 @pytest.mark.mpi
-def test_parent_point_on_two_ranks(tmp_path):
+@pytest.mark.parametrize("mesh", MESHES)
+def test_parent_point_on_two_ranks(tmp_path, mesh):
     """The hybrid-cantilever model at the clamped root on 2 ranks equals the
     single-process one (module docstring's tolerances) with the floating-frame
     invariants and the unsupported body's K and M."""
-    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *PARENT_ONLY, "mesh.size=0.01")
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *PARENT_ONLY, mesh)
     with h5py.File(dist) as f:
         assert "connections/root/statespace/D" in f and "ffrf/inertia_second_order" in f
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
@@ -146,7 +154,8 @@ def test_parent_point_on_two_ranks(tmp_path):
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("child, ranks", [("distributing", 2), ("rigid", 3)])
-def test_child_point_on_ranks(tmp_path, child, ranks):
+@pytest.mark.parametrize("mesh", MESHES)
+def test_child_point_on_ranks(tmp_path, child, ranks, mesh):
     """A child point at the tip, a distributing (RBE3) or rigid (RBE2) coupling: the
     clamped pencil (K_c, M_c) = T_c^T (K, M) T_c by PETSc's PtAP on each rank's rows of
     T_c, its own MUMPS solve; the model (Phi_C, the 12 x 12 state space) equals the
@@ -154,8 +163,8 @@ def test_child_point_on_ranks(tmp_path, child, ranks):
     tip = ("connections=[{name: root, region: root, point: [0.0, 0.01, 0.025], "
            "coupling: rigid}, {name: tip, region: tip, point: [0.5, 0.01, 0.025], "
            f"coupling: {child}}}]")
-    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, tip, PARENT_ONLY[1],
-                                         "mesh.size=0.01", ranks=ranks)
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, tip, PARENT_ONLY[1], mesh,
+                                         ranks=ranks)
     with h5py.File(dist) as f:
         assert f["connections/root/Phi_C"].shape == (6, 10)
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist, ranks)
@@ -163,11 +172,12 @@ def test_child_point_on_ranks(tmp_path, child, ranks):
 
 
 @pytest.mark.mpi
-def test_shipped_config_with_craig_bampton_on_two_ranks(tmp_path):
+@pytest.mark.parametrize("mesh", MESHES)
+def test_shipped_config_with_craig_bampton_on_two_ranks(tmp_path, mesh):
     """configs/cantilever_connection.yaml as shipped (a rigid root, a distributing tip
     child, 20 fixed-interface modes): the Craig-Bampton K, M and basis on every point,
     and the floating-frame invariants of that basis, equal the single-process ones."""
-    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, "mesh.size=0.01")
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, mesh)
     with h5py.File(dist) as f:
         assert f["craig_bampton/shapes"].shape[2] == 32 and "ffrf/modal_mass" in f
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
@@ -190,20 +200,22 @@ DISTRIBUTING_TIP = RIGID_TIP.replace("rigid", "distributing")
     (*PARENT_ONLY, "supports=[{region: tip, fix: [x]}, {region: root, bushing: "
      "{stiffness: [0, 2.0e9, 2.0e9, 1.0e6, 1.0e6, 1.0e6]}}]"),
 ], ids=["distributing-parent-mass-rotation-craig-bampton", "held-elsewhere-and-bushing"])
-def test_unsupported_pair_on_two_ranks(tmp_path, overrides):
+@pytest.mark.parametrize("mesh", MESHES)
+def test_unsupported_pair_on_two_ranks(tmp_path, overrides, mesh):
     """The clamped pencil is not the run's (a distributing parent; supports elsewhere,
     partial and elastic; an added mass): each rank assembles its rows of the unsupported
     K and M on the partition of every DOF, PETSc's PtAP clamps the parent, MUMPS solves
     it; Craig-Bampton (the shipped 20 modes) on the same pair, nothing lifted; a
     rotating body's connection model is the one at rest. The model, the Craig-Bampton
     data, the invariants and /fe equal the single-process ones (module docstring)."""
-    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *overrides, "mesh.size=0.01")
+    serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, *overrides, mesh)
     _same_file(_without(serial, NOT_ON_RANKS, tmp_path / "serial_part.h5"), dist)
     _same_matrices(serial, dist)
 
 
 @pytest.mark.mpi
-def test_free_body_with_a_distributing_parent_on_three_ranks(tmp_path):
+@pytest.mark.parametrize("mesh", MESHES)
+def test_free_body_with_a_distributing_parent_on_three_ranks(tmp_path, mesh):
     """No supports: the run's K and M are the unsupported pair (no second assembly).
     The run's six rigid-body modes are any basis of their subspace (test_mpi.py's free
     body), so the shapes are compared from the seventh on; the free-free modes'
@@ -211,7 +223,7 @@ def test_free_body_with_a_distributing_parent_on_three_ranks(tmp_path):
     sqrt(I_max) (|r^T M psi| <= sqrt(r^T M r) for M-orthonormal psi)."""
     serial, dist = _serial_and_two_ranks(tmp_path, CONFIG, f"connections=[{RBE3_ROOT}, "
                                          f"{RIGID_TIP}]", "supports=[]", PARENT_ONLY[1],
-                                         "mesh.size=0.01", ranks=3)
+                                         mesh, ranks=3)
     couplings = ("ffrf/translational_coupling", "ffrf/rotational_coupling")
     _same_file(_without(serial, NOT_ON_RANKS + ("modes/shapes",) + couplings,
                         tmp_path / "serial_part.h5"), dist, 3)
