@@ -106,7 +106,11 @@ def _on_signal(signum, frame) -> None:
             if raised_count() == seen:
                 os.kill(os.getpid(), signum)
 
-        threading.Timer(0.05, again).start()
+        # a daemon: a process that ends meanwhile (the run completed) does not wait for
+        # it at exit, where the signal would be raised inside threading's shutdown
+        timer = threading.Timer(0.05, again)
+        timer.daemon = True
+        timer.start()
         return
     on_signal(signum)  # raises now, or when a region that must not be cut short ends
 
