@@ -9,8 +9,8 @@ STAMP  := $(VENV)/.installed
 EXTRAS ?= test,fast,plots,batch
 CONFIG ?= configs/cantilever.yaml
 # test processes of `make test` / `make test-all` (pytest-xdist, whole files per process):
-# the suite takes about 6 min on 2 cores with 2, about 9 min with 1 (TEST_WORKERS=1 runs it
-# in one process, without xdist)
+# the suite takes 7.5-9 min on 2 cores with 2 (its clean-clone CI runs), about twice that
+# with 1 (TEST_WORKERS=1 runs it in one process, without xdist)
 TEST_WORKERS ?= 2
 XDIST := $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
