@@ -236,8 +236,9 @@ def _reduce_rows(cfg: Config, K, M, Phi: RowBlock, modes, F: RowBlock, T, ports
 def label_rows(space, Phi: RowBlock, n_rigid: int) -> list[str]:
     """The serial labels (:func:`pipeline.solve.labels.label_modes`) from each rank's rows:
     rank 0 made the body's :class:`~pipeline.solve.labels.LabelFrame` from every point
-    in the FE stage (``space.label_frame``, a few numbers per slice, sent to every rank), and each rank sums over the points of
-    its own rows, their positions and volume weights from its part of the mesh (``space``:
+    in the FE stage (``space.label_frame``, a few numbers per slice, sent to every
+    rank), and each rank sums over the points of its own rows, their positions and
+    volume weights from its part of the mesh (``space``:
     a :class:`~pipeline.distributed.submesh.DistributedSpace`; the part holds every
     element around those points, so each weight is the whole mesh's, bit for bit); the
     sums are added over the ranks. No rank but 0 holds every point."""
