@@ -207,7 +207,7 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
     and supports on the whole mesh; every misplaced region or gauge is refused here,
     before any rank assembles."""
-    meshed = mesh_config(cfg, mesh_dir)
+    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, world(), step))
     space, regions, materials = meshed.space, meshed.regions, meshed.materials
     added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
     mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
@@ -251,18 +251,18 @@ def supports_rigid_freedoms(inputs: SupportInputs | None, node_points: np.ndarra
     FE stage judges them (:func:`pipeline.fe.supports.rigid_freedoms` with the body's
     centre of mass, rigid mass and the floor SOFT_SUPPORT * median(K_ii / M_ii) of K
     before the springs): evaluated on rank 0 (``inputs``, and every point at
-    ``node_points`` (n_points, 3) m), the same on every rank, which receives them
-    without their (n_dofs, r) fields
-    (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank evaluates them
-    on its own points)."""
+    ``node_points`` (n_points, 3) m, from R's rows at the held DOFs and the springs'
+    alone), the same on every rank, which receives them without their (n_dofs, r)
+    fields (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank
+    evaluates them on its own points)."""
     median = of_diagonals(lambda Kd, Md: float(np.median(
         Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
     left = None
     if inputs is not None:
         left = rigid_freedoms(node_points, props.center_of_mass, inputs.fixed,
                               inputs.springs, inputs.held, props.rigid_mass,
-                              SOFT_SUPPORT * median if inputs.any_free else 0.0)
-        left = left.without_fields()
+                              SOFT_SUPPORT * median if inputs.any_free else 0.0,
+                              fields=False)  # no (n_dofs, 6) array on rank 0
     return comm.bcast(left, root=0)
 
 
