@@ -117,7 +117,7 @@ _ESTIMATES = """
 from pipeline._util import resources as res
 from pipeline.config import load_config
 from pipeline.distributed.mpi import world
-from pipeline.distributed.stage import HANDOFF_MESHES, check_rank_memory, kept_bytes
+from pipeline.distributed.stage import check_rank_memory, handoff_meshes, kept_bytes
 
 comm = world()
 for n_nodes, n_el, extra in ((40000, 25000, []), (40000, 25000, ["mesh.size=0.02"]),
@@ -126,7 +126,7 @@ for n_nodes, n_el, extra in ((40000, 25000, []), (40000, 25000, ["mesh.size=0.02
     both = comm.gather(check_rank_memory(n_nodes, n_el, cfg, comm), root=0)
     if comm.rank == 0:
         share = both[1] - res.BASELINE_BYTES
-        handoff = HANDOFF_MESHES * (res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el)
+        handoff = handoff_meshes(comm.size) * (res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el)
         print(both[0] - both[1], share + kept_bytes(n_nodes, n_el, cfg), handoff, share)
 """
 
