@@ -9,8 +9,9 @@ fewer nodes; by hand:
 
 Each case is ``mpiexec -n P python benchmarks/bench_mpi.py --worker``: the pipeline on
 ``configs/cantilever.yaml`` (``modes.count`` 10, the shipped config's), then every rank
-reports its peak resident memory (ru_maxrss), its resident memory and peak at the end of
-each stage (VmRSS, VmHWM), and the memory it had after loading the stack (the
+reports its peak resident memory (the largest of its steps' peaks), its resident memory,
+its peak so far and its peak within the step at the end of each stage and step (VmRSS,
+VmHWM, reset at each step), and the memory it had after loading the stack (the
 interpreter, the pipeline's modules, numpy, scikit-fem, h5py, gmsh, petsc4py and
 slepc4py with PETSc's, MUMPS' and MPI's libraries initialised: a constant per rank).
 
@@ -30,8 +31,12 @@ the others' mean (gmsh's library state after meshing, a constant, and MUMPS' sha
 which differ between ranks by tens of MB). Rank 0's mesh phase comes before that and
 apart from it: it meshes the body with gmsh, builds the whole FE space to evaluate
 regions, ports and the partition and cuts out the parts; its peak until the parts are
-sent (VmHWM at the "parts sent" step) is fitted as M(N) = c + m0 + m N / N0 on the
-2-rank cases (:func:`mesh_phase_fit`) and extrapolated beside the solve phase.
+sent (the peak at the "parts sent" step) is fitted as M(N, P) = c + m0 + (m + mp / P) N
+/ N0 on the cases of more than one rank (:func:`mesh_phase_fit`: m what it holds of the
+whole mesh, mp / P its share of the partitioner's graph) and extrapolated beside the
+solve phase. ``--mesh-phase SIZES`` measures that phase alone (the FE stage on 2 and 4
+ranks at each mesh.size), rank 0's peak within each step (VmHWM is reset at each of
+:func:`pipeline.distributed.mpi.log_resident`'s steps) in MB and bytes a free DOF.
 R and the divided part d at N come from the ranks other than 0 on 2
 and 4 ranks (each peaks at c + R + d / P: :func:`rank_split`; 4 ranks oversubscribe the
 2 cores, which moves their times, not their memory): rank 0 is left out, so w does not
@@ -104,15 +109,31 @@ def _status_mb() -> dict[str, float]:
     return out
 
 
+def _reset_peak() -> bool:
+    """Reset this process's VmHWM to its VmRSS (``/proc/self/clear_refs`` 5), so that
+    the next reading is the peak since now; False where the kernel refuses."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
 class _StageMemory(logging.Handler):
-    """Each stage's resident memory at its end and the peak so far (VmRSS, VmHWM; MB),
-    from the records of :func:`pipeline.run.run_pipeline` ("<stage> done in ..."), and
-    at the FE stage's steps (:func:`pipeline.distributed.mpi.log_resident`'s DEBUG
-    records of :mod:`pipeline.distributed.stage`: "parts sent" ...)."""
+    """Each stage's resident memory at its end, the peak so far and the peak since the
+    step before (VmRSS, VmHWM; MB), from the records of
+    :func:`pipeline.run.run_pipeline` ("<stage> done in ...") and at the FE stage's
+    steps (:func:`pipeline.distributed.mpi.log_resident`'s DEBUG records of
+    :mod:`pipeline.distributed.stage`: "mesh read", "space built", "partitioned",
+    "parts sent" ...). VmHWM is reset at each record (:func:`_reset_peak`), so the run's
+    peak is the largest of the steps' (:meth:`peak_mb`): ru_maxrss follows the reset."""
 
     def __init__(self):
         super().__init__(logging.DEBUG)
         self.stages = []
+        self.peak = 0.0
+        self.resets = _reset_peak()
 
     def emit(self, record) -> None:
         if record.msg.startswith("%s done in"):
@@ -122,7 +143,15 @@ class _StageMemory(logging.Handler):
         else:
             return
         now = _status_mb()
-        self.stages.append([name, round(now["VmRSS"]), round(now["VmHWM"])])
+        step = now["VmHWM"]
+        self.peak = max(self.peak, step)
+        self.stages.append([name, round(now["VmRSS"]), round(self.peak),
+                            round(step) if self.resets else None])
+        self.resets = _reset_peak()
+
+    def peak_mb(self) -> float:
+        """This process's peak resident memory so far (MB)."""
+        return max(self.peak, _status_mb()["VmHWM"])
 
 
 def _load_stack() -> None:
@@ -140,10 +169,11 @@ def _load_stack() -> None:
     world().Barrier()
 
 
-def worker(size: float, output: str, method: str) -> None:
-    """One MPI case: every rank runs the pipeline; rank 0 prints a JSON line (with
-    MUMPS' figures of each factor the run made, which rank 0 logs, and every rank's
-    memory at the end of each stage)."""
+def worker(size: float, output: str, method: str, fe_only: bool = False) -> None:
+    """One MPI case: every rank runs the pipeline (``fe_only``: its FE stage alone, rank
+    0's mesh phase and every rank's assembly); rank 0 prints a JSON line (with MUMPS'
+    figures of each factor the run made, which rank 0 logs, and every rank's memory at
+    the end of each stage and step)."""
     from pipeline.distributed.mpi import world
     from pipeline.api import run_config
 
@@ -161,12 +191,14 @@ def worker(size: float, output: str, method: str) -> None:
     step_log = logging.getLogger("pipeline.distributed.stage")
     step_log.addHandler(stages)
     step_log.setLevel(logging.DEBUG)
+    overrides = [f"mesh.size={size}", "modes.solver=slepc", f"modes.method={method}"]
     t0 = time.perf_counter()
-    result = run_config(CONFIG, output=output,
-                        overrides=[f"mesh.size={size}", "modes.solver=slepc",
-                                   f"modes.method={method}"])
+    if fe_only:
+        result = _fe_stage(overrides)
+    else:
+        result = run_config(CONFIG, output=output, overrides=overrides)
     wall = time.perf_counter() - t0
-    peaks = comm.gather(_peak_mb(), root=0)
+    peaks = comm.gather(stages.peak_mb(), root=0)
     bases = comm.gather(base, root=0)
     by_stage = comm.gather(stages.stages, root=0)
     if comm.rank == 0:
@@ -175,9 +207,25 @@ def worker(size: float, output: str, method: str) -> None:
             "kept_mb": kept_mb(result.n_dofs // 3, result.n_elements,
                                result.config.mesh.order),
             "times": result.times, "peak_mb": peaks, "import_mb": bases,
-            "stages_mb": by_stage,
-            "f1_hz": float(result.frequencies_hz[0]), "mumps": figures.factors}),
+            "stages_mb": by_stage, "fe_only": fe_only,
+            "f1_hz": None if fe_only else float(result.frequencies_hz[0]),
+            "mumps": figures.factors}),
             flush=True)
+
+
+def _fe_stage(overrides: list[str]):
+    """The distributed FE stage of the config alone (what :func:`worker` reports of a
+    full run: free DOFs, DOFs, elements, the config, the stage times)."""
+    import contextlib
+    from types import SimpleNamespace
+
+    from pipeline.config import load_config
+    from pipeline.distributed.stage import build_fe_model
+
+    cfg = load_config(CONFIG, overrides)
+    fe = build_fe_model(cfg, None, lambda name: contextlib.nullcontext())
+    return SimpleNamespace(n_free=fe.free.size, n_dofs=fe.space.n_dofs,
+                           n_elements=fe.n_elements, config=cfg, times={})
 
 
 def kept_mb(n_points: int, n_elements: int, order: int) -> float:
@@ -188,26 +236,78 @@ def kept_mb(n_points: int, n_elements: int, order: int) -> float:
 
 
 def stage_mb(row: dict, rank: int, name: str) -> tuple[int, int] | None:
-    """(VmRSS, VmHWM) MB of ``rank`` at the step or stage end ``name`` of a case, or None."""
+    """(VmRSS, VmHWM) MB of ``rank`` at the step or stage end ``name`` of a case (VmHWM:
+    the peak so far), or None."""
     return next(((st[1], st[2]) for st in row.get("stages_mb", [[]] * (rank + 1))[rank]
                  if st[0] == name), None)
 
 
-def mesh_phase_fit(rows: list[dict]) -> dict | None:
+def step_peaks(row: dict, rank: int) -> list[tuple[str, int, int | None]]:
+    """(step, VmRSS at its end, the peak since the step before or None) MB of ``rank``,
+    in the run's order."""
+    return [(st[0], st[1], st[3] if len(st) > 3 else None)
+            for st in row.get("stages_mb", [[]] * (rank + 1))[rank]]
+
+
+#: rank 0's steps up to and including the mesh phase's end
+MESH_PHASE_END = "parts sent"
+
+
+def mesh_phase_fit(rows: list[dict], n0: int | None = None) -> dict | None:
     """Rank 0's mesh phase (its peak until the parts are sent, less the stack c) on the
-    2-rank cases, fitted as m0 + m N / N0 by least squares ({"m0", "m", "points"}; N0:
-    the 1-rank case's size), or None without two sizes."""
+    cases of more than one rank, fitted by least squares as m0 + (m + mp / P) N / N0
+    ({"m0", "m", "mp", "points"}: m what rank 0 holds of the whole mesh, mp / P its
+    share of the partitioner's graph; N0: ``n0`` or the 1-rank case's size; mp = 0
+    where every case has the same rank count), or None without two sizes."""
     import numpy as np
 
-    n0 = next(r["n_free"] for r in rows if r["ranks"] == 1)
-    points = sorted((r["n_free"], stage_mb(r, 0, "parts sent")[1] - max(r["import_mb"]))
-                    for r in rows if r["ranks"] == 2 and stage_mb(r, 0, "parts sent"))
-    if len({n for n, _ in points}) < 2:
+    n0 = n0 or next(r["n_free"] for r in rows if r["ranks"] == 1)
+    points = sorted((r["n_free"], r["ranks"],
+                     stage_mb(r, 0, MESH_PHASE_END)[1] - max(r["import_mb"]))
+                    for r in rows if r["ranks"] > 1 and stage_mb(r, 0, MESH_PHASE_END))
+    if len({n for n, _, _ in points}) < 2:
         return None
     n = np.array([p[0] for p in points], float) / n0
-    m = np.array([p[1] for p in points], float)
-    (m0, slope), *_ = np.linalg.lstsq(np.stack([np.ones_like(n), n], axis=1), m, rcond=None)
-    return {"m0": float(m0), "m": float(slope), "points": points}
+    ranks = np.array([p[1] for p in points], float)
+    m = np.array([p[2] for p in points], float)
+    columns = [np.ones_like(n), n] + ([n / ranks] if len(set(ranks)) > 1 else [])
+    coef, *_ = np.linalg.lstsq(np.stack(columns, axis=1), m, rcond=None)
+    return {"m0": float(coef[0]), "m": float(coef[1]),
+            "mp": float(coef[2]) if len(coef) > 2 else 0.0, "points": points}
+
+
+def mesh_phase_mb(mesh: dict, s: float, ranks: int) -> float:
+    """Rank 0's mesh phase above the stack (MB) at s = N / N0 on ``ranks`` ranks."""
+    return mesh["m0"] + (mesh["m"] + mesh["mp"] / ranks) * s
+
+
+def mesh_phase_table(rows: list[dict]) -> list[str]:
+    """Lines: rank 0's peak in each step of the FE stage above the stack c (MB and bytes
+    a free DOF), per case, and the largest other rank's; then the mesh phase's fit."""
+    lines = ["rank 0's FE stage by step (peak within the step above the stack c: MB, "
+             "bytes a free DOF), the largest other rank's beside it"]
+    for r in rows:
+        c = max(r["import_mb"])
+        cells = []
+        for name, _, peak in step_peaks(r, 0):
+            if peak is None:
+                continue
+            others = [p for k in range(1, r["ranks"]) for n, _, p in step_peaks(r, k)
+                      if n == name and p is not None]
+            cells.append(f"{name} {peak - c:.0f} MB {(peak - c) * 2**20 / r['n_free']:.0f} B"
+                         + (f" ({max(others) - c:.0f} MB)" if others else ""))
+        lines.append(f"{r['ranks']} ranks, {r['n_free']} free DOFs, c = {c:.0f} MB: "
+                     + "; ".join(cells))
+    fit = mesh_phase_fit(rows, max(r["n_free"] for r in rows))
+    if fit:
+        n0 = max(r["n_free"] for r in rows)
+        per = 2**20 / n0
+        lines.append(f"rank 0's mesh phase (peak until the parts are sent, less c) = m0 + "
+                     f"(m + mp / P) N / N0, N0 = {n0}: m0 = {fit['m0']:.0f} MB, "
+                     f"m = {fit['m'] * per:.0f} and mp = {fit['mp'] * per:.0f} bytes a "
+                     "free DOF; measured " + ", ".join(f"{n} on {p}: {v:.0f} MB"
+                                                       for n, p, v in fit["points"]))
+    return lines
 
 
 #: the partition comparison (``--cuts``): the slender cantilever and a compact cube
@@ -406,11 +506,16 @@ def extrapolate(model: dict, n: float) -> list[str]:
              f"{model.get('w', 0.0) * s / 1024:.2f} GB)"]
     mesh = model.get("mesh")
     if mesh:
-        phase = model["c"] + mesh["m0"] + mesh["m"] * s
+        mesh.setdefault("mp", 0.0)
+        phase = model["c"] + mesh_phase_mb(mesh, s, 2)
+        least = model["c"] + mesh_phase_mb(mesh, s, 10**9)
         lines.append(f"  rank 0's mesh phase (gmsh, the whole FE space, the partition, "
-                     f"cutting the parts; before the assembly): {phase / 1024:.1f} GB, "
-                     "beside the other ranks' stack on its node"
-                     + ("" if phase < usable else ": more than a node holds"))
+                     f"cutting the parts; before the assembly): {phase / 1024:.1f} GB on 2 "
+                     f"ranks, {least / 1024:.1f} GB on many (its graph share divides; from "
+                     "about 8 ranks on, cutting out the parts, fitted here only on 2 and 4, "
+                     "sets a floor: docs/distributed.md), beside the other ranks' stack on "
+                     "its node"
+                     + ("" if phase < usable else ": more than a node holds on 2 ranks"))
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed + whole >= usable:
             lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: the replicated "
@@ -419,10 +524,12 @@ def extrapolate(model: dict, n: float) -> list[str]:
         nodes = 1
         while ranks_per_node * (fixed + shared / (nodes * ranks_per_node)) + whole > usable:
             nodes += 1
+        ranks = nodes * ranks_per_node
+        phase = "" if not mesh else \
+            f", its mesh phase {(model['c'] + mesh_phase_mb(mesh, s, ranks)) / 1024:.1f} GB"
         lines.append(f"  {ranks_per_node} rank(s) per {NODE_GB:g} GB node: {nodes} nodes "
-                     f"({nodes * ranks_per_node} ranks, "
-                     f"{fixed / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB per rank, "
-                     f"rank 0 {(fixed + whole) / 1024 + shared / 1024 / (nodes * ranks_per_node):.1f} GB)")
+                     f"({ranks} ranks, {fixed / 1024 + shared / 1024 / ranks:.1f} GB per rank, "
+                     f"rank 0 {(fixed + whole) / 1024 + shared / 1024 / ranks:.1f} GB{phase})")
     return lines
 
 
@@ -446,6 +553,27 @@ def _run_cases(args) -> list[dict] | None:
     return rows
 
 
+def mesh_phase_main(args) -> int:
+    """``--mesh-phase``: the FE stage alone at each size on each rank count (default 2
+    and 4), rank 0's peak by step and the mesh phase's fit (:func:`mesh_phase_table`)."""
+    if shutil.which("mpiexec") is None:
+        print("bench_mpi: no mpiexec (make mpi-env)", file=sys.stderr)
+        return 1
+    if args.from_json:
+        rows = json.loads(Path(args.from_json).read_text())
+    else:
+        ranks = [int(p) for p in (args.ranks if args.ranks != "1,2,4" else "2,4").split(",")]
+        rows = [_mpiexec(p, ["--worker", "--fe-only", "--size", size, "--method",
+                             args.method], args.timeout)
+                for size in args.mesh_phase.split(",") for p in ranks]
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+    print(f"rank 0's mesh phase, cantilever mesh.size {args.mesh_phase} m")
+    for line in mesh_phase_table(rows):
+        print(line)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=float, default=0.005, help="mesh.size, m (0.005: 100k DOFs)")
@@ -467,14 +595,21 @@ def main(argv=None) -> int:
     ap.add_argument("--cut-size", type=float, default=0.01, help="mesh.size of --cuts, m")
     ap.add_argument("--no-cuts", action="store_true",
                     help="skip the partition comparison (a second method's run)")
+    ap.add_argument("--mesh-phase", default=None, metavar="SIZES",
+                    help="only rank 0's mesh phase: the FE stage alone at these mesh.size "
+                         "values (m, comma-separated) on --ranks (default 2,4 here), its "
+                         "peak by step and the fit m0 + (m + mp / P) N / N0")
+    ap.add_argument("--fe-only", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cut-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--case", default="cantilever", help=argparse.SUPPRESS)
     ap.add_argument("--output", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.size, args.output, args.method)
+        worker(args.size, args.output, args.method, args.fe_only)
         return 0
+    if args.mesh_phase:
+        return mesh_phase_main(args)
     if args.cut_worker:
         cut_worker(args.size, args.case)
         return 0
@@ -528,9 +663,10 @@ def main(argv=None) -> int:
               f"{model['s']:.0f} MB, the rest l = {model['l']:.0f} MB) at {model['n0']} free DOFs")
         if model["mesh"]:
             mesh = model["mesh"]
-            print("rank 0's mesh phase on 2 ranks (peak until the parts are sent, less c; "
-                  "MB) at N = " + ", ".join(f"{n}: {m:.0f}" for n, m in mesh["points"])
-                  + f": m0 = {mesh['m0']:.0f} MB, m = {mesh['m']:.1f} MB at N0")
+            print("rank 0's mesh phase (peak until the parts are sent, less c; MB) at "
+                  "(N, P) = " + ", ".join(f"({n}, {p}): {m:.0f}" for n, p, m in mesh["points"])
+                  + f": m0 = {mesh['m0']:.0f} MB, m = {mesh['m']:.1f} MB and "
+                  f"mp = {mesh['mp']:.1f} MB at N0 (m0 + (m + mp / P) N / N0)")
         for line in extrapolate(model, TARGET_DOFS):
             print(line)
     return 0

@@ -25,6 +25,7 @@ import os
 import re
 import subprocess
 
+import numpy as np
 import pytest
 
 from conftest import ROOT
@@ -116,7 +117,7 @@ _ESTIMATES = """
 from pipeline._util import resources as res
 from pipeline.config import load_config
 from pipeline.distributed.mpi import world
-from pipeline.distributed.stage import HANDOFF_MESHES, check_rank_memory, kept_bytes
+from pipeline.distributed.stage import check_rank_memory, handoff_meshes, kept_bytes
 
 comm = world()
 for n_nodes, n_el, extra in ((40000, 25000, []), (40000, 25000, ["mesh.size=0.02"]),
@@ -125,7 +126,7 @@ for n_nodes, n_el, extra in ((40000, 25000, []), (40000, 25000, ["mesh.size=0.02
     both = comm.gather(check_rank_memory(n_nodes, n_el, cfg, comm), root=0)
     if comm.rank == 0:
         share = both[1] - res.BASELINE_BYTES
-        handoff = HANDOFF_MESHES * (res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el)
+        handoff = handoff_meshes(comm.size) * (res.MESH_BYTES_PER_NODE * n_nodes + 64 * n_el)
         print(both[0] - both[1], share + kept_bytes(n_nodes, n_el, cfg), handoff, share)
 """
 
@@ -147,3 +148,54 @@ def test_the_rank_memory_estimate_counts_rank0s_kept_mesh_not_a_whole_one():
         # int() of each rank's bytes: exact to a byte or two
         assert abs(more - (max(solve, handoff) - share)) <= 2.0, line
         assert more < 24 * 40000 + 40 * 25000 + 2.0 or handoff > solve, line
+
+
+def test_rank0_judges_the_rigid_freedoms_without_an_array_over_every_dof(tmp_path):
+    """rigid_freedoms(fields=False), as rank 0 judges the supports after the assembly
+    (:func:`~pipeline.distributed.stage.supports_rigid_freedoms`): the same motions as
+    the serial judgement less its (n_dofs, r) fields (names equal, twists to 1e-12 of
+    their unit length: the springs' R^T S R summed over their DOFs alone differs by
+    round-off), for held DOFs, held directions and springs, while it allocates
+    (tracemalloc's peak) at most 2.5 times the points (the rms radius' (n, 3)
+    temporaries and their (n,) sums: 56 bytes a point, 2.33 times the 24 of the points)
+    plus 600 bytes a held or sprung DOF (R's rows of their points, 144 bytes a DOF, its
+    rows picked, the springs' rows and columns), not R at every DOF (48 bytes a DOF,
+    6 times the points, which the bound refuses)."""
+    import tracemalloc
+
+    import scipy.sparse as sp
+
+    from conftest import build_model
+    from pipeline.fe.space import region_nodes
+    from pipeline.fe.supports import rigid_freedoms
+
+    model = build_model(tmp_path, size=0.02)
+    space, regions = model.space, model.regions
+    x, n_dofs = space.node_points, space.n_dofs
+    root, tip = region_nodes(space, regions["root"]), region_nodes(space, regions["tip"])
+    held_x = 3 * root  # the root face held along x: three rigid motions left
+    tip_y = sp.csr_matrix((np.ones(tip.size), (np.arange(tip.size), 3 * tip + 1)),
+                          shape=(tip.size, n_dofs))  # the tip held along y, exactly
+    k = np.linspace(1e6, 2e6, tip.size)  # springs along z at the tip, uneven
+    springs = sp.csr_matrix((k, (3 * tip + 2, 3 * tip + 2)), shape=(n_dofs, n_dofs))
+    center = x.mean(axis=0)
+    mass = np.diag([7.0, 7.0, 7.0, 0.2, 0.3, 0.4])
+    for fixed, held, spring, count in ((held_x, None, None, 3), (held_x, tip_y, None, 1),
+                                       (held_x, None, springs, 1),
+                                       (np.zeros(0, np.int64), None, springs, 4)):
+        args = (x, center, fixed, spring, held, mass, 1.0)
+        whole = rigid_freedoms(*args)
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            lean = rigid_freedoms(*args, fields=False)
+            peak = tracemalloc.get_traced_memory()[1] - before
+        finally:
+            tracemalloc.stop()
+        assert whole.count == count and whole.fields.shape == (n_dofs, count)
+        assert lean.names == whole.names and lean.fields.shape == (0, count)
+        assert np.abs(lean.twists - whole.twists).max() <= 1e-12
+        assert lean.length == whole.length and np.array_equal(lean.center, whole.center)
+        touched = fixed.size + (0 if spring is None else 2 * tip.size) + \
+            (0 if held is None else tip.size)
+        assert peak <= 2.5 * x.nbytes + 600 * touched, (peak, x.nbytes, touched)

@@ -56,6 +56,68 @@ def test_each_rank_holds_its_own_rows_and_the_whole_partition_gathers_back():
         np.asarray(FreeDofs(free.size))
 
 
+def _point_graph(space, free, size):
+    """Reference: the point graph of ``space`` as scipy's product E^T E of the
+    element-node incidence, its columns mapped to the vertices of
+    :func:`~pipeline.distributed.partition.slab_graph_rows` (the points with a free DOF,
+    along the longest extent), without self loops, cut into the slabs' rows."""
+    from pipeline.distributed.partition import slab_graph_rows
+
+    vertex, vorder, _ = slab_graph_rows(space.element_nodes, space.node_points, free, size)
+    n_el, nb = space.element_nodes.shape
+    E = sp.csr_matrix((np.ones(n_el * nb), space.element_nodes.ravel(),
+                       np.arange(0, n_el * nb + 1, nb)), shape=(n_el, space.n_nodes))
+    A = (E.T @ E).tocoo()
+    keep = (vertex[A.row] >= 0) & (vertex[A.col] >= 0) & (A.row != A.col)
+    G = sp.csr_matrix((np.ones(int(keep.sum())), (vertex[A.row[keep]], vertex[A.col[keep]])),
+                      shape=(vorder.size, vorder.size))
+    G.sort_indices()
+    vs = [(vorder.size * r) // size for r in range(size + 1)]
+    return vertex, vorder, [G[vs[r]:vs[r + 1]] for r in range(size)]
+
+
+def test_the_graph_rows_made_chunk_by_chunk_are_the_point_graph_and_stay_small(tmp_path):
+    """slab_graph_rows (rank 0's rows of the partitioner's graph, issue 38): each slab's
+    rows, made a chunk of points at a time (down to one point a chunk), are those of the
+    whole point graph E^T E (two points with a free DOF adjacent when an element holds
+    both), and making a slab's rows allocates (tracemalloc's peak) at most twice the
+    indices they keep (the chunks' pieces and their concatenation), four times their
+    indptr (the points' pair counts, the chunks' row counts, their concatenation, the
+    indptr) and 150 bytes an element-node pair of one chunk (its elements, product rows,
+    keys and their sort: about 60 measured), not a product of the whole slab at once
+    (about 15 times the indices it keeps, which this bound refuses)."""
+    import tracemalloc
+
+    from conftest import build_model
+    from pipeline.distributed.partition import slab_graph_rows
+
+    model = build_model(tmp_path, size=0.02)
+    space, free, size = model.space, model.free, 3
+    vertex, vorder, ref = _point_graph(space, free, size)
+    assert vorder.size == np.unique(free // 3).size < space.n_nodes  # the held face: no vertex
+    for chunk in (1, 2000, 1 << 19):
+        v, o, rows = slab_graph_rows(space.element_nodes, space.node_points, free, size,
+                                     chunk_pairs=chunk)
+        assert np.array_equal(v, vertex) and np.array_equal(o, vorder)
+        for r in range(size):
+            indptr, indices = rows(r)
+            assert indices.dtype == np.int32
+            assert np.array_equal(indptr, ref[r].indptr), (chunk, r)
+            assert np.array_equal(indices, ref[r].indices), (chunk, r)
+    chunk = 1000
+    _, _, rows = slab_graph_rows(space.element_nodes, space.node_points, free, 1,
+                                 chunk_pairs=chunk)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        indptr, indices = rows(0)
+        peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    assert indices.size > 10 * chunk  # dozens of chunks: the bound is not the whole slab's
+    assert peak <= 2 * indices.nbytes + 4 * indptr.nbytes + 150 * chunk, peak
+
+
 def test_port_rows_at_a_ranks_dofs_are_the_matrix_rows():
     rng = np.random.default_rng(0)
     F = sp.random(300, 4, density=0.05, format="csc", random_state=1)  # loads, CSC

@@ -139,26 +139,30 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     Debian's PETSc has no ParMETIS) of the point graph (two points adjacent when an
     element holds both), collectively. Only rank 0 needs the mesh (the others may pass
     None): it builds the graph rows of each rank's slab of points (the initial
-    distribution) and sends them, PETSc moves the points to ``size`` parts of nearly
-    equal count with few cut edges, rank 0 gathers each point's part and makes the
-    partition (the whole one, on rank 0; None elsewhere: each rank receives its own,
-    :meth:`RowPartition.local`). Within a part the rows keep the slab order, a point's
-    DOFs together; rank r owns part r."""
+    distribution, :func:`slab_graph_rows`) and sends them, the other ranks' first, so
+    that only its own slab's rows are alive when its part of PETSc's graph is made;
+    PETSc moves the points to ``size`` parts of nearly equal count with few cut edges,
+    rank 0 gathers each point's part and makes the partition (the whole one, on rank 0;
+    None elsewhere: each rank receives its own, :meth:`RowPartition.local`). Within a
+    part the rows keep the slab order, a point's DOFs together; rank r owns part r."""
     size, rank = comm.size, comm.rank
     if rank == 0:
-        vertex, vorder, rows = _slab_graph_rows(element_nodes, node_points, free, size)
-        for r, adj in enumerate(rows):
-            if r == 0:
-                mine = adj
-            else:
-                comm.send(adj, dest=r, tag=39)
+        vertex, vorder, rows = slab_graph_rows(element_nodes, node_points, free, size)
+        for r in range(1, size):
+            comm.send(rows(r), dest=r, tag=39)
+        indptr, indices = rows(0)
+        del rows  # the point-element incidence it reads
     else:
-        mine = comm.recv(source=0, tag=39)
-    n_v = mine.shape[1]
-    G = PETSc.Mat().createAIJ(size=((mine.shape[0], n_v), (mine.shape[0], n_v)),
-                              csr=(mine.indptr.astype(PETSc.IntType),
-                                   mine.indices.astype(PETSc.IntType), mine.data),
+        indptr, indices = comm.recv(source=0, tag=39)
+    n_rows, n_v = indptr.size - 1, comm.allreduce(indptr.size - 1)
+    # every edge weighs 1 (PT-Scotch reads the weights only with
+    # -mat_partitioning_use_edge_weights); PETSc copies the arrays
+    G = PETSc.Mat().createAIJ(size=((n_rows, n_v), (n_rows, n_v)),
+                              csr=(np.asarray(indptr, dtype=PETSc.IntType),
+                                   np.asarray(indices, dtype=PETSc.IntType),
+                                   np.ones(indices.size)),
                               comm=PETSc.COMM_WORLD)
+    del indptr, indices
     G.assemble()
     mp = PETSc.MatPartitioning().create(comm=PETSc.COMM_WORLD)
     mp.setType(kind)
@@ -181,11 +185,40 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     return part
 
 
-def _slab_graph_rows(element_nodes: np.ndarray, node_points: np.ndarray, free: np.ndarray,
-                     size: int):
-    """(vertex (n_points,): the graph vertex of each point, -1 without a free DOF;
-    vorder (n_v,): the point of each vertex, sorted along the longest extent; an iterator
-    of each rank's (its slab's vertices, n_v) CSR adjacency rows, no self loops)."""
+#: element-node pairs whose rows :func:`slab_graph_rows` makes at a time: the chunk's
+#: product rows (about 0.4 entries a pair, 30 bytes each with their keys and sort) and
+#: the pairs themselves (5 bytes each), about 8 MB whatever the mesh
+GRAPH_CHUNK_PAIRS = 1 << 19
+
+
+def point_elements(element_nodes: np.ndarray, n_points: int):
+    """(the (n_el, n_points) element-node incidence, CSR of bool with int32 indices; the
+    elements of every point: (indptr (n_points + 1,), elements (n_el nb,) int32), point
+    p's ascending in ``elements[indptr[p]:indptr[p + 1]]``), 5 and 4 bytes a node of an
+    element."""
+    import scipy.sparse as sp
+
+    n_el, nb = element_nodes.shape
+    incidence = sp.csr_matrix((np.ones(n_el * nb, dtype=bool), element_nodes.ravel(),
+                               np.arange(0, n_el * nb + 1, nb)), shape=(n_el, n_points))
+    by_point = incidence.tocsc()  # each column's rows (elements) ascending
+    return incidence, (by_point.indptr, by_point.indices)
+
+
+def slab_graph_rows(element_nodes: np.ndarray, node_points: np.ndarray, free: np.ndarray,
+                    size: int, chunk_pairs: int = GRAPH_CHUNK_PAIRS):
+    """The point graph's rows by slabs: (vertex (n_points,) int32, the graph vertex of
+    each point, -1 without a free DOF; vorder (n_v,), the point of each vertex, sorted
+    along the longest extent; ``rows(r)``: slab r's rows, (indptr (n_r + 1,) int64,
+    indices int32), each vertex's adjacent vertices ascending, no self loops).
+
+    Vertices v and w are adjacent when an element holds both their points. A slab's rows
+    are made a chunk of its points at a time, about ``chunk_pairs`` element-node pairs
+    (the incidence's rows of the chunk's points' elements times the incidence, a
+    boolean sparse product, its columns mapped to vertices and sorted as int64 keys
+    row n_v + column), so that the transient arrays stay bounded by the chunk; between
+    calls ``rows`` holds the incidence both ways (:func:`point_elements`, 9 bytes a
+    node of an element) and the two maps."""
     import scipy.sparse as sp
 
     free = np.asarray(free)
@@ -193,27 +226,48 @@ def _slab_graph_rows(element_nodes: np.ndarray, node_points: np.ndarray, free: n
     axis = int(np.argmax(np.ptp(points, axis=0))) if points.shape[0] else 0
     up = np.unique(free // 3)  # the points with a free DOF: the graph's vertices
     vorder = up[np.argsort(points[up, axis], kind="stable")]  # vertex v is point vorder[v]
-    vertex = np.full(points.shape[0], -1, dtype=np.int64)
-    vertex[vorder] = np.arange(vorder.size)
-    vs = [(vorder.size * r) // size for r in range(size + 1)]
-    n_el, nb = element_nodes.shape
-    E = sp.csr_matrix((np.ones(n_el * nb), element_nodes.ravel(),
-                       np.arange(0, n_el * nb + 1, nb)), shape=(n_el, points.shape[0]))
-    ET = E.T.tocsr()
+    del up
+    n_v = vorder.size
+    vertex = np.full(points.shape[0], -1, dtype=np.int32)
+    vertex[vorder] = np.arange(n_v, dtype=np.int32)
+    vs = [(n_v * r) // size for r in range(size + 1)]
+    incidence, (ptr, elements) = point_elements(element_nodes, points.shape[0])
+    pairs = np.diff(ptr) * element_nodes.shape[1]  # element-node pairs of each point
 
-    def rows():
-        for r in range(size):
-            mine = vorder[vs[r]:vs[r + 1]]
-            A = (ET[mine] @ E).tocoo()  # (its points, all points): shared elements
-            cols = vertex[A.col]
-            keep = (cols >= 0) & (cols != vs[r] + A.row)  # free points, no self loops
-            adj = sp.csr_matrix((np.ones(int(keep.sum())), (A.row[keep], cols[keep])),
-                                shape=(mine.size, vorder.size))
-            adj.sum_duplicates()
-            adj.sort_indices()
-            yield adj
+    def rows(r: int) -> tuple[np.ndarray, np.ndarray]:
+        mine = vorder[vs[r]:vs[r + 1]]
+        ends = np.cumsum(pairs[mine])
+        counts, pieces = [], []
+        a = 0
+        while a < mine.size:
+            done = ends[a - 1] if a else 0
+            b = max(a + 1, int(np.searchsorted(ends, done + chunk_pairs, side="right")))
+            lo = ptr[mine[a:b]]
+            n_e = ptr[mine[a:b] + 1] - lo  # each point's elements
+            at = np.arange(int(n_e.sum())) + np.repeat(lo - (np.cumsum(n_e) - n_e), n_e)
+            chunk = sp.csr_matrix((np.ones(at.size, dtype=bool), elements[at],
+                                   np.concatenate([[0], np.cumsum(n_e)])),
+                                  shape=(b - a, incidence.shape[0]))
+            del at
+            shared = chunk @ incidence  # (chunk, n_points): the points sharing an element
+            del chunk
+            row = np.repeat(np.arange(b - a, dtype=np.int64), np.diff(shared.indptr))
+            cols = vertex[shared.indices]
+            del shared
+            keep = (cols >= 0) & (cols != vs[r] + a + row)  # free points, no self loops
+            key = (row * n_v + cols)[keep]
+            del row, cols, keep
+            key.sort()  # row-major, each row's vertices ascending
+            row = key // n_v
+            pieces.append((key - row * n_v).astype(np.int32))
+            counts.append(np.bincount(row, minlength=b - a))
+            a = b
+        indptr = np.zeros(mine.size + 1, dtype=np.int64)
+        if counts:
+            np.cumsum(np.concatenate(counts), out=indptr[1:])
+        return indptr, (np.concatenate(pieces) if pieces else np.zeros(0, np.int32))
 
-    return vertex, vorder, rows()
+    return vertex, vorder, rows
 
 
 def cut_measures(local_K, lo: int, hi: int) -> tuple[int, int]:

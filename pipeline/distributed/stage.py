@@ -111,10 +111,11 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     n_modes) arrays of mode shapes divided by the rank count, plus what every rank holds
     (baseline); each rank's part of the mesh is the whole mesh / ranks. Rank 0 holds
     besides, from the assembly on, the whole mesh's points and elements it writes
-    (:func:`kept_bytes`), and before that, while it cuts out the parts, the whole mesh
-    and the parts (the serial model's mesh term and one more share of it): its peak is
-    the larger of the two phases. gmsh's library state after meshing (18 MB on rank 0
-    alone, a constant) is within the baseline. A rotation sweep (factor path, a
+    (:func:`kept_bytes`), and before that, while it meshes, partitions and cuts out the
+    parts, what it holds of the whole mesh and its share of the partitioner's graph
+    (:func:`handoff_meshes` serial mesh terms): its peak is the larger of the two
+    phases. gmsh's library state after meshing (18 MB on rank 0 alone, a constant) is
+    within the baseline. A rotation sweep (factor path, a
     speed other than 0) factorises K(Omega), K's pattern, while the run's factor of K
     is alive (the static correction solves with it afterwards): one more factor's share
     (:func:`~pipeline._util.resources.factor_bytes`). The other factors made after the
@@ -142,7 +143,7 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
         divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
     own = divided  # on one rank the whole mesh is its part
     if comm.rank == 0 and comm.size > 1:  # the hand-off, or the kept arrays from then on
-        own = max(HANDOFF_MESHES * mesh, divided + kept_bytes(n_nodes, n_el, cfg))
+        own = max(handoff_meshes(comm.size) * mesh, divided + kept_bytes(n_nodes, n_el, cfg))
     per_rank = int(res.BASELINE_BYTES + own)
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     node_ranks = node.size
@@ -162,11 +163,21 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     return per_rank
 
 
-#: rank 0's peak while it partitions and cuts out the parts (the whole mesh, the
-#: partition's graph rows, the parts), in serial mesh terms
-#: (:data:`pipeline._util.resources.MESH_BYTES_PER_NODE` a point, 64 bytes an element):
-#: measured 2.1 of them at 100k and 620k DOFs (docs/distributed.md, "Rank 0's memory")
-HANDOFF_MESHES = 2.2
+#: rank 0's peak while it meshes, partitions and cuts out the parts, in serial mesh terms
+#: (:data:`pipeline._util.resources.MESH_BYTES_PER_NODE` a point, 64 bytes an element),
+#: HANDOFF_WHOLE + HANDOFF_GRAPH / ranks, at least HANDOFF_FLOOR (:func:`handoff_meshes`):
+#: what it holds of the whole mesh, and its share of the partitioner's graph (its slab's
+#: rows and PETSc's and PT-Scotch's copies of them), which divides; from about 8 ranks on,
+#: cutting out the parts is the peak. Measured above the stack and its constant 22 MB at
+#: 100k, 250k and 620k DOFs on 2 and 4 ranks: 93 + 318 / P bytes a free DOF, 0.43 +
+#: 1.48 / P mesh terms, and 0.66 on 8 and 16 ranks (docs/distributed.md, "Rank 0's
+#: memory"); these carry a fifth more
+HANDOFF_WHOLE, HANDOFF_GRAPH, HANDOFF_FLOOR = 0.6, 1.6, 0.8
+
+
+def handoff_meshes(ranks: int) -> float:
+    """Rank 0's mesh phase on ``ranks`` ranks in serial mesh terms (above)."""
+    return max(HANDOFF_WHOLE + HANDOFF_GRAPH / ranks, HANDOFF_FLOOR)
 
 
 def kept_bytes(n_nodes: int, n_el: int, cfg: Config) -> float:
@@ -207,7 +218,7 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
     """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
     and supports on the whole mesh; every misplaced region or gauge is refused here,
     before any rank assembles."""
-    meshed = mesh_config(cfg, mesh_dir)
+    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, world(), step))
     space, regions, materials = meshed.space, meshed.regions, meshed.materials
     added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
     mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
@@ -251,18 +262,18 @@ def supports_rigid_freedoms(inputs: SupportInputs | None, node_points: np.ndarra
     FE stage judges them (:func:`pipeline.fe.supports.rigid_freedoms` with the body's
     centre of mass, rigid mass and the floor SOFT_SUPPORT * median(K_ii / M_ii) of K
     before the springs): evaluated on rank 0 (``inputs``, and every point at
-    ``node_points`` (n_points, 3) m), the same on every rank, which receives them
-    without their (n_dofs, r) fields
-    (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank evaluates them
-    on its own points)."""
+    ``node_points`` (n_points, 3) m, from R's rows at the held DOFs and the springs'
+    alone), the same on every rank, which receives them without their (n_dofs, r)
+    fields (:meth:`~pipeline.fe.supports.RigidFreedoms.without_fields`: each rank
+    evaluates them on its own points)."""
     median = of_diagonals(lambda Kd, Md: float(np.median(
         Kd.diagonal() / np.maximum(Md.diagonal(), np.finfo(float).tiny))), K, M)
     left = None
     if inputs is not None:
         left = rigid_freedoms(node_points, props.center_of_mass, inputs.fixed,
                               inputs.springs, inputs.held, props.rigid_mass,
-                              SOFT_SUPPORT * median if inputs.any_free else 0.0)
-        left = left.without_fields()
+                              SOFT_SUPPORT * median if inputs.any_free else 0.0,
+                              fields=False)  # no (n_dofs, 6) array on rank 0
     return comm.bcast(left, root=0)
 
 

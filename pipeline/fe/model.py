@@ -121,13 +121,19 @@ class MeshedConfig:
     supports: SupportStiffness
 
 
-def mesh_config(cfg: Config, mesh_dir: str | Path | None = None) -> MeshedConfig:
+def mesh_config(cfg: Config, mesh_dir: str | Path | None = None,
+                mark: Callable[[str], None] | None = None) -> MeshedConfig:
     """Mesh ``cfg``'s body (gmsh, or its mesh file) into ``mesh_dir``, build the space,
     resolve the regions (a region used where it cannot be is refused here, before any
     assembly), the materials, the added masses and the supports' stiffness. The serial
-    FE stage and rank 0 of the distributed one both start here."""
+    FE stage and rank 0 of the distributed one both start here. ``mark(step)``, if
+    given, is called after the mesh is read ("mesh read": gmsh has finalised) and after
+    the space is built ("space built"; rank 0 logs its resident memory there)."""
+    mark = mark or (lambda step: None)
     body, mesh_path, mesh_sha256 = mesh_body(cfg.geometry, cfg.mesh, mesh_dir, cfg.name)
+    mark("mesh read")
     space = build_space(body, cfg.mesh.order)
+    mark("space built")
     regions = resolve_regions(space, cfg.regions)
     check_region_uses(cfg, space, regions)
     return MeshedConfig(body.n_tetrahedra, mesh_path, mesh_sha256, space, regions,

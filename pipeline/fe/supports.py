@@ -270,7 +270,7 @@ def _null_space(G: np.ndarray, basis: np.ndarray) -> np.ndarray:
 def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarray,
                    springs: sp.spmatrix | None = None,
                    constraint: sp.spmatrix | None = None, rigid_mass: np.ndarray | None = None,
-                   omega2_floor: float = 0.0) -> RigidFreedoms:
+                   omega2_floor: float = 0.0, fields: bool = True) -> RigidFreedoms:
     """The rigid-body motions that move no DOF of ``fixed``, no held local direction (the
     rows of ``constraint``, (n_c, n_dofs)) and strain no spring of ``springs`` ((n_dofs,
     n_dofs) N/m), named (module docstring). Each kind is judged on its own scale.
@@ -278,20 +278,47 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
     ``rigid_mass`` ((6, 6) R_O^T M R_O at the origin, :class:`BodyProperties`) and
     ``omega2_floor`` (rad^2/s^2): a rigid motion that the springs hold at omega^2 below
     the floor counts as free, with a warning (the eigensolver could not tell it from
-    0 Hz: :data:`SOFT_SUPPORT`)."""
+    0 Hz: :data:`SOFT_SUPPORT`).
+
+    ``fields`` False: the motions without their (n_dofs, r) fields
+    (:meth:`RigidFreedoms.without_fields`), judged from R's rows at the held DOFs, the
+    held directions' and the springs' DOFs only, never R at every DOF (48 bytes a DOF,
+    as much again for S R): what MPI rank 0 evaluates on the whole mesh. The held DOFs'
+    and directions' conditions are the same numbers; the springs' R^T S R is summed over
+    their DOFs alone, equal to round-off."""
     x = np.asarray(node_points, dtype=float)
     L = float(np.sqrt(((x - center) ** 2).sum(axis=1).mean())) or 1.0
-    R = rigid_body_modes(x, center)
-    R[:, 3:] /= L
+    if fields:
+        R = rigid_body_modes(x, center)
+        R[:, 3:] /= L
+
+        def rows(dofs):
+            return R[dofs]
+    else:
+        def rows(dofs):
+            return _rigid_rows(x, center, L, dofs)
     N = np.eye(6)
     if fixed.size:
-        A = R[fixed]
+        A = rows(fixed)
         N = _null_space(A.T @ A, N)
     if constraint is not None and constraint.shape[0] and N.shape[1]:
-        A = constraint @ R
+        if fields:
+            A = constraint @ R
+        else:  # its columns renumbered to those it holds: the same sums, term by term
+            C = sp.csr_matrix(constraint)
+            cols = np.unique(C.indices)
+            A = sp.csr_matrix((C.data, np.searchsorted(cols, C.indices), C.indptr),
+                              shape=(C.shape[0], cols.size)) @ rows(cols)
         N = _null_space(A.T @ A, N)
     if springs is not None and N.shape[1]:
-        G = N.T @ (R.T @ (springs @ R)) @ N
+        if fields:
+            RSR = R.T @ (springs @ R)
+        else:  # the springs' rows and columns only
+            S = sp.csr_matrix(springs)
+            held = np.union1d(np.flatnonzero(np.diff(S.indptr)), S.indices)
+            Rs = rows(held)
+            RSR = Rs.T @ (S[held][:, held] @ Rs)
+        G = N.T @ RSR @ N
         # twist metric: the rigid mass at the centre, rotations scaled as in R
         shift = np.eye(6)
         shift[0:3, 3:6] = skew(np.asarray(center, dtype=float))
@@ -326,9 +353,24 @@ def rigid_freedoms(node_points: np.ndarray, center: np.ndarray, fixed: np.ndarra
         N = N - np.outer(t, t @ N)
         u, s, _ = np.linalg.svd(N, full_matrices=False)
         N = u[:, s > 1e-8]
-    fields = R @ np.array(twists).T if twists else np.zeros((x.size, 0))
-    return RigidFreedoms(tuple(names), fields, np.array(twists).reshape(-1, 6),
-                         np.array(center, dtype=float), L)
+    twists = np.array(twists).reshape(-1, 6)
+    if not fields:
+        motion = np.zeros((0, twists.shape[0]))
+    else:
+        motion = R @ twists.T if twists.size else np.zeros((x.size, 0))
+    return RigidFreedoms(tuple(names), motion, twists, np.array(center, dtype=float), L)
+
+
+def _rigid_rows(points: np.ndarray, center: np.ndarray, length: float,
+                dofs: np.ndarray) -> np.ndarray:
+    """(dofs.size, 6) the rows ``dofs`` (3 p + c) of the rigid-body modes at ``center``
+    with the rotation columns divided by ``length`` (m), from those DOFs' points alone:
+    the numbers of the whole (n_dofs, 6) array's rows."""
+    dofs = np.asarray(dofs, dtype=np.int64)
+    R = rigid_body_modes(points[dofs // 3], center).reshape(-1, 3, 6)
+    R = R[np.arange(dofs.size), dofs % 3]
+    R[:, 3:] /= length
+    return R
 
 
 def support_summary(fe, modes) -> list[str]:
