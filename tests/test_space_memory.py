@@ -68,3 +68,14 @@ def test_element_volumes_in_small_chunks_equal_the_whole_computation(body, monke
     np.testing.assert_array_equal(strain.element_volumes(space), whole)
     # the unit cube: the volumes sum to 1 up to round-off of n_t additions
     assert abs(whole.sum() - 1.0) < 1e-14 * body.n_tetrahedra
+
+
+def test_node_volumes_in_small_chunks_equal_one_bincount(body, monkeypatch):
+    space = space_module.build_space(body, 2)
+    vol = strain.element_volumes(space)
+    en = space.element_nodes
+    whole = np.bincount(en.ravel(), weights=np.repeat(vol, en.shape[1]), minlength=space.n_nodes)
+    monkeypatch.setattr(strain, "CHUNK", 13)
+    np.testing.assert_array_equal(strain.node_volumes(space), whole)
+    # each element's volume counted once at each of its 10 nodes
+    assert abs(whole.sum() - 10.0) < 1e-14 * en.size

@@ -35,7 +35,7 @@ import scipy.sparse as sp
 from pipeline.distributed.partition import RowPartition
 from pipeline.fe.materials import ElementMaterials
 from pipeline.fe.space import FESpace, sub_space
-from pipeline.fe.strain import element_volumes
+from pipeline.fe.strain import node_volumes
 
 
 @dataclass(frozen=True)
@@ -162,8 +162,7 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
     owner = point_ranks(space.n_nodes, part, size)
     element_rank = owner[en].min(axis=1)
     element_rank[element_rank == size] = 0  # no free point: rank 0 sums its mass
-    node_volume = np.bincount(en.ravel(), weights=np.repeat(element_volumes(space), nb),
-                              minlength=space.n_nodes)
+    node_volume = node_volumes(space)
     rows = petsc_numbering(space.n_dofs, part)
     added = None if added is None else sp.csr_matrix(added)
     springs = None if springs is None else sp.csr_matrix(springs)

@@ -215,6 +215,21 @@ def element_volumes(space: FESpace) -> np.ndarray:
     return out
 
 
+def node_volumes(space: FESpace, volumes: np.ndarray | None = None) -> np.ndarray:
+    """(n_nodes,) m^3: at each node the sum of the ``volumes`` (n_e,) m^3 (default
+    :func:`element_volumes`) of the elements around it. The sums are added a chunk of
+    elements at a time in element order, so each node's sum is the one
+    ``np.bincount(element_nodes.ravel(), weights=np.repeat(volumes, n_local))`` adds up,
+    bit for bit, without that call's element-node weights (8 bytes a node of an element)."""
+    en = space.element_nodes
+    vol = element_volumes(space) if volumes is None else volumes
+    out = np.zeros(space.n_nodes)
+    for start in range(0, en.shape[0], CHUNK):
+        part = en[start:start + CHUNK]
+        np.add.at(out, part.ravel(), np.repeat(vol[start:start + part.shape[0]], part.shape[1]))
+    return out
+
+
 def nodal_strains(space: FESpace, U: np.ndarray, element_D=None) -> np.ndarray:
     """(n_nodes, 6, n_s): the volume-weighted average (module docstring) at every node of
     the element-nodal strains of U (n_dofs, n_s); memory: the nodal result plus one chunk.
@@ -238,8 +253,7 @@ def nodal_strains_at(space: FESpace, U: np.ndarray, nodes: np.ndarray,
     a mesh: the whole mesh's sums, which the part's own elements may not all reach)."""
     en = space.element_nodes
     vol = element_volumes(space)
-    weight = np.bincount(en.ravel(), weights=np.repeat(vol, en.shape[1]),
-                         minlength=space.n_nodes)[nodes] if node_weight is None else node_weight
+    weight = node_volumes(space, vol)[nodes] if node_weight is None else node_weight
     whole = nodes.size == space.n_nodes
     out = np.zeros((nodes.size, 6 * U.shape[1]))
 
