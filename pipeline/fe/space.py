@@ -73,9 +73,10 @@ def build_space(body: BodyMesh, order: int) -> FESpace:
     """Create the vector Lagrange space of ``order`` on ``body``.
 
     Memory: what the space keeps (scikit-fem's mesh, for order 2 the nodes, the int64
-    element nodes and the edges) plus, at the peak, the edge numbering's sorted int64 keys
-    (48 bytes an element; :func:`edge_numbering`); the element nodes and the midpoints are
-    written in place a chunk at a time (:data:`EDGE_CHUNK` elements or edges)."""
+    element nodes and the edges) plus, at the peak, the edge numbering's int64 keys and
+    their sort permutation (96 bytes an element; :func:`_number_edges`); the element nodes
+    and the midpoints are written in place a chunk at a time (:data:`EDGE_CHUNK` elements
+    or edges)."""
     from skfem import MeshTet
 
     # int32 and C order are what MeshTet stores: no int64 copy in between
