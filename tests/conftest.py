@@ -2,10 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
+from pipeline.cli.process import PROCESS_SETTINGS
+
+# The test processes are hosts that run the library in-process, two of them (`make test`'s
+# workers) on a 2-core machine: without the command line's spin times, OpenBLAS's idle
+# threads (about 0.1 s after each call) and MKL's OpenMP threads (0.2 s) of one worker take
+# the cores from the other's (the same files took 1.3-1.5 times as long). They are set
+# here, before numpy and MKL load (``import pipeline`` loads neither), unless already set;
+# the CLI's heap opt-in is not (the library's default behaviour is what the tests check).
+# Tests of a host's or the CLI's environment remove these variables from their child's.
+for _name in ("OPENBLAS_THREAD_TIMEOUT", "KMP_BLOCKTIME"):
+    os.environ.setdefault(_name, PROCESS_SETTINGS[_name])
+
+import numpy as np  # noqa: E402 (after the spin times, which act when numpy loads)
 import pytest
 
 from pipeline.fe.assemble import assemble_stiffness_mass, restrict
