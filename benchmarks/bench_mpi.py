@@ -313,6 +313,8 @@ def mesh_phase_table(rows: list[dict]) -> list[str]:
 #: the partition comparison (``--cuts``): the slender cantilever and a compact cube
 CUT_CASES = {"cantilever": [], "cube": ["geometry={kind: box, length: 0.1, height: 0.1, "
                                          "depth: 0.1}"]}
+#: the partitions compared: slabs, PT-Scotch on the point graph and on the vertex graph
+CUT_KINDS = ("slab", "points", "vertices")
 
 
 def cut_worker(size: float, case: str) -> None:
@@ -336,11 +338,16 @@ def cut_worker(size: float, case: str) -> None:
     regions = resolve_regions(space, cfg.regions)
     free = free_dofs(space.n_dofs, fixed_dofs(space, regions, cfg.supports, False))
     out = {"case": case, "ranks": comm.size, "n_free": int(free.size)}
-    for kind in ("slab", "graph"):
+    options = PETSc.Options()
+    for kind in CUT_KINDS:
         t0 = time.perf_counter()
-        part = slab_partition(space.node_points, free, comm.size) if kind == "slab" else \
-            comm.bcast(graph_partition(PETSc, comm, space.element_nodes, space.node_points,
-                                       free), root=0)  # rank 0's: every rank cuts here
+        if kind == "slab":
+            part = slab_partition(space.node_points, free, comm.size)
+        else:  # the vertex graph (the default) or the point graph
+            options.setValue("pipeline_partition_graph", kind)
+            part = comm.bcast(graph_partition(PETSc, comm, space.element_nodes,
+                                              space.node_points, free), root=0)  # rank 0's
+            options.delValue("pipeline_partition_graph")
         seconds = time.perf_counter() - t0
         mesh = next(islice(split_mesh(space, config_materials(space, cfg), free, part,
                                       comm.size), comm.rank, None))
@@ -368,23 +375,23 @@ def _mpiexec(ranks: int, args: list[str], timeout: float) -> dict:
 
 
 def cut_table(size: float, ranks: list[int], timeout: float) -> list[str]:
-    """Lines: slab against graph partition, per case and rank count: the largest cut and
-    halo of any rank, and the rows' imbalance (max / mean - 1)."""
+    """Lines: the slab partition and the graph partitions of the point graph and the
+    vertex graph (the default), per case and rank count: the largest cut and halo of any
+    rank, the rows' imbalance (max / mean - 1) and the partition's seconds."""
     lines = [f"partitions (mesh.size {size} m): max over ranks of cut K entries / halo "
-             "columns, row imbalance",
-             f"{'case':>10} {'ranks':>5} {'free DOFs':>9} {'slab cut/halo':>16} "
-             f"{'graph cut/halo':>16} {'slab imb':>8} {'graph imb':>9}"]
+             "columns, row imbalance, seconds",
+             f"{'case':>10} {'ranks':>5} {'free DOFs':>9}"
+             + "".join(f" {kind + ' cut/halo':>21} {'imb':>5} {'s':>5}" for kind in CUT_KINDS)]
     for case in CUT_CASES:
         for p in ranks:
             r = _mpiexec(p, ["--cut-worker", "--case", case, "--size", str(size)], timeout)
             cells = []
-            for kind in ("slab", "graph"):
+            for kind in CUT_KINDS:
                 cut = max(c[0] for c in r[kind]["cut"])
                 halo = max(c[1] for c in r[kind]["cut"])
-                cells.append(f"{cut}/{halo}")
-            imb = [max(r[k]["rows"]) / (sum(r[k]["rows"]) / p) - 1 for k in ("slab", "graph")]
-            lines.append(f"{case:>10} {p:>5} {r['n_free']:>9} {cells[0]:>16} {cells[1]:>16} "
-                         f"{imb[0]:>8.1%} {imb[1]:>9.1%}")
+                imb = max(r[kind]["rows"]) / (sum(r[kind]["rows"]) / p) - 1
+                cells.append(f" {f'{cut}/{halo}':>21} {imb:>5.1%} {r[kind]['seconds']:>5.2f}")
+            lines.append(f"{case:>10} {p:>5} {r['n_free']:>9}" + "".join(cells))
     return lines
 
 
