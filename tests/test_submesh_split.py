@@ -229,7 +229,9 @@ def test_split_mesh_scratch_is_bounded(kind, monkeypatch):
       test (4 + 4 + 1 bytes, once), a part's two element masks (1 + 1 bytes) and the
       indices of the elements between the two ends (8 bytes each);
     - a chunk of elements' node ranks and their comparison (1 + 1 bytes a node of an
-      element, at most :data:`~pipeline.distributed.submesh.SPLIT_CHUNK` elements);
+      element, at most :data:`~pipeline.distributed.submesh.SPLIT_CHUNK` elements), and
+      of the elements between the two ends, compared per part, their node numbers
+      besides (8 + 1 + 1 bytes a node);
     - the first part (the caller keeps it), the part being made and its element indices
       (8 bytes an element), its points' rows before they are widened, their local
       numbers and their indices (12 + 4 + 8 bytes a point of the part), with 64 KiB for
@@ -279,7 +281,8 @@ def test_split_mesh_scratch_is_bounded(kind, monkeypatch):
 
     used, parts = peak(submesh.split_mesh)
     bound = (8 * n_nodes + 4 * n_dofs + 6 * n_nodes + (2 + 9 + 2) * n_el + 8 * n_between
-             + 2 * nb * min(n_el, submesh.SPLIT_CHUNK) + parts + (64 << 10))
+             + 2 * nb * min(n_el, submesh.SPLIT_CHUNK)
+             + 10 * nb * min(n_between, submesh.SPLIT_CHUNK) + parts + (64 << 10))
     assert n_dofs > 90_000
     assert used < bound, (used / n_dofs, bound / n_dofs)
     if kind == "slab":

@@ -159,7 +159,8 @@ def _narrowest(largest: int) -> type:
 
 
 #: elements whose nodes' owners :func:`split_mesh` compares at a time: (chunk, nb) owner
-#: ranks (1 byte each up to 127 ranks) and the comparison's booleans, under 2 MB
+#: ranks (1 byte each up to 127 ranks) and the comparison's booleans, 1.3 MB of quadratic
+#: elements, with the node numbers of the elements compared per part (8 bytes each) 6.5 MB
 SPLIT_CHUNK = 1 << 16
 
 
@@ -193,9 +194,10 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
     ``tests/test_submesh_split.py`` bounds it): the whole mesh's volume around each node
     (8 bytes a point), the PETSc row of every DOF (4 bytes a DOF below 2^31 rows), each
     point's rank and each element's lowest and highest rank (1 byte each up to 127
-    ranks), a local-number table and a marker over the points (4 and 1 bytes a point),
-    and per part two boolean masks over the elements and the part's element indices
-    (8 bytes each). An element is in part r if its lowest or highest rank is r; only an
+    ranks), the indices of the elements with a rank strictly between (8 bytes each: few
+    on slabs), a local-number table and a marker over the points (4 and 1 bytes a
+    point), and per part two boolean masks over the elements and the part's element
+    indices (8 bytes each). An element is in part r if its lowest or highest rank is r; only an
     element with a rank strictly between (a node owned by neither end) has its nodes
     compared with r, :data:`SPLIT_CHUNK` elements at a time. The part's points are the
     marked ones, ascending, and its local element nodes the table's numbers of them:
