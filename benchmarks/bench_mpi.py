@@ -518,10 +518,9 @@ def extrapolate(model: dict, n: float) -> list[str]:
         least = model["c"] + mesh_phase_mb(mesh, s, 10**9)
         lines.append(f"  rank 0's mesh phase (gmsh, the whole FE space, the partition, "
                      f"cutting the parts; before the assembly): {phase / 1024:.1f} GB on 2 "
-                     f"ranks, {least / 1024:.1f} GB on many (its graph share divides; from "
-                     "about 8 ranks on, cutting out the parts, fitted here only on 2 and 4, "
-                     "sets a floor: docs/distributed.md), beside the other ranks' stack on "
-                     "its node"
+                     f"ranks, {least / 1024:.1f} GB on many (its graph share divides; "
+                     "fitted here on 2 and 4 ranks, measured at or below the fit on 8 and "
+                     "16: docs/distributed.md), beside the other ranks' stack on its node"
                      + ("" if phase < usable else ": more than a node holds on 2 ranks"))
     for ranks_per_node in (1, 2, 4, 8):
         if ranks_per_node * fixed + whole >= usable:

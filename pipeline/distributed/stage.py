@@ -167,11 +167,11 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
 #: (:data:`pipeline._util.resources.MESH_BYTES_PER_NODE` a point, 64 bytes an element),
 #: HANDOFF_WHOLE + HANDOFF_GRAPH / ranks, at least HANDOFF_FLOOR (:func:`handoff_meshes`):
 #: what it holds of the whole mesh, and its share of the partitioner's graph (its slab's
-#: rows and PETSc's and PT-Scotch's copies of them), which divides; from about 8 ranks on,
-#: cutting out the parts is the peak. Measured above the stack and its constant 21 MB at
-#: 100k, 250k and 620k DOFs on 2 and 4 ranks: 108 + 284 / P bytes a free DOF, 0.50 +
-#: 1.32 / P mesh terms, and 0.59-0.66 on 8 and 16 ranks (docs/distributed.md, "Rank 0's
-#: memory"); these carry a fifth more
+#: rows and PETSc's and PT-Scotch's copies of them), which divides; cutting out the parts
+#: stays within it. Measured above the stack and its constant 21 MB at 100k, 250k and
+#: 620k DOFs on 2 and 4 ranks: 108 + 284 / P bytes a free DOF, 0.50 + 1.32 / P mesh
+#: terms, and 0.56-0.62 on 8 and 16 ranks (docs/distributed.md, "Rank 0's memory"), which
+#: the floor covers beyond the ranks measured; these carry a fifth more
 HANDOFF_WHOLE, HANDOFF_GRAPH, HANDOFF_FLOOR = 0.6, 1.6, 0.8
 
 

@@ -132,21 +132,53 @@ def compact_nodes(element_nodes: np.ndarray, n_nodes: int) -> np.ndarray:
     return element_nodes
 
 
-def petsc_numbering(n_dofs: int, part: RowPartition) -> np.ndarray:
+def petsc_numbering(n_dofs: int, part: RowPartition, dtype=np.int64) -> np.ndarray:
     """(n_dofs,) PETSc row of every DOF, -1 for a fixed one (``part``: the whole
-    partition)."""
-    rows = np.full(n_dofs, -1, dtype=np.int64)
-    rows[part.dofs] = np.arange(part.n_free)
+    partition), as ``dtype`` (a signed integer type that holds n_free - 1)."""
+    rows = np.full(n_dofs, -1, dtype=dtype)
+    rows[part.dofs] = np.arange(part.n_free, dtype=dtype)
     return rows
 
 
-def point_ranks(n_nodes: int, part: RowPartition, size: int) -> np.ndarray:
+def point_ranks(n_nodes: int, part: RowPartition, size: int, dtype=np.int64) -> np.ndarray:
     """(n_nodes,) the rank owning each point's free DOFs, ``size`` for a point without
-    (``part``: the whole partition)."""
-    owner = np.full(n_nodes, size, dtype=np.int64)
+    (``part``: the whole partition; a point whose DOFs several ranks own: the highest of
+    them), as ``dtype`` (an integer type that holds ``size``)."""
+    owner = np.full(n_nodes, size, dtype=dtype)
     for r in range(size):
         owner[part.owned_dofs(r) // 3] = r
     return owner
+
+
+def _narrowest(largest: int) -> type:
+    """The narrowest signed integer type that holds -1 and ``largest``."""
+    for dtype in (np.int8, np.int16, np.int32):
+        if largest <= np.iinfo(dtype).max:
+            return dtype
+    return np.int64
+
+
+#: elements whose nodes' owners :func:`split_mesh` compares at a time: (chunk, nb) owner
+#: ranks (1 byte each up to 127 ranks) and the comparison's booleans, 1.3 MB of quadratic
+#: elements, with the node numbers of the elements compared per part (8 bytes each) 6.5 MB
+SPLIT_CHUNK = 1 << 16
+
+
+def element_owner_span(element_nodes: np.ndarray, owner: np.ndarray, size: int,
+                       chunk: int = SPLIT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """(lowest, highest) (n_el,) each, ``owner``'s dtype: the lowest and the highest rank
+    owning a node of each element (``owner`` (n_nodes,) from :func:`point_ranks`, ``size``
+    for a node without a free DOF); an element without such a node has lowest ``size`` and
+    highest -1. Made ``chunk`` elements at a time."""
+    n_el = element_nodes.shape[0]
+    lowest = np.empty(n_el, dtype=owner.dtype)
+    highest = np.empty(n_el, dtype=owner.dtype)
+    for start in range(0, n_el, chunk):
+        ranks = owner[element_nodes[start:start + chunk]]  # (chunk, nb)
+        ranks.min(axis=1, out=lowest[start:start + ranks.shape[0]])
+        ranks[ranks == size] = -1  # no owner: below every rank
+        ranks.max(axis=1, out=highest[start:start + ranks.shape[0]])
+    return lowest, highest
 
 
 def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
@@ -155,57 +187,101 @@ def split_mesh(space: FESpace, materials: ElementMaterials, free: np.ndarray,
     """The :class:`RankMesh` of every rank in rank order (the module), from the whole
     ``space`` with its element ``materials``, the sorted ``free`` DOFs, the partition,
     the (n_dofs, n_dofs) added masses (kg) or None and the (n_dofs, n_dofs) spring
-    stiffness (N/m) or None. One part is made at a time."""
-    free = np.asarray(free)
+    stiffness (N/m) or None. One part is made at a time; the generator keeps no
+    reference to a part once it has yielded it.
+
+    Scratch beside the parts (n_el elements of nb nodes, n_nodes points, n_dofs DOFs;
+    ``tests/test_submesh_split.py`` bounds it): the whole mesh's volume around each node
+    (8 bytes a point), the PETSc row of every DOF (4 bytes a DOF below 2^31 rows), each
+    point's rank and each element's lowest and highest rank (1 byte each up to 127
+    ranks), the indices of the elements with a rank strictly between (8 bytes each: few
+    on slabs), a local-number table and a marker over the points (4 and 1 bytes a
+    point), and per part two boolean masks over the elements and the part's element
+    indices (8 bytes each). An element is in part r if its lowest or highest rank is r; only an
+    element with a rank strictly between (a node owned by neither end) has its nodes
+    compared with r, :data:`SPLIT_CHUNK` elements at a time. The part's points are the
+    marked ones, ascending, and its local element nodes the table's numbers of them:
+    the same arrays as ``np.unique(..., return_inverse=True)``'s, without its sorted
+    copy and permutation of the part's element nodes."""
+    n_free = int(np.asarray(free).size)
     en = space.element_nodes
-    nb = en.shape[1]
-    owner = point_ranks(space.n_nodes, part, size)
-    element_rank = owner[en].min(axis=1)
-    element_rank[element_rank == size] = 0  # no free point: rank 0 sums its mass
-    node_volume = node_volumes(space)
-    rows = petsc_numbering(space.n_dofs, part)
+    n_nodes = space.n_nodes
+    node_volume = node_volumes(space)  # before the rest: its chunks' scratch comes first
+    owner = point_ranks(n_nodes, part, size, _narrowest(size))
+    lowest, highest = element_owner_span(en, owner, size)
+    # between the two ends: the only elements whose other nodes' ranks are unknown
+    between = np.flatnonzero(highest.astype(np.int32) - lowest > 1)
+    element_rank = lowest  # the mass-summing rank: the lowest, rank 0 with no free point
+    element_rank[element_rank == size] = 0
+    rows = petsc_numbering(space.n_dofs, part, _narrowest(n_free))
+    local_of = np.empty(n_nodes, dtype=_narrowest(n_nodes))  # valid at the marked points
+    marked = np.zeros(n_nodes, dtype=bool)
     added = None if added is None else sp.csr_matrix(added)
     springs = None if springs is None else sp.csr_matrix(springs)
     for r in range(size):
-        elements = np.flatnonzero((owner[en] == r).any(axis=1) | (element_rank == r))
-        points, local = np.unique(en[elements], return_inverse=True)
-        local = local.reshape(elements.size, nb).astype(en.dtype, copy=False)
+        member = element_rank == r
+        member |= highest == r
+        inner = between[(element_rank[between] < r) & (highest[between] > r)]
+        for start in range(0, inner.size, SPLIT_CHUNK):
+            some = inner[start:start + SPLIT_CHUNK]
+            member[some[(owner[en[some]] == r).any(axis=1)]] = True
+        del inner
+        elements = np.flatnonzero(member)
+        del member
+        local = en[elements]  # global node numbers, renumbered in place below
+        marked[local.ravel()] = True
+        points = np.flatnonzero(marked).astype(en.dtype, copy=False)
+        marked[points] = False
+        local_of[points] = np.arange(points.size, dtype=local_of.dtype)
+        for start in range(0, local.shape[0], SPLIT_CHUNK):
+            block = local[start:start + SPLIT_CHUNK]
+            block[...] = local_of[block]
         n_vertices = int(np.searchsorted(points, space.body.n_vertices))
         lo, hi = part.rows(r)
         owned = part.owned_dofs(r)
-        yield RankMesh(
+        mesh = RankMesh(
             space=sub_space(space.order, space.node_points[points], local, n_vertices),
-            points=points, dof_rows=rows.reshape(-1, 3)[points].ravel(), lo=lo, hi=hi,
-            n_free=int(free.size), node_volume=node_volume[points],
+            points=points,
+            dof_rows=rows.reshape(-1, 3)[points].ravel().astype(np.int64, copy=False),
+            lo=lo, hi=hi, n_free=n_free, node_volume=node_volume[points],
             mass_elements=np.flatnonzero(element_rank[elements] == r),
             materials=ElementMaterials(materials.names, materials.D, materials.law_rho,
                                        materials.index[elements], materials.rho[elements],
                                        materials.uniform),
-            added=None if added is None else owned_rows(added, owned, rows, free.size),
-            springs=None if springs is None else owned_rows(springs, owned, rows, free.size))
+            added=None if added is None else owned_rows(added, owned, rows, n_free),
+            springs=None if springs is None else owned_rows(springs, owned, rows, n_free))
+        del elements, local, points, owned
+        yield mesh
+        del mesh
 
 
 def owned_rows(A: sp.csr_matrix, owned: np.ndarray, rows: np.ndarray,
                n_free: int) -> sp.csr_matrix:
     """(len(owned), n_free) CSR: the rows ``owned`` (global DOFs, in PETSc row order)
-    of the (n_dofs, n_dofs) ``A``, its columns renumbered to PETSc's (``rows``: the
-    PETSc row of every DOF, -1 for a fixed one, whose columns are dropped)."""
-    B = A[owned].tocoo()
-    cols = rows[B.col]
+    of the (n_dofs, n_dofs) CSR ``A``, its columns renumbered to PETSc's (``rows``: the
+    PETSc row of every DOF, -1 for a fixed one, whose columns are dropped); each row's
+    columns ascending, duplicates summed (the canonical form). Made from the CSR slice
+    of the rows, without a COO copy of it."""
+    B = A[owned]
+    cols = rows[B.indices]
     keep = cols >= 0
-    return sp.csr_matrix((B.data[keep], (B.row[keep], cols[keep])),
-                         shape=(owned.size, n_free))
+    kept = np.zeros(keep.size + 1, dtype=np.int64)  # kept entries before each entry
+    np.cumsum(keep, out=kept[1:])
+    indptr = kept[B.indptr]
+    out = sp.csr_matrix((B.data[keep], cols[keep], indptr), shape=(owned.size, n_free))
+    out.sum_duplicates()
+    return out
 
 
 def scatter_parts(comm, parts: Iterator[RankMesh] | None) -> RankMesh:
     """This rank's part: rank 0 sends part r to rank r as it makes it (``parts``: the
-    iterator of :func:`split_mesh` on rank 0, None elsewhere) and keeps part 0."""
+    iterator of :func:`split_mesh` on rank 0, None elsewhere) and keeps part 0. No name
+    holds a sent part while the next is made (``enumerate``'s reused result tuple would:
+    one part more at rank 0's peak)."""
     if comm.rank != 0:
         return comm.recv(source=0, tag=38)
-    mine = None
-    for r, part in enumerate(parts):
-        if r == 0:
-            mine = part
-        else:
-            comm.send(part, dest=r, tag=38)
+    parts = iter(parts)
+    mine = next(parts)
+    for r in range(1, comm.size):
+        comm.send(next(parts), dest=r, tag=38)
     return mine
