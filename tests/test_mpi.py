@@ -30,9 +30,10 @@ import sys
 import h5py
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from conftest import ALUMINIUM, ROOT, build_model
-from pipeline.distributed.assemble import local_node_mass, local_rows
+from pipeline.distributed.assemble import local_node_mass, local_rows, owned_rows
 from pipeline.distributed.partition import slab_partition
 from pipeline.distributed.submesh import split_mesh
 from pipeline.fe.assemble import assemble_on_nodes
@@ -81,6 +82,53 @@ def test_rows_of_the_ranks_are_the_serial_matrices(tmp_path):
     assert shared.mass == pytest.approx(serial.mass, rel=1e-14)
     np.testing.assert_allclose(shared.rigid_mass, serial.rigid_mass, rtol=0,
                                atol=1e-13 * np.abs(serial.rigid_mass).max())
+
+
+def test_owned_rows_are_the_rows_in_petsc_order_and_columns(tmp_path):
+    """A rank's rows from a local-DOF matrix (:func:`owned_rows`) are, entry for entry,
+    its rows picked out and renumbered the plain way: the DOFs with a PETSc row in
+    lo:hi in row order, the columns mapped to PETSc's, held rows and columns and exact
+    zeros dropped, the columns sorted (the flags scipy trusts are true), whether PETSc's
+    rows ascend with the local DOFs (one block of rows) or not (the connection models'
+    partition). On parts of the cantilever: the rows assembled on a part in PETSc's
+    node order are those of the part's own numbering bit for bit (the same sums)."""
+    n_loc, n_free, lo, hi = 30, 40, 10, 22
+    held = [0, 1, 2, 9, 14, 15, 27]  # 14, 15 between two owned DOFs
+    free = np.setdiff1d(np.arange(n_loc), held)
+    ascending = np.full(n_loc, -1)
+    ascending[free] = 4 + np.arange(free.size)  # rows 4:27 here, the others elsewhere
+    swapped = ascending.copy()
+    swapped[free[[7, 9]]] = swapped[free[[9, 7]]]  # two owned rows out of order
+    A = sp.random(n_loc, n_loc, density=0.3, random_state=3, format="csr")
+    A.data[::5] = 0.0  # stored exact zeros
+    A.sort_indices()
+    Ad = A.toarray()
+    for petsc_row in (ascending, swapped):
+        out = owned_rows(A, petsc_row, lo, hi, n_free)
+        dense = np.zeros((hi - lo, n_free))
+        for i in np.flatnonzero((petsc_row >= lo) & (petsc_row < hi)):
+            for j in np.flatnonzero(petsc_row >= 0):
+                dense[petsc_row[i] - lo, petsc_row[j]] = Ad[i, j]
+        assert out.shape == (hi - lo, n_free)
+        assert np.array_equal(out.toarray(), dense)
+        assert out.nnz == np.count_nonzero(dense)  # no held entry, no stored zero
+        assert out.has_canonical_format
+        assert all(np.all(np.diff(out.indices[a:b]) > 0)
+                   for a, b in zip(out.indptr[:-1], out.indptr[1:]))
+
+    model = build_model(tmp_path, size=0.02)
+    space, free = model.space, model.free
+    part = slab_partition(space.node_points, free, 3)
+    for mesh in split_mesh(space, assign_materials(space, ALUMINIUM), free, part, 3):
+        plain = assemble_on_nodes(mesh.space, ALUMINIUM)
+        owned = np.flatnonzero((mesh.dof_rows >= mesh.lo) & (mesh.dof_rows < mesh.hi))
+        owned = owned[np.argsort(mesh.dof_rows[owned])]
+        kept = np.flatnonzero(mesh.dof_rows >= 0)
+        rows = local_rows(mesh)
+        for A, local in ((plain.K, rows.K), (plain.M, rows.M)):
+            expected = np.zeros((mesh.hi - mesh.lo, mesh.n_free))
+            expected[:, mesh.dof_rows[kept]] = A[owned][:, kept].toarray()
+            assert np.array_equal(local.toarray(), expected)
 
 
 def test_stress_modes_of_the_ranks_rows_add_up_to_the_whole(tmp_path):

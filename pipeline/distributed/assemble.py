@@ -35,6 +35,7 @@ from pipeline.fe.body import rigid_body_modes
 from pipeline.fe.kernels import (element_factors, element_factors_general, inverse_jacobians,
                                  lame_parameters, reference_data)
 from pipeline.fe.materials import ElementMaterials, voigt_to_tensor
+from pipeline.fe.space import FESpace
 
 
 @dataclass(frozen=True)
@@ -93,21 +94,24 @@ def local_rows(mesh: RankMesh) -> LocalRows:
     of the point and area masses, which go into M).
 
     The serial assembly (:func:`pipeline.fe.assemble.assemble_on_nodes`: the node-block
-    pattern, element values scattered into CSR) on the part's space, then the rows of
-    the DOFs this rank owns, in PETSc's order, with PETSc's column numbers and the held
-    columns dropped. The part's other rows (its one element layer of other ranks' nodes)
-    are summed too and dropped: their elements are computed here anyway. At 405k free
-    DOFs (one rank's half) 0.8 s against 6.1 s for the triplets of 512 elements summed
-    pairwise that it replaces."""
+    pattern, element values scattered into CSR) on the part's space with its nodes
+    renumbered in PETSc's row order (:func:`row_ordered_space`), then the rows of the
+    DOFs this rank owns with PETSc's column numbers and the held rows and columns
+    dropped (:func:`owned_rows`): with the run's partition the renumbering makes PETSc's
+    column numbers ascend with the local ones, so the owned rows are one block and their
+    columns stay sorted. The part's other rows (its one element layer of other
+    ranks' nodes) are summed too and dropped: their elements are computed here anyway.
+    Each entry is the same sum in the same order whatever the node numbering (elements
+    in order, their groups from the nodes' positions), so the rows are those of the
+    part's own numbering bit for bit."""
     lo, hi = mesh.lo, mesh.hi
-    petsc_row = np.asarray(mesh.dof_rows, dtype=np.int64)
-    assembled = assemble_on_nodes(mesh.space, _law(mesh.materials))
-    owned = np.flatnonzero((petsc_row >= lo) & (petsc_row < hi))
-    owned = owned[np.argsort(petsc_row[owned], kind="stable")]
-    if owned.size != hi - lo:
-        raise AssertionError(f"rank's part holds {owned.size} of its {hi - lo} rows")
-    K = _petsc_columns(assembled.K[owned], petsc_row, mesh.n_free)
-    M = _petsc_columns(assembled.M[owned], petsc_row, mesh.n_free)
+    space, perm = row_ordered_space(mesh)
+    petsc_row = np.asarray(mesh.dof_rows, dtype=np.int64).reshape(-1, 3)[perm].ravel()
+    assembled = assemble_on_nodes(space, _law(mesh.materials))
+    del space
+    K = owned_rows(assembled.K, petsc_row, lo, hi, mesh.n_free)
+    M = owned_rows(assembled.M, petsc_row, lo, hi, mesh.n_free)
+    del assembled
     elements = int(np.count_nonzero(mesh.owned_nodes[mesh.space.element_nodes].any(axis=1)))
     if mesh.added is not None:  # its owned rows, PETSc's row and column numbers
         M = M + mesh.added
@@ -115,22 +119,78 @@ def local_rows(mesh: RankMesh) -> LocalRows:
                      n_elements=elements)
 
 
-def _petsc_columns(A: sp.csr_matrix, petsc_row: np.ndarray, n_free: int) -> sp.csr_matrix:
-    """Rows of a local-DOF matrix with their columns renumbered to PETSc's (a held DOF,
-    PETSc row -1, dropped), (rows, n_free) CSR. Entries that sum to exactly zero are
-    dropped too, as the serial K's sparse products drop them: MUMPS' PORD ordering of
-    the slender beam took minutes on the pattern with its 11k exact zeros (3x3 node
-    blocks of axis-aligned elements), 1 s without."""
-    A = sp.csr_matrix(A)
-    cols = petsc_row[A.indices]
-    keep = (cols >= 0) & (A.data != 0)
-    row_of = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(row_of[keep],
-                                                        minlength=A.shape[0]))])
-    out = sp.csr_matrix((A.data[keep], cols[keep], indptr), shape=(A.shape[0], n_free))
+def row_ordered_space(mesh: RankMesh) -> tuple[FESpace, np.ndarray]:
+    """(the part's space with its nodes in PETSc's row order, perm (n_loc,): the part's
+    node of each new node). A node's place is its first free DOF's PETSc row (nodes
+    held in all three directions last); the element kernels read the part's own
+    geometry (``space.body``), unchanged. Where a point's free DOFs are consecutive rows
+    in component order (the run's partitions, :mod:`pipeline.distributed.partition`),
+    the new local DOF numbers and PETSc's rows ascend together over the free DOFs."""
+    space = mesh.space
+    rows = np.asarray(mesh.dof_rows, dtype=np.int64).reshape(-1, 3)
+    key = np.where(rows >= 0, rows, np.iinfo(np.int64).max).min(axis=1)
+    perm = np.argsort(key, kind="stable")
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(perm.size, dtype=perm.dtype)
+    ordered = FESpace(None, space.order, space.node_points[perm],
+                      inverse[space.element_nodes], space.edges, space.body)
+    return ordered, perm
+
+
+def owned_rows(A: sp.csr_matrix, petsc_row: np.ndarray, lo: int, hi: int,
+               n_free: int) -> sp.csr_matrix:
+    """The rows ``lo:hi`` (PETSc order) of a local-DOF CSR matrix ``A`` (sorted columns)
+    as (hi - lo, n_free) CSR with PETSc's column numbers (sorted), ``petsc_row``
+    (n_loc_dofs,) the PETSc row of each local DOF, -1 where held. Held rows and columns
+    are dropped, and so are entries that sum to exactly zero, as the serial K's sparse
+    products drop them: MUMPS' PORD ordering of the slender beam took minutes on the
+    pattern with its 11k exact zeros (3x3 node blocks of axis-aligned elements), 1 s
+    without.
+
+    Where PETSc's rows ascend with the local free DOFs (:func:`row_ordered_space`) the
+    owned rows are one block of A's rows and the columns stay sorted: one pass over that
+    block's entries. Otherwise (the connection models' partition of every DOF, whose
+    held DOFs follow a rank's free ones, :mod:`pipeline.distributed.unsupported`) the
+    owned rows are picked out and each row's columns sorted."""
+    free = petsc_row[petsc_row >= 0]
+    if np.all(free[1:] > free[:-1]):
+        first, last = np.searchsorted(free, [lo, hi])  # the owned block of free DOFs
+        if last - first != hi - lo:
+            raise AssertionError(f"rank's part holds {last - first} of its {hi - lo} rows")
+        at = np.flatnonzero(petsc_row >= 0)
+        r0, r1 = (int(at[first]), int(at[last - 1]) + 1) if hi > lo else (0, 0)
+        out = _renumbered(A, r0, r1, petsc_row, petsc_row[r0:r1] < 0, n_free)
+        out.has_canonical_format = True  # A's sorted distinct columns, mapped in order
+        return out
+    owned = np.flatnonzero((petsc_row >= lo) & (petsc_row < hi))
+    owned = owned[np.argsort(petsc_row[owned], kind="stable")]
+    if owned.size != hi - lo:
+        raise AssertionError(f"rank's part holds {owned.size} of its {hi - lo} rows")
+    rows = sp.csr_matrix(A)[owned]
+    out = _renumbered(rows, 0, owned.size, petsc_row, np.zeros(owned.size, bool), n_free)
     out.has_sorted_indices = False
     out.sort_indices()
     return out
+
+
+def _renumbered(A: sp.csr_matrix, r0: int, r1: int, petsc_row: np.ndarray,
+                held: np.ndarray, n_free: int) -> sp.csr_matrix:
+    """A's rows r0:r1 but those marked ``held`` ((r1 - r0,) bool), columns renumbered by
+    ``petsc_row`` (-1: dropped), exact zeros dropped; (rows kept, n_free) CSR in A's
+    column order."""
+    indptr = A.indptr[r0:r1 + 1].astype(np.int64)
+    s, e = int(indptr[0]), int(indptr[-1])
+    index = np.int32 if n_free <= np.iinfo(np.int32).max else np.int64
+    cols = petsc_row.astype(index)[A.indices[s:e]]
+    keep = cols >= 0
+    keep &= A.data[s:e] != 0
+    if held.any():
+        keep &= np.repeat(~held, np.diff(indptr))
+    counts = np.zeros(e - s + 1, dtype=np.int64)
+    np.cumsum(keep, out=counts[1:])
+    return sp.csr_matrix((A.data[s:e][keep], cols[keep],
+                          np.concatenate([[0], counts[indptr[1:] - s][~held]])),
+                         shape=(int((~held).sum()), n_free))
 
 
 class _Sum:
