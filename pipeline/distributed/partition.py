@@ -134,7 +134,7 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
 
 def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
                     node_points: np.ndarray | None, free: np.ndarray | None,
-                    kind: str = "ptscotch") -> RowPartition:
+                    kind: str = "ptscotch", parts: int | None = None) -> RowPartition:
     """A partition of whole points by PETSc's MatPartitioning (``kind``: ``ptscotch``;
     Debian's PETSc has no ParMETIS) of the point graph (two points adjacent when an
     element holds both), collectively. Only rank 0 needs the mesh (the others may pass
@@ -144,8 +144,19 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     PETSc moves the points to ``size`` parts of nearly equal count with few cut edges,
     rank 0 gathers each point's part and makes the partition (the whole one, on rank 0;
     None elsewhere: each rank receives its own, :meth:`RowPartition.local`). Within a
-    part the rows keep the slab order, a point's DOFs together; rank r owns part r."""
+    part the rows keep the slab order, a point's DOFs together; rank r owns part r.
+
+    ``comm``: the mpi4py communicator of the processes taking part; ``parts``: the
+    number of parts, ``comm.size`` (None) or, on one process, any count (the partition
+    a later run on ``parts`` ranks reads, ``python -m pipeline partition``): PETSc's
+    option ``mat_partitioning_nparts`` is set then under this call's own options
+    prefix (:data:`NPARTS_PREFIX`, so that no option of the host process changes and
+    the host's ``-mat_partitioning_*`` options do not apply) and removed after."""
     size, rank = comm.size, comm.rank
+    n_parts = size if parts is None else int(parts)
+    if n_parts != size and size != 1:
+        raise ValueError(f"{n_parts} parts on {size} processes: expected {size}, or any "
+                         "count on one process")
     if rank == 0:
         vertex, vorder, rows = slab_graph_rows(element_nodes, node_points, free, size)
         for r in range(1, size):
@@ -155,23 +166,32 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     else:
         indptr, indices = comm.recv(source=0, tag=39)
     n_rows, n_v = indptr.size - 1, comm.allreduce(indptr.size - 1)
+    pcomm = PETSc.COMM_SELF if size == 1 else PETSc.Comm(comm)
     # every edge weighs 1 (PT-Scotch reads the weights only with
     # -mat_partitioning_use_edge_weights); PETSc copies the arrays
     G = PETSc.Mat().createAIJ(size=((n_rows, n_v), (n_rows, n_v)),
                               csr=(np.asarray(indptr, dtype=PETSc.IntType),
                                    np.asarray(indices, dtype=PETSc.IntType),
                                    np.ones(indices.size)),
-                              comm=PETSc.COMM_WORLD)
+                              comm=pcomm)
     del indptr, indices
     G.assemble()
-    mp = PETSc.MatPartitioning().create(comm=PETSc.COMM_WORLD)
+    mp = PETSc.MatPartitioning().create(comm=pcomm)
     mp.setType(kind)
     mp.setAdjacency(G)
-    mp.setFromOptions()  # -mat_partitioning_* options override
-    parts = PETSc.IS()
-    mp.apply(parts)
-    owner = comm.gather(np.asarray(parts.getIndices(), dtype=np.int64), root=0)
-    for obj in (parts, mp, G):
+    options = PETSc.Options()
+    if n_parts != size:
+        mp.setOptionsPrefix(NPARTS_PREFIX)
+        options.setValue(f"{NPARTS_PREFIX}mat_partitioning_nparts", n_parts)
+    try:
+        mp.setFromOptions()  # -mat_partitioning_* options override (without the prefix)
+    finally:
+        if n_parts != size:
+            options.delValue(f"{NPARTS_PREFIX}mat_partitioning_nparts")
+    owned = PETSc.IS()
+    mp.apply(owned)
+    owner = comm.gather(np.asarray(owned.getIndices(), dtype=np.int64), root=0)
+    for obj in (owned, mp, G):
         obj.destroy()
     part = None
     if rank == 0:
@@ -179,10 +199,15 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
         free = np.asarray(free)
         v_of_dof = vertex[free // 3]
         order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
-        counts = np.bincount(owner[v_of_dof], minlength=size)
+        counts = np.bincount(owner[v_of_dof], minlength=n_parts)
         part = RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]),
                             dofs=free[order])
     return part
+
+
+#: the options prefix of a partition into another count of parts than processes
+#: (:func:`graph_partition`)
+NPARTS_PREFIX = "pipeline_parts_"
 
 
 #: element-node pairs whose rows :func:`slab_graph_rows` makes at a time: the chunk's

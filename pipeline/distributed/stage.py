@@ -22,13 +22,14 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, SolverError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, log_resident, petsc, world
@@ -103,7 +104,7 @@ def abort_on_failure():
         raise
 
 
-def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
+def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm, parts: bool = False) -> int:
     """Refuse, on every rank and before the assembly, a run whose ranks on one node would
     need more than the node has (ResourceError, one line). Per rank: the serial model of
     :mod:`pipeline._util.resources` for the whole problem (factor method; ``n_nodes``
@@ -114,7 +115,8 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     (:func:`kept_bytes`), and before that, while it meshes, partitions and cuts out the
     parts, what it holds of the whole mesh and its share of the partitioner's graph
     (:func:`handoff_meshes` serial mesh terms): its peak is the larger of the two
-    phases. gmsh's library state after meshing (18 MB on rank 0 alone, a constant) is
+    phases; with a parts file (``parts``, ``mesh.parts``) it has no such phase.
+    gmsh's library state after meshing (18 MB on rank 0 alone, a constant) is
     within the baseline. A rotation sweep (factor path, a
     speed other than 0) factorises K(Omega), K's pattern, while the run's factor of K
     is alive (the static correction solves with it afterwards): one more factor's share
@@ -143,7 +145,9 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
         divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
     own = divided  # on one rank the whole mesh is its part
     if comm.rank == 0 and comm.size > 1:  # the hand-off, or the kept arrays from then on
-        own = max(handoff_meshes(comm.size) * mesh, divided + kept_bytes(n_nodes, n_el, cfg))
+        own = divided + kept_bytes(n_nodes, n_el, cfg)
+        if not parts:
+            own = max(handoff_meshes(comm.size) * mesh, own)
     per_rank = int(res.BASELINE_BYTES + own)
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     node_ranks = node.size
@@ -214,11 +218,18 @@ class WholeMesh:
     constraint: Any = None
 
 
-def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
+def mesh_whole(cfg: Config, mesh_dir: str | Path | None, comm=None) -> WholeMesh:
     """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
     and supports on the whole mesh; every misplaced region or gauge is refused here,
-    before any rank assembles."""
-    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, world(), step))
+    before any rank assembles. ``comm``: the run's communicator (its rank names the
+    memory log lines); None: COMM_WORLD, or one process without MPI (the partition
+    command, :func:`write_partitioned`)."""
+    if comm is None:
+        try:
+            comm = world()
+        except SolverError:  # no petsc4py: one process, rank 0
+            comm = SimpleNamespace(rank=0, size=1)
+    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, comm, step))
     space, regions, materials = meshed.space, meshed.regions, meshed.materials
     added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
     mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
@@ -284,67 +295,85 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     summed over the ranks. Only rank 0 ever holds the whole mesh, and only until the
     parts and the small results are sent: it then keeps what the writer stores
     (:func:`handed_off`) and what judging the supports needs (:class:`SupportInputs`),
-    and drops the rest before it assembles its rows."""
+    and drops the rest before it assembles its rows.
+
+    With ``mesh.parts`` (a file of ``python -m pipeline partition``,
+    :func:`write_partitioned`) no rank meshes: each reads its own part from the file
+    (:mod:`pipeline.distributed.parts_file`), rank 0 besides what it keeps; the file is
+    refused in one line before any assembly when it does not fit the run."""
     check_supported(cfg)
     comm = world()
-    whole = None
+    whole = shared = None
     with stage("mesh"):
-        if comm.rank == 0:
-            whole = mesh_whole(cfg, mesh_dir)
-            log_resident(log, comm, "whole mesh evaluated")
-            space = whole.space
-            log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", space.body.n_tetrahedra,
-                     space.cell_type, space.n_nodes, space.n_dofs, comm.size)
-            counts = (space.n_nodes, MeshCounts(space.body.n_tetrahedra, space.body.n_vertices))
-        n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
-    check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
+        if cfg.mesh.parts:
+            shared = read_parts_header(cfg, comm)
+            n_nodes, mesh_counts = shared.n_nodes, shared.counts
+        else:
+            if comm.rank == 0:
+                whole = mesh_whole(cfg, mesh_dir, comm)
+                log_resident(log, comm, "whole mesh evaluated")
+                space = whole.space
+                log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks",
+                         space.body.n_tetrahedra, space.cell_type, space.n_nodes,
+                         space.n_dofs, comm.size)
+                counts = (space.n_nodes,
+                          MeshCounts(space.body.n_tetrahedra, space.body.n_vertices))
+            n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
+    check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm, parts=shared is not None)
     with stage("assemble"):
-        whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
-        log_resident(log, comm, "partitioned")
-        parts = None if whole is None else split_mesh(whole.space, whole.materials,
-                                                      whole.free, whole_part, comm.size,
-                                                      whole.added, whole.springs)
-        mesh = scatter_parts(comm, parts)
-        del parts
-        log_resident(log, comm, "parts sent")
-        small = None if whole is None else (
-            whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
-            None if whole.added is None else added_rigid_mass(whole.space, whole.added))
-        n_free, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
-        # every rank holds the count of the free DOFs and its own rows' (``part``);
-        # rank 0 the held DOFs, which it writes
+        if shared is not None:
+            (mesh, part, space, regions, materials, fixed, judge,
+             constraint) = from_parts(cfg, shared, comm)
+            n_free, ports, added_rigid = shared.n_free, shared.ports, shared.added_rigid
+            mesh_path = Path(shared.mesh_path) if shared.mesh_path else None
+            mesh_sha256 = shared.mesh_sha256
+        else:
+            whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
+            log_resident(log, comm, "partitioned")
+            parts = None if whole is None else split_mesh(whole.space, whole.materials,
+                                                          whole.free, whole_part, comm.size,
+                                                          whole.added, whole.springs)
+            mesh = scatter_parts(comm, parts)
+            del parts
+            log_resident(log, comm, "parts sent")
+            small = None if whole is None else (
+                whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
+                None if whole.added is None else added_rigid_mass(whole.space, whole.added))
+            n_free, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+            # every rank holds the count of the free DOFs and its own rows' (``part``);
+            # rank 0 the held DOFs, which it writes
+            fixed = np.zeros(0, np.int64) if whole is None else whole.fixed
+            spin_masses = comm.bcast(None if whole is None else
+                                     rotation_masses(cfg, whole.space, whole.regions), root=0)
+            interfaces = comm.bcast(None if whole is None else connection_interfaces(
+                cfg, whole.space, whole.regions), root=0)
+            unsupported = None  # the connection model's own pair (K, M): its part
+            if cfg.connections and not clamped_by_supports(cfg):
+                unsupported = unsupported_parts(comm, whole, whole_part)
+            del whole_part
+            # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
+            constraint = distribute_constraint(comm, None if whole is None
+                                               else whole.constraint, 3 * n_nodes, part)
+            judge = None  # rank 0: what judging the supports needs after the assembly
+            if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
+                space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
+                                                       ports, spin_masses, interfaces,
+                                                       unsupported)
+                judge = support_inputs(whole)
+            else:
+                nb = mesh.space.element_nodes.shape[1]
+                space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts,
+                                         np.zeros((0, 3)), np.zeros((0, nb), np.int64), mesh,
+                                         ports, rotation_masses=spin_masses,
+                                         connections=interfaces, unsupported=unsupported)
+                regions, materials = {}, mesh.materials
+            del whole  # the whole mesh: gone before the assembly (tests/test_mpi_rank0.py)
+            log_resident(log, comm, "whole mesh dropped")
         free = FreeDofs(n_free)
-        fixed = np.zeros(0, np.int64) if whole is None else whole.fixed
-        spin_masses = comm.bcast(None if whole is None else
-                                 rotation_masses(cfg, whole.space, whole.regions), root=0)
-        interfaces = comm.bcast(None if whole is None else connection_interfaces(
-            cfg, whole.space, whole.regions), root=0)
-        unsupported = None  # the connection model's own pair (K, M): its part
-        if cfg.connections and not clamped_by_supports(cfg):
-            unsupported = unsupported_parts(comm, whole, whole_part)
-        del whole_part
-        # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
-        constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
-                                           3 * n_nodes, part)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
         log_resident(log, comm, "small results sent")
-        judge = None  # rank 0: what judging the supports needs after the assembly
-        if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
-            space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
-                                                   ports, spin_masses, interfaces,
-                                                   unsupported)
-            judge = support_inputs(whole)
-        else:
-            nb = mesh.space.element_nodes.shape[1]
-            space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
-                                     np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses, connections=interfaces,
-                unsupported=unsupported)
-            regions, materials = {}, mesh.materials
-        del whole  # the whole mesh: gone before the assembly (tests/test_mpi_rank0.py)
-        log_resident(log, comm, "whole mesh dropped")
         rows = local_rows(mesh)
         log_resident(log, comm, "rows assembled")
         cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
@@ -370,6 +399,154 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                    props=props, mesh_path=mesh_path, mesh_sha256=mesh_sha256,
                    n_elements=mesh_counts.n_tetrahedra, rigid=left, materials=materials,
                    constraint=constraint)
+
+
+#: config keys whose rank-0 work needs the whole mesh during the run: refused with
+#: ``mesh.parts`` and by the partition command (:func:`check_partitionable`)
+WHOLE_MESH_KEYS = ("connections", "craig_bampton.modes", "rotation", "supports[i].local_fix",
+                   "masses[i].coupling: rigid")
+
+
+def check_partitionable(cfg: Config) -> None:
+    """One line (ConfigError naming the key) for a feature whose rank-0 work needs the
+    whole mesh during the run (:data:`WHOLE_MESH_KEYS`): the connection models and
+    Craig-Bampton (their interfaces and the unsupported pair), the rotating body's
+    masses and preloads, the exact constraint u = T q of local-frame supports and
+    rigidly coupled masses. Before any meshing."""
+    found = None
+    if cfg.connections:
+        found = ("connections", "connection models")
+    elif cfg.craig_bampton_modes:
+        found = ("craig_bampton.modes", "Craig-Bampton models")
+    elif cfg.rotation is not None:
+        found = ("rotation", "a rotating body")
+    else:
+        for i, s in enumerate(cfg.supports):
+            if s.local_fix:
+                found = (f"supports[{i}].local_fix", "supports held in a local frame")
+                break
+        for i, m in enumerate(cfg.masses):
+            if found is None and m.kind == "point" and m.coupling == "rigid":
+                found = (f"masses[{i}].coupling", "rigidly coupled masses")
+    if found is not None:
+        key, what = found
+        raise ConfigError(f"config key '{key}': {what} need the whole mesh on rank 0 during "
+                          "the run; expected a run without a parts file (mesh.parts) for "
+                          "them (docs/distributed.md, 'Not distributed yet')", key=key,
+                          value=what, expected="no partitioned mesh")
+
+
+def partition_parts(whole: WholeMesh, n_parts: int):
+    """(the whole :class:`~pipeline.distributed.partition.RowPartition` of ``whole``'s
+    points into ``n_parts`` parts, its kind) on one process: PT-Scotch through PETSc on
+    COMM_SELF when petsc4py imports (:func:`~pipeline.distributed.partition.graph_partition`
+    with ``parts``), else, or with the PETSc option ``-pipeline_partition slab``, the
+    slabs along the longest extent (logged which)."""
+    try:
+        PETSc, _ = petsc()
+    except SolverError:
+        PETSc = None
+    kind = "slab" if PETSc is None or n_parts == 1 else partition_kind(PETSc)
+    space = whole.space
+    if kind == "slab":
+        log.info("partition into %d parts: slabs along the longest extent%s", n_parts,
+                 " (no petsc4py)" if PETSc is None else "")
+        return slab_partition(space.node_points, whole.free, n_parts), kind
+    log.info("partition into %d parts: PT-Scotch (PETSc's MatPartitioning on one process)",
+             n_parts)
+    part = graph_partition(PETSc, PETSc.COMM_SELF.tompi4py(), space.element_nodes,
+                           space.node_points, whole.free, parts=n_parts)
+    return part, kind
+
+
+def write_partitioned(cfg: Config, ranks: int, output: str | Path,
+                      mesh_dir: str | Path | None = None) -> Path:
+    """Rank 0's mesh phase for a run on ``ranks`` ranks, on one process, written to the
+    parts file ``output`` (:mod:`pipeline.distributed.parts_file`): mesh and evaluate
+    the whole mesh (:func:`mesh_whole`), partition it (:func:`partition_parts`), cut out
+    every part (:func:`~pipeline.distributed.submesh.split_mesh`, one at a time, each
+    written as it is made) and keep the small results and what rank 0 keeps
+    (:func:`handed_off`, :class:`SupportInputs`). Returns the path."""
+    from pipeline.distributed.parts_file import Kept, Shared, canonical_config, write_parts
+    from pipeline.solve.labels import label_frame
+
+    check_partitionable(cfg)
+    whole = mesh_whole(cfg, mesh_dir, SimpleNamespace(rank=0, size=1))
+    space = whole.space
+    n_nodes = space.n_nodes
+    log.info("%d elements (%s), %d nodes, %d DOFs into %d parts", space.body.n_tetrahedra,
+             space.cell_type, n_nodes, space.n_dofs, ranks)
+    whole_part, kind = partition_parts(whole, ranks)
+    shared = Shared(ranks=ranks, n_nodes=n_nodes,
+                    counts=MeshCounts(space.body.n_tetrahedra, space.body.n_vertices),
+                    order=space.order, n_free=int(whole.free.size), ports=whole.ports,
+                    mesh_path="" if whole.mesh_path is None else str(whole.mesh_path),
+                    mesh_sha256=whole.mesh_sha256,
+                    added_rigid=None if whole.added is None
+                    else added_rigid_mass(space, whole.added),
+                    partition=kind, config=canonical_config(cfg))
+    written = cfg.materials or cfg.masses
+    kept = Kept(node_points=space.node_points,
+                element_nodes=compact_nodes(space.element_nodes, n_nodes),
+                regions=dict(whole.regions), materials=whole.materials if written else None,
+                label_frame=label_frame(space.node_points, node_volume_weights(space)),
+                support=support_inputs(whole))
+    parts = split_mesh(space, whole.materials, whole.free, whole_part, ranks, whole.added,
+                       whole.springs)
+    return write_parts(output, shared, kept,
+                       ((mesh, whole_part.local(r)) for r, mesh in enumerate(parts)))
+
+
+def parts_record(cfg: Config) -> tuple[str, str] | None:
+    """(path, content_sha256) of the run's parts file for ``/run``, or None without one."""
+    if not cfg.mesh.parts:
+        return None
+    from pipeline.distributed.parts_file import parts_digest
+
+    return str(cfg.mesh.parts), parts_digest(cfg.mesh.parts)
+
+
+def read_parts_header(cfg: Config, comm):
+    """The shared group of the run's parts file (``mesh.parts``), on every rank: rank 0
+    reads and checks it (:func:`pipeline.distributed.parts_file.read_shared`: one line,
+    on rank 0 alone, when the file does not fit the run) and sends it."""
+    from pipeline.distributed.parts_file import read_shared
+
+    check_partitionable(cfg)
+    shared = read_shared(cfg.mesh.parts, cfg, comm.size) if comm.rank == 0 else None
+    shared = comm.bcast(shared, root=0)
+    log.info("parts file %s: %d nodes, %d elements, %d free DOFs in %d parts (%s partition)",
+             cfg.mesh.parts, shared.n_nodes, shared.counts.n_tetrahedra, shared.n_free,
+             shared.ranks, shared.partition)
+    return shared
+
+
+def from_parts(cfg: Config, shared, comm):
+    """This rank's (RankMesh, own RowPartition, DistributedSpace, regions, element
+    materials, held DOFs, SupportInputs or None, constraint None) read from the parts
+    file: its own group only; rank 0 besides what it keeps (the whole mesh's points and
+    int32 elements, regions, written materials, label frame, support inputs)."""
+    from pipeline.distributed.parts_file import read_kept, read_rank
+
+    mesh, part = read_rank(cfg.mesh.parts, comm.rank)
+    log_resident(log, comm, "part read")
+    judge, regions, materials = None, {}, mesh.materials
+    fixed = np.zeros(0, np.int64)
+    if comm.rank == 0:
+        kept = read_kept(cfg.mesh.parts)
+        space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
+                                 kept.node_points, kept.element_nodes, mesh, shared.ports,
+                                 label_frame=kept.label_frame)
+        regions, judge, fixed = kept.regions, kept.support, kept.support.fixed
+        if kept.materials is not None:
+            materials = kept.materials
+        log_resident(log, comm, "kept read")
+    else:
+        nb = mesh.space.element_nodes.shape[1]
+        space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
+                                 np.zeros((0, 3)), np.zeros((0, nb), np.int64), mesh,
+                                 shared.ports)
+    return mesh, part, space, regions, materials, fixed, judge, None
 
 
 def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCounts,
@@ -406,6 +583,16 @@ def added_rigid_mass(space, added) -> np.ndarray:
     return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
 
 
+def partition_kind(PETSc) -> str:
+    """``graph`` or ``slab``: the PETSc option ``-pipeline_partition`` (default graph)."""
+    kind = PETSc.Options().getString("pipeline_partition", "graph")
+    if kind not in ("graph", "slab"):
+        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
+                          "slab", key="-pipeline_partition", value=kind,
+                          expected="graph or slab")
+    return kind
+
+
 def partition(whole: WholeMesh | None, comm):
     """The rows of each rank (collective; ``whole`` on rank 0, None elsewhere): PT-Scotch's
     graph partition of the points
@@ -414,11 +601,7 @@ def partition(whole: WholeMesh | None, comm):
     Returns (the whole partition on rank 0, None elsewhere; this rank's own
     :meth:`~pipeline.distributed.partition.RowPartition.local`, sent by rank 0)."""
     PETSc, _ = petsc()
-    kind = PETSc.Options().getString("pipeline_partition", "graph")
-    if kind not in ("graph", "slab"):
-        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
-                          "slab", key="-pipeline_partition", value=kind,
-                          expected="graph or slab")
+    kind = partition_kind(PETSc)
     if comm.size == 1 or kind == "slab":
         part = None if whole is None else \
             slab_partition(whole.space.node_points, whole.free, comm.size)
