@@ -146,7 +146,9 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     None elsewhere: each rank receives its own, :meth:`RowPartition.local`). Within a
     part the rows keep the slab order, a point's DOFs together; rank r owns part r.
 
-    ``comm``: the mpi4py communicator of the processes taking part; ``parts``: the
+    ``comm``: COMM_WORLD's mpi4py communicator (:func:`pipeline.distributed.mpi.world`)
+    or, on one process, COMM_SELF's (PETSc's objects live on the matching PETSc
+    communicator); ``parts``: the
     number of parts, ``comm.size`` (None) or, on one process, any count (the partition
     a later run on ``parts`` ranks reads, ``python -m pipeline partition``): PETSc's
     option ``mat_partitioning_nparts`` is set then under this call's own options
@@ -166,7 +168,8 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     else:
         indptr, indices = comm.recv(source=0, tag=39)
     n_rows, n_v = indptr.size - 1, comm.allreduce(indptr.size - 1)
-    pcomm = PETSc.COMM_SELF if size == 1 else PETSc.Comm(comm)
+    # PETSc's objects on COMM_WORLD (every rank of the run) or, on one process, COMM_SELF
+    pcomm = PETSc.COMM_SELF if size == 1 else PETSc.COMM_WORLD
     # every edge weighs 1 (PT-Scotch reads the weights only with
     # -mat_partitioning_use_edge_weights); PETSc copies the arrays
     G = PETSc.Mat().createAIJ(size=((n_rows, n_v), (n_rows, n_v)),

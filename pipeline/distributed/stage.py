@@ -300,14 +300,16 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     With ``mesh.parts`` (a file of ``python -m pipeline partition``,
     :func:`write_partitioned`) no rank meshes: each reads its own part from the file
     (:mod:`pipeline.distributed.parts_file`), rank 0 besides what it keeps; the file is
-    refused in one line before any assembly when it does not fit the run."""
+    refused in one line (the mesh stage) when it does not fit the run."""
     check_supported(cfg)
     comm = world()
     whole = shared = None
     with stage("mesh"):
-        if cfg.mesh.parts:
+        if cfg.mesh.parts:  # every rank reads (and verifies) its part: no rank meshes
             shared = read_parts_header(cfg, comm)
             n_nodes, mesh_counts = shared.n_nodes, shared.counts
+            (mesh, part, space, regions, materials, fixed, judge,
+             constraint) = from_parts(cfg, shared, comm)
         else:
             if comm.rank == 0:
                 whole = mesh_whole(cfg, mesh_dir, comm)
@@ -322,8 +324,6 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm, parts=shared is not None)
     with stage("assemble"):
         if shared is not None:
-            (mesh, part, space, regions, materials, fixed, judge,
-             constraint) = from_parts(cfg, shared, comm)
             n_free, ports, added_rigid = shared.n_free, shared.ports, shared.added_rigid
             mesh_path = Path(shared.mesh_path) if shared.mesh_path else None
             mesh_sha256 = shared.mesh_sha256
