@@ -102,7 +102,7 @@ def small_parts(tmp_path_factory):
     """A parts file of the cantilever (mesh.size 0.03) for 2 ranks, made in this process
     (slabs: no petsc4py here), and its folder."""
     from pipeline.api import resolve_config
-    from pipeline.distributed.stage import write_partitioned
+    from pipeline.distributed.parts import write_partitioned
 
     folder = tmp_path_factory.mktemp("refusals")
     cfg = resolve_config(ROOT / "configs" / "cantilever.yaml", ["mesh.size=0.03"])

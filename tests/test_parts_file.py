@@ -23,8 +23,8 @@ from conftest import ROOT
 from pipeline.api import resolve_config
 from pipeline.distributed import parts_file as pf
 from pipeline.distributed.partition import RowPartition
-from pipeline.distributed.stage import (added_rigid_mass, mesh_whole, support_inputs,
-                                        write_partitioned)
+from pipeline.distributed.parts import write_partitioned
+from pipeline.distributed.whole import added_rigid_mass, mesh_whole, support_inputs
 from pipeline.distributed.submesh import compact_nodes, split_mesh
 from pipeline.errors import ConfigError, FileFormatError
 
@@ -201,12 +201,12 @@ def _cli(args: list[str]) -> tuple[int, str]:
      "coupling: rigid}]", "masses[0].coupling")],
     ids=["connections", "rotation", "local-frame", "rigid-mass"])
 def test_partition_refuses_what_needs_the_whole_mesh(tmp_path, monkeypatch, override, key):
-    from pipeline.distributed import stage
+    from pipeline.distributed import parts
 
     def no_meshing(*args, **kwargs):
         raise AssertionError("meshed before the refusal")
 
-    monkeypatch.setattr(stage, "mesh_whole", no_meshing)
+    monkeypatch.setattr(parts, "mesh_whole", no_meshing)
     out = tmp_path / "p.h5"
     code, err = _cli(["partition", "configs/cantilever.yaml", "--ranks", "2", "--set",
                       "mesh.size=0.02", "--set", override, "-o", str(out)])

@@ -1,7 +1,7 @@
 """``python -m pipeline partition CONFIG --ranks N [-o PATH] [--set KEY=VALUE ...]``.
 
 Rank 0's mesh phase of the distributed path for a run on N ranks, once, on one process
-(:func:`pipeline.distributed.stage.write_partitioned`): the body is meshed, its regions,
+(:func:`pipeline.distributed.parts.write_partitioned`): the body is meshed, its regions,
 supports, ports and materials evaluated, its points partitioned into N parts
 (PT-Scotch through PETSc where petsc4py imports, else slabs) and every part cut out and
 written to one parts file (:mod:`pipeline.distributed.parts_file`, default
@@ -42,13 +42,13 @@ def _is_parts_file(path: Path) -> bool:
 
 def check_partition_destination(args: argparse.Namespace) -> None:
     """Before any work: the config (its overrides applied) is valid and partitionable
-    (:func:`pipeline.distributed.stage.check_partitionable`), the rank count is at
+    (:func:`pipeline.distributed.parts.check_partitionable`), the rank count is at
     least 1, and the output may be written: never one of the command's inputs (the
     config, the geometry or mesh file, a parts file the config names), an existing
     file only when it is a parts file of ours or with ``--force``."""
     from pipeline._util.paths import check_output
     from pipeline.api import resolve_config
-    from pipeline.distributed.stage import check_partitionable
+    from pipeline.distributed.parts import check_partitionable
     from pipeline.errors import ConfigError
 
     cfg = resolve_config(args.config, args.set or [])
@@ -66,7 +66,7 @@ def check_partition_destination(args: argparse.Namespace) -> None:
 
 
 def cmd_partition(args: argparse.Namespace) -> int:
-    from pipeline.distributed.stage import write_partitioned
+    from pipeline.distributed.parts import write_partitioned
 
     path = write_partitioned(args.resolved_config, args.ranks, args.parts_output,
                              mesh_dir=args.mesh_dir)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.errors import ConfigError
 
 @dataclass(frozen=True)
 class RowPartition:
@@ -305,3 +306,13 @@ def cut_measures(local_K, lo: int, hi: int) -> tuple[int, int]:
     cols = np.asarray(local_K.indices)
     off = cols[(cols < lo) | (cols >= hi)]
     return int(off.size), int(np.unique(off).size)
+
+
+def partition_kind(PETSc) -> str:
+    """``graph`` or ``slab``: the PETSc option ``-pipeline_partition`` (default graph)."""
+    kind = PETSc.Options().getString("pipeline_partition", "graph")
+    if kind not in ("graph", "slab"):
+        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
+                          "slab", key="-pipeline_partition", value=kind,
+                          expected="graph or slab")
+    return kind

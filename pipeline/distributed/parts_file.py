@@ -78,7 +78,7 @@ class Kept:
     int32 (int64 past 2^31 points) of the whole mesh, its regions (name -> surface
     cells), the element materials where ``/materials`` stores them (else None), the
     body's :class:`~pipeline.solve.labels.LabelFrame` and the
-    :class:`~pipeline.distributed.stage.SupportInputs` (the held DOFs are the file's
+    :class:`~pipeline.distributed.whole.SupportInputs` (the held DOFs are the file's
     ``/mesh/fixed_dofs``)."""
 
     node_points: np.ndarray
@@ -400,7 +400,7 @@ def read_rank(path: str | Path, rank: int):
 
 def read_kept(path: str | Path) -> Kept:
     """Rank 0's :class:`Kept` (the group ``kept`` only, checksum verified)."""
-    from pipeline.distributed.stage import SupportInputs
+    from pipeline.distributed.whole import SupportInputs
     from pipeline.solve.labels import LabelFrame
 
     path = Path(path)

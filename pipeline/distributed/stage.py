@@ -20,28 +20,27 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
 from pipeline.config import Config
-from pipeline.errors import ConfigError, SolverError
+from pipeline.errors import ConfigError
 from pipeline.distributed.assemble import local_node_mass, local_rows, with_int32_indices
 from pipeline.distributed.eigen import petsc_matrix, solve_eigen
 from pipeline.distributed.mpi import allreduce_sum, log_resident, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import (FreeDofs, cut_measures, graph_partition,
-                                            slab_partition)
+                                            partition_kind, slab_partition)
+from pipeline.distributed.parts import (from_parts, parts_record,  # noqa: F401 (run.py's)
+                                        read_parts_header)
+from pipeline.distributed.whole import (SupportInputs, WholeMesh, added_rigid_mass,
+                                        mesh_whole, support_inputs)
 from pipeline.fe.body import (body_properties, node_volume_weights,
-                              properties_from_rigid_mass, rigid_body_modes)
-from pipeline.fe.ports import check_gauges, port_matrices
-from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
-from pipeline.fe.regions import fixed_dofs, free_dofs
+                              properties_from_rigid_mass)
+from pipeline.fe.model import FEModel
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, compact_nodes,
@@ -194,79 +193,6 @@ def kept_bytes(n_nodes: int, n_el: int, cfg: Config) -> float:
     return 24.0 * n_nodes + (4.0 * nodes + (12.0 if written else 0.0)) * n_el
 
 
-@dataclass(frozen=True)
-class WholeMesh:
-    """What rank 0 evaluates on the whole mesh before the parts are sent (the others
-    receive the parts, the counts and the small results): the space, its regions, the
-    element materials, the added masses (or None), the held and the free DOFs, the port
-    matrices (None: no reduction), the mesh file kept, its SHA-256, the springs' and
-    bushings' stiffness ((n_dofs, n_dofs) N/m, or None) and the inputs of the exact
-    constraint u = T q (:func:`pipeline.fe.model.constraint_inputs`, or None). The
-    rigid motions the supports leave are judged after the assembly
-    (:func:`supports_rigid_freedoms`)."""
-
-    space: Any
-    regions: dict
-    materials: Any
-    added: Any
-    fixed: np.ndarray
-    free: np.ndarray
-    ports: Any
-    mesh_path: Path | None
-    mesh_sha256: str
-    springs: Any = None
-    constraint: Any = None
-
-
-def mesh_whole(cfg: Config, mesh_dir: str | Path | None, comm=None) -> WholeMesh:
-    """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
-    and supports on the whole mesh; every misplaced region or gauge is refused here,
-    before any rank assembles. ``comm``: the run's communicator (its rank names the
-    memory log lines); None: COMM_WORLD, or one process without MPI (the partition
-    command, :func:`write_partitioned`)."""
-    if comm is None:
-        try:
-            comm = world()
-        except SolverError:  # no petsc4py: one process, rank 0
-            comm = SimpleNamespace(rank=0, size=1)
-    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, comm, step))
-    space, regions, materials = meshed.space, meshed.regions, meshed.materials
-    added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
-    mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
-    del meshed
-    check_gauges(space, regions, cfg.ports, materials)
-    fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
-    free = free_dofs(space.n_dofs, fixed)
-    constraint = constraint_inputs(space, regions, cfg, free, extra)  # refusals: before K
-    ports = None if cfg.reduction is None else \
-        port_matrices(space, regions, cfg.ports, material=materials)
-    if ports is None and cfg.rotation is not None:  # a rotating body's preloads
-        ports = port_matrices(space, regions, preload_ports(cfg))
-    return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
-                     mesh_sha256, springs, constraint)
-
-
-@dataclass(frozen=True)
-class SupportInputs:
-    """What rank 0 keeps of the whole mesh past the hand-off to judge, after the
-    assembly, the rigid motions the supports leave (:func:`supports_rigid_freedoms`):
-    the held DOFs (n_c,), the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m,
-    nonzero at their points only, or None), the held local directions ((n_h, n_dofs)
-    CSR, or None) and whether any DOF is free; the points are the kept space's."""
-
-    fixed: np.ndarray
-    springs: Any
-    held: Any
-    any_free: bool
-
-
-def support_inputs(whole: WholeMesh) -> SupportInputs:
-    """:class:`SupportInputs` of ``whole``."""
-    return SupportInputs(whole.fixed, whole.springs,
-                         None if whole.constraint is None else whole.constraint[0],
-                         bool(whole.free.size))
-
-
 def supports_rigid_freedoms(inputs: SupportInputs | None, node_points: np.ndarray, props,
                             K: RowMatrix, M: RowMatrix, comm):
     """The rigid motions that the held DOFs and the springs leave free, as the serial
@@ -312,7 +238,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
              constraint) = from_parts(cfg, shared, comm)
         else:
             if comm.rank == 0:
-                whole = mesh_whole(cfg, mesh_dir, comm)
+                whole = mesh_whole(cfg, mesh_dir)
                 log_resident(log, comm, "whole mesh evaluated")
                 space = whole.space
                 log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks",
@@ -401,154 +327,6 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
                    constraint=constraint)
 
 
-#: config keys whose rank-0 work needs the whole mesh during the run: refused with
-#: ``mesh.parts`` and by the partition command (:func:`check_partitionable`)
-WHOLE_MESH_KEYS = ("connections", "craig_bampton.modes", "rotation", "supports[i].local_fix",
-                   "masses[i].coupling: rigid")
-
-
-def check_partitionable(cfg: Config) -> None:
-    """One line (ConfigError naming the key) for a feature whose rank-0 work needs the
-    whole mesh during the run (:data:`WHOLE_MESH_KEYS`): the connection models and
-    Craig-Bampton (their interfaces and the unsupported pair), the rotating body's
-    masses and preloads, the exact constraint u = T q of local-frame supports and
-    rigidly coupled masses. Before any meshing."""
-    found = None
-    if cfg.connections:
-        found = ("connections", "connection models")
-    elif cfg.craig_bampton_modes:
-        found = ("craig_bampton.modes", "Craig-Bampton models")
-    elif cfg.rotation is not None:
-        found = ("rotation", "a rotating body")
-    else:
-        for i, s in enumerate(cfg.supports):
-            if s.local_fix:
-                found = (f"supports[{i}].local_fix", "supports held in a local frame")
-                break
-        for i, m in enumerate(cfg.masses):
-            if found is None and m.kind == "point" and m.coupling == "rigid":
-                found = (f"masses[{i}].coupling", "rigidly coupled masses")
-    if found is not None:
-        key, what = found
-        raise ConfigError(f"config key '{key}': {what} need the whole mesh on rank 0 during "
-                          "the run; expected a run without a parts file (mesh.parts) for "
-                          "them (docs/distributed.md, 'Not distributed yet')", key=key,
-                          value=what, expected="no partitioned mesh")
-
-
-def partition_parts(whole: WholeMesh, n_parts: int):
-    """(the whole :class:`~pipeline.distributed.partition.RowPartition` of ``whole``'s
-    points into ``n_parts`` parts, its kind) on one process: PT-Scotch through PETSc on
-    COMM_SELF when petsc4py imports (:func:`~pipeline.distributed.partition.graph_partition`
-    with ``parts``), else, or with the PETSc option ``-pipeline_partition slab``, the
-    slabs along the longest extent (logged which)."""
-    try:
-        PETSc, _ = petsc()
-    except SolverError:
-        PETSc = None
-    kind = "slab" if PETSc is None or n_parts == 1 else partition_kind(PETSc)
-    space = whole.space
-    if kind == "slab":
-        log.info("partition into %d parts: slabs along the longest extent%s", n_parts,
-                 " (no petsc4py)" if PETSc is None else "")
-        return slab_partition(space.node_points, whole.free, n_parts), kind
-    log.info("partition into %d parts: PT-Scotch (PETSc's MatPartitioning on one process)",
-             n_parts)
-    part = graph_partition(PETSc, PETSc.COMM_SELF.tompi4py(), space.element_nodes,
-                           space.node_points, whole.free, parts=n_parts)
-    return part, kind
-
-
-def write_partitioned(cfg: Config, ranks: int, output: str | Path,
-                      mesh_dir: str | Path | None = None) -> Path:
-    """Rank 0's mesh phase for a run on ``ranks`` ranks, on one process, written to the
-    parts file ``output`` (:mod:`pipeline.distributed.parts_file`): mesh and evaluate
-    the whole mesh (:func:`mesh_whole`), partition it (:func:`partition_parts`), cut out
-    every part (:func:`~pipeline.distributed.submesh.split_mesh`, one at a time, each
-    written as it is made) and keep the small results and what rank 0 keeps
-    (:func:`handed_off`, :class:`SupportInputs`). Returns the path."""
-    from pipeline.distributed.parts_file import Kept, Shared, canonical_config, write_parts
-    from pipeline.solve.labels import label_frame
-
-    check_partitionable(cfg)
-    whole = mesh_whole(cfg, mesh_dir, SimpleNamespace(rank=0, size=1))
-    space = whole.space
-    n_nodes = space.n_nodes
-    log.info("%d elements (%s), %d nodes, %d DOFs into %d parts", space.body.n_tetrahedra,
-             space.cell_type, n_nodes, space.n_dofs, ranks)
-    whole_part, kind = partition_parts(whole, ranks)
-    shared = Shared(ranks=ranks, n_nodes=n_nodes,
-                    counts=MeshCounts(space.body.n_tetrahedra, space.body.n_vertices),
-                    order=space.order, n_free=int(whole.free.size), ports=whole.ports,
-                    mesh_path="" if whole.mesh_path is None else str(whole.mesh_path),
-                    mesh_sha256=whole.mesh_sha256,
-                    added_rigid=None if whole.added is None
-                    else added_rigid_mass(space, whole.added),
-                    partition=kind, config=canonical_config(cfg))
-    written = cfg.materials or cfg.masses
-    kept = Kept(node_points=space.node_points,
-                element_nodes=compact_nodes(space.element_nodes, n_nodes),
-                regions=dict(whole.regions), materials=whole.materials if written else None,
-                label_frame=label_frame(space.node_points, node_volume_weights(space)),
-                support=support_inputs(whole))
-    parts = split_mesh(space, whole.materials, whole.free, whole_part, ranks, whole.added,
-                       whole.springs)
-    return write_parts(output, shared, kept,
-                       ((mesh, whole_part.local(r)) for r, mesh in enumerate(parts)))
-
-
-def parts_record(cfg: Config) -> tuple[str, str] | None:
-    """(path, content_sha256) of the run's parts file for ``/run``, or None without one."""
-    if not cfg.mesh.parts:
-        return None
-    from pipeline.distributed.parts_file import parts_digest
-
-    return str(cfg.mesh.parts), parts_digest(cfg.mesh.parts)
-
-
-def read_parts_header(cfg: Config, comm):
-    """The shared group of the run's parts file (``mesh.parts``), on every rank: rank 0
-    reads and checks it (:func:`pipeline.distributed.parts_file.read_shared`: one line,
-    on rank 0 alone, when the file does not fit the run) and sends it."""
-    from pipeline.distributed.parts_file import read_shared
-
-    check_partitionable(cfg)
-    shared = read_shared(cfg.mesh.parts, cfg, comm.size) if comm.rank == 0 else None
-    shared = comm.bcast(shared, root=0)
-    log.info("parts file %s: %d nodes, %d elements, %d free DOFs in %d parts (%s partition)",
-             cfg.mesh.parts, shared.n_nodes, shared.counts.n_tetrahedra, shared.n_free,
-             shared.ranks, shared.partition)
-    return shared
-
-
-def from_parts(cfg: Config, shared, comm):
-    """This rank's (RankMesh, own RowPartition, DistributedSpace, regions, element
-    materials, held DOFs, SupportInputs or None, constraint None) read from the parts
-    file: its own group only; rank 0 besides what it keeps (the whole mesh's points and
-    int32 elements, regions, written materials, label frame, support inputs)."""
-    from pipeline.distributed.parts_file import read_kept, read_rank
-
-    mesh, part = read_rank(cfg.mesh.parts, comm.rank)
-    log_resident(log, comm, "part read")
-    judge, regions, materials = None, {}, mesh.materials
-    fixed = np.zeros(0, np.int64)
-    if comm.rank == 0:
-        kept = read_kept(cfg.mesh.parts)
-        space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
-                                 kept.node_points, kept.element_nodes, mesh, shared.ports,
-                                 label_frame=kept.label_frame)
-        regions, judge, fixed = kept.regions, kept.support, kept.support.fixed
-        if kept.materials is not None:
-            materials = kept.materials
-        log_resident(log, comm, "kept read")
-    else:
-        nb = mesh.space.element_nodes.shape[1]
-        space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
-                                 np.zeros((0, 3)), np.zeros((0, nb), np.int64), mesh,
-                                 shared.ports)
-    return mesh, part, space, regions, materials, fixed, judge, None
-
-
 def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCounts,
                mesh, ports, spin_masses, interfaces, unsupported):
     """Rank 0's (DistributedSpace, regions, element materials) once the parts are sent:
@@ -572,25 +350,6 @@ def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCou
                             connections=interfaces, unsupported=unsupported)
     written = cfg.materials or cfg.masses
     return kept, whole.regions, whole.materials if written else mesh.materials
-
-
-def added_rigid_mass(space, added) -> np.ndarray:
-    """(6, 6) R^T A R of the added masses A (n_dofs, n_dofs) about the origin, from the
-    rows of the points they touch only (R: the rigid-body modes of those points)."""
-    dofs = np.unique(sp.csr_matrix(added).nonzero()[0] // 3)
-    dofs = (3 * dofs[:, None] + np.arange(3)).ravel()
-    R = rigid_body_modes(space.node_points[dofs[::3] // 3])
-    return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
-
-
-def partition_kind(PETSc) -> str:
-    """``graph`` or ``slab``: the PETSc option ``-pipeline_partition`` (default graph)."""
-    kind = PETSc.Options().getString("pipeline_partition", "graph")
-    if kind not in ("graph", "slab"):
-        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
-                          "slab", key="-pipeline_partition", value=kind,
-                          expected="graph or slab")
-    return kind
 
 
 def partition(whole: WholeMesh | None, comm):
