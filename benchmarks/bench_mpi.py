@@ -36,7 +36,10 @@ sent (the peak at the "parts sent" step) is fitted as M(N, P) = c + m0 + (m + mp
 whole mesh, mp / P its share of the partitioner's graph) and extrapolated beside the
 solve phase. ``--mesh-phase SIZES`` measures that phase alone (the FE stage on 2 and 4
 ranks at each mesh.size), rank 0's peak within each step (VmHWM is reset at each of
-:func:`pipeline.distributed.mpi.log_resident`'s steps) in MB and bytes a free DOF.
+:func:`pipeline.distributed.mpi.log_resident`'s steps) in MB and bytes a free DOF;
+with ``--parts`` also the partition command (one process: its peak, stack and time,
+:func:`partition_worker`) and the FE stage read from its parts file (``mesh.parts``),
+rank 0's peak up to the hand-off's end both ways (:func:`parts_table`).
 R and the divided part d at N come from the ranks other than 0 on 2
 and 4 ranks (each peaks at c + R + d / P: :func:`rank_split`; 4 ranks oversubscribe the
 2 cores, which moves their times, not their memory): rank 0 is left out, so w does not

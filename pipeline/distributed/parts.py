@@ -93,7 +93,8 @@ def write_partitioned(cfg: Config, ranks: int, output: str | Path,
     the whole mesh (:func:`mesh_whole`), partition it (:func:`partition_parts`), cut out
     every part (:func:`~pipeline.distributed.submesh.split_mesh`, one at a time, each
     written as it is made) and keep the small results and what rank 0 keeps
-    (:func:`handed_off`, :class:`SupportInputs`). Returns the path."""
+    (:func:`~pipeline.distributed.stage.handed_off`,
+    :class:`~pipeline.distributed.whole.SupportInputs`). Returns the path."""
     from pipeline.distributed.parts_file import Kept, Shared, canonical_config, write_parts
     from pipeline.solve.labels import label_frame
 

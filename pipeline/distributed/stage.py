@@ -224,8 +224,9 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     and drops the rest before it assembles its rows.
 
     With ``mesh.parts`` (a file of ``python -m pipeline partition``,
-    :func:`write_partitioned`) no rank meshes: each reads its own part from the file
-    (:mod:`pipeline.distributed.parts_file`), rank 0 besides what it keeps; the file is
+    :func:`~pipeline.distributed.parts.write_partitioned`) no rank meshes: each reads its
+    own part from the file (:mod:`pipeline.distributed.parts_file`), rank 0 besides what
+    it keeps; the file is
     refused in one line (the mesh stage) when it does not fit the run."""
     check_supported(cfg)
     comm = world()

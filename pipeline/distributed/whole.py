@@ -39,7 +39,7 @@ class WholeMesh:
     bushings' stiffness ((n_dofs, n_dofs) N/m, or None) and the inputs of the exact
     constraint u = T q (:func:`pipeline.fe.model.constraint_inputs`, or None). The
     rigid motions the supports leave are judged after the assembly
-    (:func:`supports_rigid_freedoms`)."""
+    (:func:`~pipeline.distributed.stage.supports_rigid_freedoms`)."""
 
     space: Any
     regions: dict
@@ -59,7 +59,7 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None, comm=None) -> WholeMesh
     and supports on the whole mesh; every misplaced region or gauge is refused here,
     before any rank assembles. ``comm``: the run's communicator (its rank names the
     memory log lines); None: COMM_WORLD, or one process without MPI (the partition
-    command, :func:`write_partitioned`)."""
+    command, :func:`~pipeline.distributed.parts.write_partitioned`)."""
     if comm is None:
         try:
             comm = world()
@@ -85,7 +85,8 @@ def mesh_whole(cfg: Config, mesh_dir: str | Path | None, comm=None) -> WholeMesh
 @dataclass(frozen=True)
 class SupportInputs:
     """What rank 0 keeps of the whole mesh past the hand-off to judge, after the
-    assembly, the rigid motions the supports leave (:func:`supports_rigid_freedoms`):
+    assembly, the rigid motions the supports leave
+    (:func:`~pipeline.distributed.stage.supports_rigid_freedoms`):
     the held DOFs (n_c,), the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m,
     nonzero at their points only, or None), the held local directions ((n_h, n_dofs)
     CSR, or None) and whether any DOF is free; the points are the kept space's."""
