@@ -36,7 +36,10 @@ sent (the peak at the "parts sent" step) is fitted as M(N, P) = c + m0 + (m + mp
 whole mesh, mp / P its share of the partitioner's graph) and extrapolated beside the
 solve phase. ``--mesh-phase SIZES`` measures that phase alone (the FE stage on 2 and 4
 ranks at each mesh.size), rank 0's peak within each step (VmHWM is reset at each of
-:func:`pipeline.distributed.mpi.log_resident`'s steps) in MB and bytes a free DOF.
+:func:`pipeline.distributed.mpi.log_resident`'s steps) in MB and bytes a free DOF;
+with ``--parts`` also the partition command (one process: its peak, stack and time,
+:func:`partition_worker`) and the FE stage read from its parts file (``mesh.parts``),
+rank 0's peak up to the hand-off's end both ways (:func:`parts_table`).
 R and the divided part d at N come from the ranks other than 0 on 2
 and 4 ranks (each peaks at c + R + d / P: :func:`rank_split`; 4 ranks oversubscribe the
 2 cores, which moves their times, not their memory): rank 0 is left out, so w does not
@@ -169,11 +172,13 @@ def _load_stack() -> None:
     world().Barrier()
 
 
-def worker(size: float, output: str, method: str, fe_only: bool = False) -> None:
+def worker(size: float, output: str, method: str, fe_only: bool = False,
+           parts: str | None = None) -> None:
     """One MPI case: every rank runs the pipeline (``fe_only``: its FE stage alone, rank
-    0's mesh phase and every rank's assembly); rank 0 prints a JSON line (with MUMPS'
-    figures of each factor the run made, which rank 0 logs, and every rank's memory at
-    the end of each stage and step)."""
+    0's mesh phase and every rank's assembly; ``parts``: from that parts file,
+    ``mesh.parts``); rank 0 prints a JSON line (with MUMPS' figures of each factor the
+    run made, which rank 0 logs, and every rank's memory at the end of each stage and
+    step)."""
     from pipeline.distributed.mpi import world
     from pipeline.api import run_config
 
@@ -192,6 +197,7 @@ def worker(size: float, output: str, method: str, fe_only: bool = False) -> None
     step_log.addHandler(stages)
     step_log.setLevel(logging.DEBUG)
     overrides = [f"mesh.size={size}", "modes.solver=slepc", f"modes.method={method}"]
+    overrides += [f"mesh.parts={parts}"] if parts else []
     t0 = time.perf_counter()
     if fe_only:
         result = _fe_stage(overrides)
@@ -211,6 +217,36 @@ def worker(size: float, output: str, method: str, fe_only: bool = False) -> None
             "f1_hz": None if fe_only else float(result.frequencies_hz[0]),
             "mumps": figures.factors}),
             flush=True)
+
+
+def partition_worker(size: float, ranks: int, output: str) -> None:
+    """``python -m pipeline partition`` of the cantilever at ``size`` for ``ranks`` ranks
+    in this process (PT-Scotch where petsc4py imports): prints a JSON line with its
+    wall time, its peak resident memory (VmHWM) and the stack's before it (MB), the
+    file's size (MB) and the free DOFs."""
+    from pipeline.config import load_config
+    from pipeline.distributed.parts import write_partitioned
+
+    import gmsh  # noqa: F401
+    import h5py
+    import skfem  # noqa: F401
+    try:
+        from pipeline.distributed.mpi import petsc
+
+        petsc()
+    except Exception:  # no petsc4py: the slab partition
+        pass
+    base = _status_mb()["VmHWM"]
+    cfg = load_config(CONFIG, [f"mesh.size={size}"])
+    t0 = time.perf_counter()
+    write_partitioned(cfg, ranks, output)
+    wall = time.perf_counter() - t0
+    with h5py.File(output) as h5:
+        n_free, kind = int(h5["shared/n_free"][()]), h5["shared/partition"].asstr()[()]
+    print("BENCH " + json.dumps({"ranks": ranks, "n_free": n_free, "wall_s": wall,
+                                 "peak_mb": _status_mb()["VmHWM"], "import_mb": base,
+                                 "file_mb": Path(output).stat().st_size / 2**20,
+                                 "partition": kind}), flush=True)
 
 
 def _fe_stage(overrides: list[str]):
@@ -251,6 +287,20 @@ def step_peaks(row: dict, rank: int) -> list[tuple[str, int, int | None]]:
 
 #: rank 0's steps up to and including the mesh phase's end
 MESH_PHASE_END = "parts sent"
+#: the step both ways of the mesh phase end with (meshing in the run, or reading a parts
+#: file): every rank holds its part and the small results
+HANDOFF_END = "small results sent"
+
+
+def handoff_peak_mb(row: dict) -> float | None:
+    """Rank 0's peak (MB, the stack included) over its steps up to :data:`HANDOFF_END`."""
+    peaks = []
+    for name, _, peak in step_peaks(row, 0):
+        if peak is not None:
+            peaks.append(peak)
+        if name == HANDOFF_END:
+            return max(peaks) if peaks else None
+    return None
 
 
 def mesh_phase_fit(rows: list[dict], n0: int | None = None) -> dict | None:
@@ -359,12 +409,15 @@ def cut_worker(size: float, case: str) -> None:
 
 
 def _mpiexec(ranks: int, args: list[str], timeout: float) -> dict:
+    """``mpiexec -n ranks`` of this script with ``args`` (``ranks`` 0: one process
+    without mpiexec); its JSON line."""
     mpiexec = shutil.which("mpiexec")
     root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMPI_ALLOW_RUN_AS_ROOT": "1",
            "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM": "1"}
-    argv = [mpiexec, *root, "--oversubscribe", "-n", str(ranks), "-x", "PYTHONPATH",
-            sys.executable, str(Path(__file__).resolve()), *args]
+    launch = [mpiexec, *root, "--oversubscribe", "-n", str(ranks), "-x", "PYTHONPATH"] \
+        if ranks else []
+    argv = [*launch, sys.executable, str(Path(__file__).resolve()), *args]
     proc = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=timeout)
     for line in proc.stdout.splitlines():
@@ -577,7 +630,41 @@ def mesh_phase_main(args) -> int:
     print(f"rank 0's mesh phase, cantilever mesh.size {args.mesh_phase} m")
     for line in mesh_phase_table(rows):
         print(line)
+    if args.parts is not None:
+        for line in parts_table(args, rows, ranks if not args.from_json else []):
+            print(line)
     return 0
+
+
+def parts_table(args, rows: list[dict], ranks: list[int]) -> list[str]:
+    """``--mesh-phase ... --parts``: at each size and rank count the partition command
+    (one process) and the FE stage from its parts file; lines comparing rank 0's peak
+    up to the hand-off's end (:func:`handoff_peak_mb`) with the run that meshes."""
+    lines = ["rank 0's peak up to the hand-off's end (MB, the stack included), meshing in "
+             "the run / reading a parts file; the partition command's peak, stack and "
+             "time (one process)",
+             f"{'size m':>7} {'ranks':>5} {'free DOFs':>9} {'meshing':>8} {'parts':>6} "
+             f"{'partition peak':>14} {'its stack':>9} {'time s':>7} {'file MB':>8}"]
+    meshed = {(r["n_free"], r["ranks"]): r for r in rows}
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.mesh_phase.split(","):
+            for p in ranks:
+                path = str(Path(tmp) / f"parts-{size}-{p}.h5")
+                made = _mpiexec(0, ["--partition-worker", "--size", size, "--ranks", str(p),
+                                    "--output", path], args.timeout)
+                read = _mpiexec(p, ["--worker", "--fe-only", "--size", size, "--method",
+                                    args.method, "--parts", path], args.timeout)
+                Path(path).unlink()
+                inrun = meshed.get((read["n_free"], p))
+                lines.append(
+                    f"{size:>7} {p:>5} {read['n_free']:>9} "
+                    f"{handoff_peak_mb(inrun) if inrun else float('nan'):>8.0f} "
+                    f"{handoff_peak_mb(read):>6.0f} {made['peak_mb']:>14.0f} "
+                    f"{made['import_mb']:>9.0f} {made['wall_s']:>7.1f} {made['file_mb']:>8.1f}")
+                lines.append("        rank 0's steps from the parts file: " + "; ".join(
+                    f"{name} {peak:.0f}" for name, _, peak in step_peaks(read, 0)
+                    if peak is not None))
+    return lines
 
 
 def main(argv=None) -> int:
@@ -605,6 +692,10 @@ def main(argv=None) -> int:
                     help="only rank 0's mesh phase: the FE stage alone at these mesh.size "
                          "values (m, comma-separated) on --ranks (default 2,4 here), its "
                          "peak by step and the fit m0 + (m + mp / P) N / N0")
+    ap.add_argument("--parts", nargs="?", const="", default=None, metavar="PATH",
+                    help="with --mesh-phase: also the partition command and the FE stage "
+                         "read from its parts file (mesh.parts), rank 0's peak both ways")
+    ap.add_argument("--partition-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--fe-only", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--cut-worker", action="store_true", help=argparse.SUPPRESS)
@@ -612,7 +703,10 @@ def main(argv=None) -> int:
     ap.add_argument("--output", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.size, args.output, args.method, args.fe_only)
+        worker(args.size, args.output, args.method, args.fe_only, args.parts or None)
+        return 0
+    if args.partition_worker:
+        partition_worker(args.size, int(args.ranks), args.output)
         return 0
     if args.mesh_phase:
         return mesh_phase_main(args)

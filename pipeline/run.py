@@ -256,7 +256,9 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
     with _stage("write", times):
         group_attrs.update(run_group_attrs(times, peak_memory_mb(), modes.backend,
                                            ranks=None if distributed is None
-                                           else distributed.rank_and_size()[1]))
+                                           else distributed.rank_and_size()[1],
+                                           parts=None if distributed is None
+                                           else distributed.parts_record(cfg)))
         if distributed is None or distributed.rank_and_size()[0] == 0:  # rank 0 writes
             write_file(output, tree, group_attrs, {ROOT.name: cfg.name,
                                                    ROOT.config_yaml: config_to_yaml(cfg)})

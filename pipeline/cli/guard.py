@@ -26,7 +26,7 @@ from pipeline._util.paths import check_output, check_output_dir, file_kind_match
 
 __all__ = ["Terminated", "handle_signals", "add_force_flags", "check_destinations"]
 
-WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch")
+WRITING_COMMANDS = ("run", "simulate", "export", "plot", "batch", "partition")
 
 #: export format -> kind of the file it writes (see pipeline._util.paths.KINDS)
 EXPORT_KINDS = {"json": "json", "mat": "mat", "vtu": "vtu", "xdmf": "xdmf", "exudyn": "exudyn",
@@ -147,8 +147,14 @@ def _batch(args) -> None:
     check_output_dir(outdir, marker=_batch_folder, force=args.force, what="batch folder")
 
 
+def _partition(args) -> None:
+    from pipeline.cli.partition import check_partition_destination
+
+    check_partition_destination(args)
+
+
 CHECKS = {"run": _run, "simulate": _simulate, "export": _export, "plot": _plot,
-          "batch": _batch}
+          "batch": _batch, "partition": _partition}
 
 
 def check_destinations(args: argparse.Namespace) -> None:

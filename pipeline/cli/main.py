@@ -136,7 +136,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 #: (module, function registering its subcommand), in the order ``--help`` lists them
 COMMAND_MODULES = [("cli.batch", "add_batch_parser"), ("cli.simulate", "add_simulate_parser"),
-                   ("apps.plots", "add_plot_parser"), ("cli.export", "add_export_parser")]
+                   ("apps.plots", "add_plot_parser"), ("cli.export", "add_export_parser"),
+                   ("cli.partition", "add_partition_parser")]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -83,7 +83,8 @@ def _geometry(raw: Any, base_dir: str = "") -> Geometry:
 def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
     # a mesh file brings its elements: mesh.size (gmsh's element size) does not apply
     from_file = geometry.kind == "mesh"
-    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm"), () if from_file else ("size",))
+    raw = v.mapping(raw, "mesh", ("order", "size", "algorithm", "parts"),
+                    () if from_file else ("size",))
     order = v.choice(raw, "order", "mesh", (1, 2), default=2)
     size = v.number(raw, "size", "mesh", MeshSpec.size if from_file else v.MISSING, lo=0.0,
                     lo_open=True)
@@ -102,7 +103,26 @@ def _mesh(raw: Any, geometry: Geometry) -> MeshSpec:
                         f"{max(smallest / 400, largest / 5000):g} m for this body (a finer mesh "
                         "would not fit any machine)")
     algorithm = v.choice(raw, "algorithm", "mesh", get_args(MeshAlgorithm), default="hxt")
-    return MeshSpec(order=order, size=size, algorithm=algorithm)
+    return MeshSpec(order=order, size=size, algorithm=algorithm, parts=_parts_file(raw))
+
+
+def _parts_file(raw: Mapping) -> str:
+    """``mesh.parts``: "" or the path of an existing file, relative to the working
+    directory (it is an output of ``python -m pipeline partition``, as ``-o`` is)."""
+    if "parts" not in raw or raw["parts"] is None:
+        return ""
+    path = raw["parts"]
+    if not isinstance(path, str) or not path.strip() or "\0" in path:
+        raise v.fail("mesh.parts", path, "a file path (a parts file of 'python -m pipeline "
+                     "partition')")
+    try:
+        exists = Path(path).is_file()
+    except (OSError, ValueError):  # a name too long for the file system, ...
+        exists = False
+    if not exists:
+        raise v.fail("mesh.parts", path, "an existing parts file (made by 'python -m "
+                     "pipeline partition')")
+    return path
 
 
 def _material(raw: Any) -> Material:
@@ -413,6 +433,9 @@ def config_from_dict(raw: Any, source: str = "") -> Config:
     if cfg.rotation is not None and cfg.rotation.correction_shapes > cfg.modes.count:
         raise v.fail("rotation.correction_shapes", cfg.rotation.correction_shapes,
                     f"at most modes.count = {cfg.modes.count} (one per mode)")
+    if cfg.mesh.parts and cfg.modes.solver != "slepc":
+        raise v.fail("mesh.parts", cfg.mesh.parts, "a parts file only with modes.solver: "
+                     f"slepc (the MPI ranks read it; modes.solver is '{cfg.modes.solver}')")
     check_numerics(cfg)  # what double precision cannot carry: refused
     check_plausibility(cfg)  # unit slips and locking: warnings, logged
     return cfg

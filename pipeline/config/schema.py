@@ -81,11 +81,14 @@ class Geometry:
 
 @dataclass(frozen=True)
 class MeshSpec:
-    """gmsh settings: element ``order`` 1 or 2, target element ``size`` in m."""
+    """gmsh settings: element ``order`` 1 or 2, target element ``size`` in m; ``parts``:
+    a partitioned mesh file of ``python -m pipeline partition`` that the ranks of a
+    ``modes.solver: slepc`` run read instead of meshing ("" for none)."""
 
     order: Literal[1, 2] = 2
     size: float = 0.005
     algorithm: MeshAlgorithm = "hxt"  # gmsh 3D algorithm: delaunay | hxt | frontal
+    parts: str = ""
 
 
 @dataclass(frozen=True)

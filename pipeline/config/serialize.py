@@ -64,8 +64,10 @@ def config_to_dict(cfg: Config) -> dict:
             keep = ("kind", "length", "height", "depth") if value.kind == "box" else \
                 ("kind", "path", "units" if value.units else "scale")
             value = {k: getattr(value, k) for k in keep}
-        elif f.name == "mesh" and cfg.geometry.kind == "mesh":
-            value = {"order": value.order}  # size and algorithm do not apply to a mesh file
+        elif f.name == "mesh":
+            # size and algorithm do not apply to a mesh file; parts only where set
+            keep = ("order",) if cfg.geometry.kind == "mesh" else ("order", "size", "algorithm")
+            value = {k: getattr(value, k) for k in keep + (("parts",) if value.parts else ())}
         elif hasattr(value, "__dataclass_fields__"):
             value = asdict(value)
         out[f.name] = plain(value)

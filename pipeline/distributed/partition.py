@@ -137,13 +137,13 @@ def slab_partition(node_points: np.ndarray, free: np.ndarray, size: int) -> RowP
 
 def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
                     node_points: np.ndarray | None, free: np.ndarray | None,
-                    kind: str = "ptscotch") -> RowPartition:
+                    kind: str = "ptscotch", parts: int | None = None) -> RowPartition:
     """A partition of whole points by PETSc's MatPartitioning (``kind``: ``ptscotch``;
     Debian's PETSc has no ParMETIS), collectively. Only rank 0 needs the mesh (the others
     may pass None): it builds the graph rows of each rank's slab (the initial
     distribution) and sends them, the other ranks' first, so that only its own slab's
     rows are alive when its part of PETSc's graph is made; PETSc moves the graph's
-    vertices to ``size`` parts of nearly equal weight with few cut edges, rank 0 gathers
+    vertices to ``parts`` parts of nearly equal weight with few cut edges, rank 0 gathers
     each vertex's part and makes the partition (the whole one, on rank 0; None
     elsewhere: each rank receives its own, :meth:`RowPartition.local`). Within a part
     the rows keep the slab order, a point's DOFs together; rank r owns part r.
@@ -154,8 +154,21 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     graph; for linear elements, or where PETSc's vertex weights cannot be set
     (:func:`_petsc_weight_calls`), the point graph (two points adjacent when an element
     holds both, :func:`slab_graph_rows`), every point weighing the same; the PETSc
-    option ``-pipeline_partition_graph points`` asks for the point graph always."""
+    option ``-pipeline_partition_graph points`` asks for the point graph always.
+
+    ``comm``: COMM_WORLD's mpi4py communicator (:func:`pipeline.distributed.mpi.world`)
+    or, on one process, COMM_SELF's (PETSc's objects live on the matching PETSc
+    communicator); ``parts``: the number of parts, ``comm.size`` (None) or, on one
+    process, any count (the partition a later run on ``parts`` ranks reads, ``python -m
+    pipeline partition``): PETSc's option ``mat_partitioning_nparts`` is set then under
+    this call's own options prefix (:data:`NPARTS_PREFIX`, so that no option of the host
+    process changes and the host's ``-mat_partitioning_*`` options do not apply) and
+    removed after."""
     size, rank = comm.size, comm.rank
+    n_parts = size if parts is None else int(parts)
+    if n_parts != size and size != 1:
+        raise ValueError(f"{n_parts} parts on {size} processes: expected {size}, or any "
+                         "count on one process")
     graph = PETSc.Options().getString("pipeline_partition_graph", "vertices")
     if graph not in ("vertices", "points"):
         raise ConfigError(f"PETSc option -pipeline_partition_graph: {graph!r}; expected "
@@ -181,25 +194,35 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
     weights = mine[2] if weighted else None
     del mine
     n_rows, n_v = indptr.size - 1, comm.allreduce(indptr.size - 1)
+    # PETSc's objects on COMM_WORLD (every rank of the run) or, on one process, COMM_SELF
+    pcomm = PETSc.COMM_SELF if size == 1 else PETSc.COMM_WORLD
     # every edge weighs 1 (PT-Scotch reads the values only with
     # -mat_partitioning_use_edge_weights); PETSc copies the arrays
     G = PETSc.Mat().createAIJ(size=((n_rows, n_v), (n_rows, n_v)),
                               csr=(np.asarray(indptr, dtype=PETSc.IntType),
                                    np.asarray(indices, dtype=PETSc.IntType),
                                    np.ones(indices.size)),
-                              comm=PETSc.COMM_WORLD)
+                              comm=pcomm)
     del indptr, indices
     G.assemble()
-    mp = PETSc.MatPartitioning().create(comm=PETSc.COMM_WORLD)
+    mp = PETSc.MatPartitioning().create(comm=pcomm)
     mp.setType(kind)
     mp.setAdjacency(G)
     if weighted:
         set_weights(PETSc, mp, weights)
-    mp.setFromOptions()  # -mat_partitioning_* options override
-    parts = PETSc.IS()
-    mp.apply(parts)
-    owner = comm.gather(np.asarray(parts.getIndices(), dtype=np.int64), root=0)
-    for obj in (parts, mp, G):
+    options = PETSc.Options()
+    if n_parts != size:
+        mp.setOptionsPrefix(NPARTS_PREFIX)
+        options.setValue(f"{NPARTS_PREFIX}mat_partitioning_nparts", n_parts)
+    try:
+        mp.setFromOptions()  # -mat_partitioning_* options override (without the prefix)
+    finally:
+        if n_parts != size:
+            options.delValue(f"{NPARTS_PREFIX}mat_partitioning_nparts")
+    owned = PETSc.IS()
+    mp.apply(owned)
+    owner = comm.gather(np.asarray(owned.getIndices(), dtype=np.int64), root=0)
+    for obj in (owned, mp, G):
         obj.destroy()
     part = None
     if rank == 0:
@@ -209,10 +232,15 @@ def graph_partition(PETSc, comm, element_nodes: np.ndarray | None,
         v_of_dof = vertex[points if home is None else home[points]]
         del points
         order = np.lexsort((np.arange(free.size), v_of_dof, owner[v_of_dof])).astype(np.int64)
-        counts = np.bincount(owner[v_of_dof], minlength=size)
+        counts = np.bincount(owner[v_of_dof], minlength=n_parts)
         part = RowPartition(order=order, starts=np.concatenate([[0], np.cumsum(counts)]),
                             dofs=free[order])
     return part
+
+
+#: the options prefix of a partition into another count of parts than processes
+#: (:func:`graph_partition`)
+NPARTS_PREFIX = "pipeline_parts_"
 
 
 #: element-node pairs whose rows :func:`slab_graph_rows` makes at a time: the chunk's
@@ -434,3 +462,13 @@ def cut_measures(local_K, lo: int, hi: int) -> tuple[int, int]:
     cols = np.asarray(local_K.indices)
     off = cols[(cols < lo) | (cols >= hi)]
     return int(off.size), int(np.unique(off).size)
+
+
+def partition_kind(PETSc) -> str:
+    """``graph`` or ``slab``: the PETSc option ``-pipeline_partition`` (default graph)."""
+    kind = PETSc.Options().getString("pipeline_partition", "graph")
+    if kind not in ("graph", "slab"):
+        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
+                          "slab", key="-pipeline_partition", value=kind,
+                          expected="graph or slab")
+    return kind

@@ -20,12 +20,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 
 from pipeline.config import Config
 from pipeline.errors import ConfigError
@@ -35,12 +33,14 @@ from pipeline.distributed.mpi import allreduce_sum, log_resident, petsc, world
 from pipeline.distributed.multigrid import lobpcg_modes, prolongation
 from pipeline.distributed.operators import KspSolve, RowMatrix, of_diagonals
 from pipeline.distributed.partition import (FreeDofs, cut_measures, graph_partition,
-                                            slab_partition)
+                                            partition_kind, slab_partition)
+from pipeline.distributed.parts import (from_parts, parts_record,  # noqa: F401 (run.py's)
+                                        read_parts_header)
+from pipeline.distributed.whole import (SupportInputs, WholeMesh, added_rigid_mass,
+                                        mesh_whole, support_inputs)
 from pipeline.fe.body import (body_properties, node_volume_weights,
-                              properties_from_rigid_mass, rigid_body_modes)
-from pipeline.fe.ports import check_gauges, port_matrices
-from pipeline.fe.model import FEModel, constraint_inputs, mesh_config
-from pipeline.fe.regions import fixed_dofs, free_dofs
+                              properties_from_rigid_mass)
+from pipeline.fe.model import FEModel
 from pipeline.fe.supports import SOFT_SUPPORT, rigid_freedoms
 from pipeline.distributed.blocks import RowBlock
 from pipeline.distributed.submesh import (DistributedSpace, MeshCounts, compact_nodes,
@@ -103,7 +103,7 @@ def abort_on_failure():
         raise
 
 
-def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
+def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm, parts: bool = False) -> int:
     """Refuse, on every rank and before the assembly, a run whose ranks on one node would
     need more than the node has (ResourceError, one line). Per rank: the serial model of
     :mod:`pipeline._util.resources` for the whole problem (factor method; ``n_nodes``
@@ -114,7 +114,8 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
     (:func:`kept_bytes`), and before that, while it meshes, partitions and cuts out the
     parts, what it holds of the whole mesh and its share of the partitioner's graph
     (:func:`handoff_meshes` serial mesh terms): its peak is the larger of the two
-    phases. gmsh's library state after meshing (18 MB on rank 0 alone, a constant) is
+    phases; with a parts file (``parts``, ``mesh.parts``) it has no such phase.
+    gmsh's library state after meshing (18 MB on rank 0 alone, a constant) is
     within the baseline. A rotation sweep (factor path, a
     speed other than 0) factorises K(Omega), K's pattern, while the run's factor of K
     is alive (the static correction solves with it afterwards): one more factor's share
@@ -143,7 +144,9 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm) -> int:
         divided += pair_bytes(n_nodes, cfg.mesh.order) / comm.size
     own = divided  # on one rank the whole mesh is its part
     if comm.rank == 0 and comm.size > 1:  # the hand-off, or the kept arrays from then on
-        own = max(handoff_meshes(comm.size) * mesh, divided + kept_bytes(n_nodes, n_el, cfg))
+        own = divided + kept_bytes(n_nodes, n_el, cfg)
+        if not parts:
+            own = max(handoff_meshes(comm.size) * mesh, own)
     per_rank = int(res.BASELINE_BYTES + own)
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     node_ranks = node.size
@@ -190,72 +193,6 @@ def kept_bytes(n_nodes: int, n_el: int, cfg: Config) -> float:
     return 24.0 * n_nodes + (4.0 * nodes + (12.0 if written else 0.0)) * n_el
 
 
-@dataclass(frozen=True)
-class WholeMesh:
-    """What rank 0 evaluates on the whole mesh before the parts are sent (the others
-    receive the parts, the counts and the small results): the space, its regions, the
-    element materials, the added masses (or None), the held and the free DOFs, the port
-    matrices (None: no reduction), the mesh file kept, its SHA-256, the springs' and
-    bushings' stiffness ((n_dofs, n_dofs) N/m, or None) and the inputs of the exact
-    constraint u = T q (:func:`pipeline.fe.model.constraint_inputs`, or None). The
-    rigid motions the supports leave are judged after the assembly
-    (:func:`supports_rigid_freedoms`)."""
-
-    space: Any
-    regions: dict
-    materials: Any
-    added: Any
-    fixed: np.ndarray
-    free: np.ndarray
-    ports: Any
-    mesh_path: Path | None
-    mesh_sha256: str
-    springs: Any = None
-    constraint: Any = None
-
-
-def mesh_whole(cfg: Config, mesh_dir: str | Path | None) -> WholeMesh:
-    """Rank 0: mesh the body (gmsh), resolve the regions, materials, added masses, ports
-    and supports on the whole mesh; every misplaced region or gauge is refused here,
-    before any rank assembles."""
-    meshed = mesh_config(cfg, mesh_dir, lambda step: log_resident(log, world(), step))
-    space, regions, materials = meshed.space, meshed.regions, meshed.materials
-    added, springs, extra = meshed.added, meshed.supports.springs, meshed.supports
-    mesh_path, mesh_sha256 = meshed.mesh_path, meshed.mesh_sha256
-    del meshed
-    check_gauges(space, regions, cfg.ports, materials)
-    fixed = fixed_dofs(space, regions, cfg.supports, cfg.constraints.in_plane)
-    free = free_dofs(space.n_dofs, fixed)
-    constraint = constraint_inputs(space, regions, cfg, free, extra)  # refusals: before K
-    ports = None if cfg.reduction is None else \
-        port_matrices(space, regions, cfg.ports, material=materials)
-    if ports is None and cfg.rotation is not None:  # a rotating body's preloads
-        ports = port_matrices(space, regions, preload_ports(cfg))
-    return WholeMesh(space, regions, materials, added, fixed, free, ports, mesh_path,
-                     mesh_sha256, springs, constraint)
-
-
-@dataclass(frozen=True)
-class SupportInputs:
-    """What rank 0 keeps of the whole mesh past the hand-off to judge, after the
-    assembly, the rigid motions the supports leave (:func:`supports_rigid_freedoms`):
-    the held DOFs (n_c,), the springs' and bushings' stiffness ((n_dofs, n_dofs) N/m,
-    nonzero at their points only, or None), the held local directions ((n_h, n_dofs)
-    CSR, or None) and whether any DOF is free; the points are the kept space's."""
-
-    fixed: np.ndarray
-    springs: Any
-    held: Any
-    any_free: bool
-
-
-def support_inputs(whole: WholeMesh) -> SupportInputs:
-    """:class:`SupportInputs` of ``whole``."""
-    return SupportInputs(whole.fixed, whole.springs,
-                         None if whole.constraint is None else whole.constraint[0],
-                         bool(whole.free.size))
-
-
 def supports_rigid_freedoms(inputs: SupportInputs | None, node_points: np.ndarray, props,
                             K: RowMatrix, M: RowMatrix, comm):
     """The rigid motions that the held DOFs and the springs leave free, as the serial
@@ -284,67 +221,86 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None, stage) -> FEModel:
     summed over the ranks. Only rank 0 ever holds the whole mesh, and only until the
     parts and the small results are sent: it then keeps what the writer stores
     (:func:`handed_off`) and what judging the supports needs (:class:`SupportInputs`),
-    and drops the rest before it assembles its rows."""
+    and drops the rest before it assembles its rows.
+
+    With ``mesh.parts`` (a file of ``python -m pipeline partition``,
+    :func:`~pipeline.distributed.parts.write_partitioned`) no rank meshes: each reads its
+    own part from the file (:mod:`pipeline.distributed.parts_file`), rank 0 besides what
+    it keeps; the file is
+    refused in one line (the mesh stage) when it does not fit the run."""
     check_supported(cfg)
     comm = world()
-    whole = None
+    whole = shared = None
     with stage("mesh"):
-        if comm.rank == 0:
-            whole = mesh_whole(cfg, mesh_dir)
-            log_resident(log, comm, "whole mesh evaluated")
-            space = whole.space
-            log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks", space.body.n_tetrahedra,
-                     space.cell_type, space.n_nodes, space.n_dofs, comm.size)
-            counts = (space.n_nodes, MeshCounts(space.body.n_tetrahedra, space.body.n_vertices))
-        n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
-    check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm)
+        if cfg.mesh.parts:  # every rank reads (and verifies) its part: no rank meshes
+            shared = read_parts_header(cfg, comm)
+            n_nodes, mesh_counts = shared.n_nodes, shared.counts
+            (mesh, part, space, regions, materials, fixed, judge,
+             constraint) = from_parts(cfg, shared, comm)
+        else:
+            if comm.rank == 0:
+                whole = mesh_whole(cfg, mesh_dir)
+                log_resident(log, comm, "whole mesh evaluated")
+                space = whole.space
+                log.info("%d elements (%s), %d nodes, %d DOFs on %d ranks",
+                         space.body.n_tetrahedra, space.cell_type, space.n_nodes,
+                         space.n_dofs, comm.size)
+                counts = (space.n_nodes,
+                          MeshCounts(space.body.n_tetrahedra, space.body.n_vertices))
+            n_nodes, mesh_counts = comm.bcast(counts if comm.rank == 0 else None, root=0)
+    check_rank_memory(n_nodes, mesh_counts.n_tetrahedra, cfg, comm, parts=shared is not None)
     with stage("assemble"):
-        whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
-        log_resident(log, comm, "partitioned")
-        parts = None if whole is None else split_mesh(whole.space, whole.materials,
-                                                      whole.free, whole_part, comm.size,
-                                                      whole.added, whole.springs)
-        mesh = scatter_parts(comm, parts)
-        del parts
-        log_resident(log, comm, "parts sent")
-        small = None if whole is None else (
-            whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
-            None if whole.added is None else added_rigid_mass(whole.space, whole.added))
-        n_free, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
-        # every rank holds the count of the free DOFs and its own rows' (``part``);
-        # rank 0 the held DOFs, which it writes
+        if shared is not None:
+            n_free, ports, added_rigid = shared.n_free, shared.ports, shared.added_rigid
+            mesh_path = Path(shared.mesh_path) if shared.mesh_path else None
+            mesh_sha256 = shared.mesh_sha256
+        else:
+            whole_part, part = partition(whole, comm)  # the whole one on rank 0 only
+            log_resident(log, comm, "partitioned")
+            parts = None if whole is None else split_mesh(whole.space, whole.materials,
+                                                          whole.free, whole_part, comm.size,
+                                                          whole.added, whole.springs)
+            mesh = scatter_parts(comm, parts)
+            del parts
+            log_resident(log, comm, "parts sent")
+            small = None if whole is None else (
+                whole.free.size, whole.ports, whole.mesh_path, whole.mesh_sha256,
+                None if whole.added is None else added_rigid_mass(whole.space, whole.added))
+            n_free, ports, mesh_path, mesh_sha256, added_rigid = comm.bcast(small, root=0)
+            # every rank holds the count of the free DOFs and its own rows' (``part``);
+            # rank 0 the held DOFs, which it writes
+            fixed = np.zeros(0, np.int64) if whole is None else whole.fixed
+            spin_masses = comm.bcast(None if whole is None else
+                                     rotation_masses(cfg, whole.space, whole.regions), root=0)
+            interfaces = comm.bcast(None if whole is None else connection_interfaces(
+                cfg, whole.space, whole.regions), root=0)
+            unsupported = None  # the connection model's own pair (K, M): its part
+            if cfg.connections and not clamped_by_supports(cfg):
+                unsupported = unsupported_parts(comm, whole, whole_part)
+            del whole_part
+            # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
+            constraint = distribute_constraint(comm, None if whole is None
+                                               else whole.constraint, 3 * n_nodes, part)
+            judge = None  # rank 0: what judging the supports needs after the assembly
+            if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
+                space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
+                                                       ports, spin_masses, interfaces,
+                                                       unsupported)
+                judge = support_inputs(whole)
+            else:
+                nb = mesh.space.element_nodes.shape[1]
+                space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts,
+                                         np.zeros((0, 3)), np.zeros((0, nb), np.int64), mesh,
+                                         ports, rotation_masses=spin_masses,
+                                         connections=interfaces, unsupported=unsupported)
+                regions, materials = {}, mesh.materials
+            del whole  # the whole mesh: gone before the assembly (tests/test_mpi_rank0.py)
+            log_resident(log, comm, "whole mesh dropped")
         free = FreeDofs(n_free)
-        fixed = np.zeros(0, np.int64) if whole is None else whole.fixed
-        spin_masses = comm.bcast(None if whole is None else
-                                 rotation_masses(cfg, whole.space, whole.regions), root=0)
-        interfaces = comm.bcast(None if whole is None else connection_interfaces(
-            cfg, whole.space, whole.regions), root=0)
-        unsupported = None  # the connection model's own pair (K, M): its part
-        if cfg.connections and not clamped_by_supports(cfg):
-            unsupported = unsupported_parts(comm, whole, whole_part)
-        del whole_part
-        # u = T q: each rank builds its own rows of T (pipeline.distributed.constraints)
-        constraint = distribute_constraint(comm, None if whole is None else whole.constraint,
-                                           3 * n_nodes, part)
         log.info("rank %d holds %d of %d points, %d of %d elements", comm.rank,
                  mesh.points.size, n_nodes, mesh.space.element_nodes.shape[0],
                  mesh_counts.n_tetrahedra)
         log_resident(log, comm, "small results sent")
-        judge = None  # rank 0: what judging the supports needs after the assembly
-        if whole is not None:  # rank 0 keeps what it writes, compact (handed_off)
-            space, regions, materials = handed_off(cfg, whole, n_nodes, mesh_counts, mesh,
-                                                   ports, spin_masses, interfaces,
-                                                   unsupported)
-            judge = support_inputs(whole)
-        else:
-            nb = mesh.space.element_nodes.shape[1]
-            space = DistributedSpace(mesh.space.order, n_nodes, mesh_counts, np.zeros((0, 3)),
-                                     np.zeros((0, nb), np.int64), mesh, ports,
-                                     rotation_masses=spin_masses, connections=interfaces,
-                unsupported=unsupported)
-            regions, materials = {}, mesh.materials
-        del whole  # the whole mesh: gone before the assembly (tests/test_mpi_rank0.py)
-        log_resident(log, comm, "whole mesh dropped")
         rows = local_rows(mesh)
         log_resident(log, comm, "rows assembled")
         cut, halo = cut_measures(rows.K, rows.lo, rows.hi)
@@ -397,15 +353,6 @@ def handed_off(cfg: Config, whole: WholeMesh, n_nodes: int, mesh_counts: MeshCou
     return kept, whole.regions, whole.materials if written else mesh.materials
 
 
-def added_rigid_mass(space, added) -> np.ndarray:
-    """(6, 6) R^T A R of the added masses A (n_dofs, n_dofs) about the origin, from the
-    rows of the points they touch only (R: the rigid-body modes of those points)."""
-    dofs = np.unique(sp.csr_matrix(added).nonzero()[0] // 3)
-    dofs = (3 * dofs[:, None] + np.arange(3)).ravel()
-    R = rigid_body_modes(space.node_points[dofs[::3] // 3])
-    return R.T @ (sp.csr_matrix(added)[dofs][:, dofs] @ R)
-
-
 def partition(whole: WholeMesh | None, comm):
     """The rows of each rank (collective; ``whole`` on rank 0, None elsewhere): PT-Scotch's
     graph partition of the points
@@ -414,11 +361,7 @@ def partition(whole: WholeMesh | None, comm):
     Returns (the whole partition on rank 0, None elsewhere; this rank's own
     :meth:`~pipeline.distributed.partition.RowPartition.local`, sent by rank 0)."""
     PETSc, _ = petsc()
-    kind = PETSc.Options().getString("pipeline_partition", "graph")
-    if kind not in ("graph", "slab"):
-        raise ConfigError(f"PETSc option -pipeline_partition: {kind!r}; expected graph or "
-                          "slab", key="-pipeline_partition", value=kind,
-                          expected="graph or slab")
+    kind = partition_kind(PETSc)
     if comm.size == 1 or kind == "slab":
         part = None if whole is None else \
             slab_partition(whole.space.node_points, whole.free, comm.size)

@@ -169,7 +169,8 @@ LUMPED_STATESPACE = Group(f"{LUMPED.path}/statespace", tuple("ABCD"), attrs=_SS_
 
 # --------------------------------------------------------------------------- /run
 RUN = Group("run", (), attrs=("mesh_s", "assemble_s", "modes_s", "reduce_s", "write_s",
-                              "peak_memory_mb", "solver", "rotation_s", "ranks"))
+                              "peak_memory_mb", "solver", "rotation_s", "ranks",
+                              "parts_file", "parts_sha256"))
 
 # --------------------------------------------------------------------------- connections
 CONNECTIONS = Group("connections", ())

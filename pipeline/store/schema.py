@@ -163,14 +163,19 @@ def core_group_attrs(space, element_order: int, n_free_dofs: int, mesh_source: s
 
 
 def run_group_attrs(times: Mapping[str, float], peak_memory_mb: float, solver: str,
-                    ranks: int | None = None) -> dict[str, dict[str, Any]]:
+                    ranks: int | None = None, parts: tuple[str, str] | None = None
+                    ) -> dict[str, dict[str, Any]]:
     """Attributes of ``/run``: seconds per stage (``<stage>_s``), peak memory, solver;
-    ``ranks``: the number of MPI ranks of a distributed run (written only then)."""
+    ``ranks``: the number of MPI ranks of a distributed run (written only then);
+    ``parts``: (path, content_sha256) of the parts file its ranks read (``mesh.parts``,
+    written only then)."""
     attrs: dict[str, Any] = {f"{k}_s": v for k, v in times.items()}
     attrs[RUN.attr.peak_memory_mb] = peak_memory_mb
     attrs[RUN.attr.solver] = solver
     if ranks is not None:
         attrs[RUN.attr.ranks] = int(ranks)
+    if parts is not None:
+        attrs[RUN.attr.parts_file], attrs[RUN.attr.parts_sha256] = parts
     return {RUN.path: attrs}
 
 
