@@ -14,7 +14,8 @@ CONFIG ?= configs/cantilever.yaml
 TEST_WORKERS ?= 2
 XDIST := $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
-.PHONY: modes test test-all test-reliability bench batch env clean api mpi-env mpi-modes mpi-parts mpi-test
+.PHONY: modes test test-all test-reliability bench batch env clean api mpi-env mpi-modes \
+        mpi-parts mpi-test
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -83,7 +84,8 @@ MPI_PARTS = outputs/$(basename $(notdir $(CONFIG)))-parts$(MPI_RANKS).h5
 mpi-parts: $(MPI_STAMP)
 	mkdir -p outputs
 	$(MPI_PY) -m pipeline partition $(CONFIG) --ranks $(MPI_RANKS) -o $(MPI_PARTS)
-	$(MPI_RUN) $(MPI_PY) -m pipeline run $(CONFIG) --set modes.solver=slepc --set mesh.parts=$(MPI_PARTS) -o outputs/$(basename $(notdir $(CONFIG)))-mpi-parts.h5
+	$(MPI_RUN) $(MPI_PY) -m pipeline run $(CONFIG) --set modes.solver=slepc \
+	  --set mesh.parts=$(MPI_PARTS) -o outputs/$(basename $(notdir $(CONFIG)))-mpi-parts.h5
 
 mpi-test: $(MPI_STAMP)
 	$(MPI_PY) -m pytest -q -m mpi tests/test_mpi*.py

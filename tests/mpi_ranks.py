@@ -6,8 +6,8 @@ every rank that its mode shapes are its own rows only (a RowBlock of hi - lo row
 ranks' rows add up to the free DOFs, none holds them all), that the shapes dataset is
 written from the ranks' own points (each rank's share smaller than the mesh), that
 only rank 0 ran gmsh (none with ``mesh.parts``) and every other rank holds a part of
-the mesh, not all of it, that no rank other than 0 received an array as long as the mesh's points, its DOFs or
-its free DOFs (every message of the stage's communicator is inspected:
+the mesh, not all of it, that no rank other than 0 received an array as long as the
+mesh's points, its DOFs or its free DOFs (every message of the stage's communicator is inspected:
 :class:`ReceivedArrays`), and prints one line
 per rank: ``rank R rows N of F points P of Q gmsh G part H of Q
 elements E of T`` (H, E: the points and elements of its part of the mesh).

@@ -1,7 +1,8 @@
 """The partitioner's graph on the mesh vertices (:mod:`pipeline.distributed.partition`).
 
-Without MPI: the vertex graph's rows are the mesh's edges between the vertices that are home to a free DOF, every point's home is a vertex
-of its own edge, and the vertex weights add up to the free DOFs. With ``make mpi-env``:
+Without MPI: the vertex graph's rows are the mesh's edges between the vertices that are
+home to a free DOF, every point's home is a vertex of its own edge, and the vertex
+weights add up to the free DOFs. With ``make mpi-env``:
 PETSc's partitioner takes the vertex weights (a chain whose first tenth weighs ten times
 the rest is cut where the weights balance, not at the middle), and on 3 ranks the rows
 of every part are whole points, balanced in free DOFs within PT-Scotch's imbalance
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from conftest import ROOT, build_model
+from conftest import build_model
 from test_mpi import MPI_PYTHON, _mpiexec, _run
 
 

@@ -25,21 +25,6 @@ def default_parts_output(cfg, ranks: int) -> Path:
     return Path("outputs") / f"{cfg.name}-parts{ranks}.h5"
 
 
-def _is_parts_file(path: Path) -> bool:
-    """An existing file is a parts file of this package (replaced without --force)."""
-    try:
-        import h5py
-
-        from pipeline.distributed.parts_file import SCHEMA
-
-        with h5py.File(path, "r") as h5:
-            schema = h5.attrs.get("schema")
-        schema = schema.decode("utf-8", "replace") if isinstance(schema, bytes) else schema
-        return schema == SCHEMA
-    except Exception:  # not HDF5, unreadable: not ours
-        return False
-
-
 def check_partition_destination(args: argparse.Namespace) -> None:
     """Before any work: the config (its overrides applied) is valid and partitionable
     (:func:`pipeline.distributed.parts.check_partitionable`), the rank count is at
@@ -49,6 +34,7 @@ def check_partition_destination(args: argparse.Namespace) -> None:
     from pipeline._util.paths import check_output
     from pipeline.api import resolve_config
     from pipeline.distributed.parts import check_partitionable
+    from pipeline.distributed.parts_file import is_parts_file
     from pipeline.errors import ConfigError
 
     cfg = resolve_config(args.config, args.set or [])
@@ -59,7 +45,7 @@ def check_partition_destination(args: argparse.Namespace) -> None:
     args.resolved_config = cfg  # a config from a pipe can be read only once
     path = Path(args.output) if args.output else default_parts_output(cfg, args.ranks)
     inputs = [args.config] + [p for p in (cfg.geometry.path, cfg.mesh.parts) if p]
-    ours = path.is_file() and _is_parts_file(path)
+    ours = path.is_file() and is_parts_file(path)
     check_output(path, inputs=inputs, force=args.force or ours, kind="h5",
                  create_parent=not args.output)
     args.parts_output = path

@@ -326,6 +326,20 @@ def _open(path: Path):
     return h5
 
 
+def is_parts_file(path: str | Path) -> bool:
+    """Whether ``path`` is a readable parts file of this package (any schema_version):
+    what ``partition`` may replace without ``--force``."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            schema = h5.attrs.get("schema")
+    except (OSError, ValueError):  # not HDF5, unreadable: not ours
+        return False
+    schema = schema.decode("utf-8", "replace") if isinstance(schema, bytes) else schema
+    return schema == SCHEMA
+
+
 def parts_digest(path: str | Path) -> str:
     """The file's signature ``content_sha256`` (the result file's ``/run`` records it)."""
     with _open(Path(path)) as h5:
