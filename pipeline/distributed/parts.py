@@ -1,6 +1,7 @@
-"""The partitioned mesh file's two ends (issue 38: "each rank meshes or reads its
-part"): ``python -m pipeline partition`` runs rank 0's mesh phase for N ranks once, on
-one process, and writes it (:func:`write_partitioned`); a run with ``mesh.parts``
+"""The partitioned mesh file's two ends, so that each rank reads its own part instead
+of rank 0 meshing the whole body in the run: ``python -m pipeline partition`` runs
+rank 0's mesh phase for N ranks once, on one process (on any node: its memory is the
+whole mesh's phase, apart from the ranks'), and writes it (:func:`write_partitioned`); a run with ``mesh.parts``
 reads it, each rank its own part and rank 0 what it keeps (:func:`read_parts_header`,
 :func:`from_parts`). The file's layout: :mod:`pipeline.distributed.parts_file`.
 Features whose rank-0 work needs the whole mesh during the run are refused both ways
