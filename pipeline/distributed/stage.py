@@ -174,7 +174,9 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm, parts: bool = 
 #: stays within it. Measured above the stack and its constant 21 MB at 100k, 250k and
 #: 620k DOFs on 2 and 4 ranks: 108 + 284 / P bytes a free DOF, 0.50 + 1.32 / P mesh
 #: terms, and 0.56-0.62 on 8 and 16 ranks (docs/distributed.md, "Rank 0's memory"), which
-#: the floor covers beyond the ranks measured; these carry a fifth more
+#: the floor covers beyond the ranks measured; these carry a fifth more. Those are the
+#: point graph's (``-pipeline_partition_graph points``); the default vertex graph's
+#: phase is lower (93 + 199 / P bytes a free DOF), so they bound either
 HANDOFF_WHOLE, HANDOFF_GRAPH, HANDOFF_FLOOR = 0.6, 1.6, 0.8
 
 
