@@ -68,6 +68,10 @@ def test_two_ranks_from_a_parts_file_give_the_single_process_file(tmp_path, meth
     with h5py.File(dist) as h5:
         assert h5["run"].attrs["parts_file"] == str(parts)
         assert h5["run"].attrs["parts_sha256"] == signature
+    from pipeline.apps.summary import summarize
+
+    run_line = next(x for x in summarize(dist).splitlines() if x.startswith("run "))
+    assert run_line.endswith(f"; 2 MPI ranks, each reading its part of {parts}"), run_line
 
 
 def test_the_run_that_meshes_and_the_parts_path_write_the_same_file(tmp_path, monkeypatch):

@@ -71,7 +71,10 @@ def _lines(s: FileSummary, path) -> list[str]:
     if s.run is not None:
         stages = ", ".join(f"{k} {t:.2f} s" for k, t in s.run.times_s.items())
         peak = s.run.peak_memory_mb
-        lines.append(f"run       {stages}; peak {peak if peak is not None else 0:.0f} MB")
+        where = "" if s.run.ranks is None else f"; {s.run.ranks} MPI ranks"
+        if s.run.parts_file:
+            where += f", each reading its part of {s.run.parts_file}"
+        lines.append(f"run       {stages}; peak {peak if peak is not None else 0:.0f} MB{where}")
     return lines
 
 

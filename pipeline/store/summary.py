@@ -104,11 +104,15 @@ class ModelSummary:
 @dataclass(frozen=True, eq=False)
 class RunSummary:
     """``/run``: times_s: seconds per stage (attribute order); peak_memory_mb: peak RSS of
-    the run (MB) or None; solver: the eigensolver used, or None."""
+    the run (MB) or None; solver: the eigensolver used, or None; ranks: the MPI ranks of
+    a distributed run, or None; parts_file: the partitioned mesh file its ranks read
+    (``mesh.parts``), or None."""
 
     times_s: dict[str, float]
     peak_memory_mb: float | None
     solver: str | None
+    ranks: int | None = None
+    parts_file: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -271,6 +275,9 @@ def _run(h5) -> RunSummary | None:
         return None
     r = h5[L.RUN.path].attrs
     peak = L.RUN.attr.peak_memory_mb
+    ranks = L.RUN.attr.ranks
     return RunSummary({k[:-2]: float(r[k]) for k in r if k.endswith("_s")},
-                      float(r[peak]) if peak in r else None, _opt_text(r, L.RUN.attr.solver))
+                      float(r[peak]) if peak in r else None, _opt_text(r, L.RUN.attr.solver),
+                      int(r[ranks]) if ranks in r else None,
+                      _opt_text(r, L.RUN.attr.parts_file))
 
