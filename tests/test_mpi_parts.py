@@ -26,18 +26,20 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from test_mpi import MPI_PYTHON, _mpiexec, _run, _run_here, _same_file
+from test_mpi import (MPI_PYTHON, _mpiexec, _run, _run_here, _same_file,
+                      _serial_and_two_ranks)
 
 pytestmark = pytest.mark.mpi
 
 
-def _partition(tmp_path, ranks: int, *overrides: str, name: str = "parts.h5"):
-    """``python -m pipeline partition configs/cantilever.yaml --ranks N`` (in .venv-mpi:
-    PT-Scotch through PETSc); the parts file."""
+def _partition(tmp_path, ranks: int, *overrides: str, name: str = "parts.h5",
+               config: str = "configs/cantilever.yaml"):
+    """``python -m pipeline partition CONFIG --ranks N`` (in .venv-mpi: PT-Scotch
+    through PETSc); the parts file."""
     out = tmp_path / name
     args = [a for item in overrides for a in ("--set", item)]
     proc = subprocess.run([str(MPI_PYTHON), "-m", "pipeline", "partition",
-                           "configs/cantilever.yaml", "--ranks", str(ranks), *args, "-o",
+                           config, "--ranks", str(ranks), *args, "-o",
                            str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -177,3 +179,26 @@ def test_the_n_part_partition_on_one_process_is_balanced(tmp_path):
     assert every.size == np.unique(every).size == n_free // 3  # the cantilever: whole points
     mean = every.size / 4
     assert all(abs(o.size - mean) <= 0.02 * mean for o in owned), [o.size for o in owned]
+
+
+def test_a_spinning_body_with_added_masses_from_a_parts_file(tmp_path):
+    """A rotating body reads its preloads (port matrices) and its added masses (the
+    area masses' node mass, the distributing point mass's fit) from the parts file's
+    shared group: steel, aluminium and CFRP, a point and an area mass, a spin axis off
+    the principal ones, the static and two correction shapes; 2 ranks from the parts
+    file give the single-process file (tests/test_mpi_rotation.py's case, read from a
+    parts file)."""
+    config = "configs/cantilever_materials.yaml"
+    spin = ("rotation={axis: [0, 1, 1], point: [0, 0.01, 0.025], "
+            "speeds_rad_s: [-100, 0, 300], static_shape: true, correction_shapes: 2}")
+    masses = ("masses=[{name: sensor, mass: 0.2, inertia: [2.0e-5, 3.0e-5, 2.0e-5, 1.0e-6, "
+              "0, 0], point: [0.52, 0.01, 0.025], region: tip, coupling: distributing}, "
+              "{name: paint, kind: area, density: 2.0, region: top}]")
+    overrides = ("mesh.size=0.02", masses, "reduction=null", "ports.outputs=[]", spin)
+    parts = _partition(tmp_path, 2, *overrides, config=config)
+    serial, dist = _serial_and_two_ranks(tmp_path, config, *overrides,
+                                         distributed=(f"mesh.parts={parts}",))
+    _same_file(serial, dist)
+    with h5py.File(dist) as b:
+        assert b["rotation"].attrs["n_basis"] == 13 and "statespace" not in b
+        assert b["run"].attrs["parts_file"] == str(parts)

@@ -31,23 +31,22 @@ log = logging.getLogger(__name__)
 
 #: config keys whose rank-0 work needs the whole mesh during the run: refused with
 #: ``mesh.parts`` and by the partition command (:func:`check_partitionable`)
-WHOLE_MESH_KEYS = ("connections", "craig_bampton.modes", "rotation", "supports[i].local_fix",
+WHOLE_MESH_KEYS = ("connections", "craig_bampton.modes", "supports[i].local_fix",
                    "masses[i].coupling: rigid")
 
 
 def check_partitionable(cfg: Config) -> None:
     """One line (ConfigError naming the key) for a feature whose rank-0 work needs the
     whole mesh during the run (:data:`WHOLE_MESH_KEYS`): the connection models and
-    Craig-Bampton (their interfaces and the unsupported pair), the rotating body's
-    masses and preloads, the exact constraint u = T q of local-frame supports and
-    rigidly coupled masses. Before any meshing."""
+    Craig-Bampton (their interfaces and the unsupported pair), the exact constraint
+    u = T q of local-frame supports and rigidly coupled masses. Before any meshing. (A
+    rotating body's preloads are port matrices and its added masses a small record,
+    both in the file's shared group.)"""
     found = None
     if cfg.connections:
         found = ("connections", "connection models")
     elif cfg.craig_bampton_modes:
         found = ("craig_bampton.modes", "Craig-Bampton models")
-    elif cfg.rotation is not None:
-        found = ("rotation", "a rotating body")
     else:
         for i, s in enumerate(cfg.supports):
             if s.local_fix:
@@ -97,6 +96,7 @@ def write_partitioned(cfg: Config, ranks: int, output: str | Path,
     (:func:`~pipeline.distributed.stage.handed_off`,
     :class:`~pipeline.distributed.whole.SupportInputs`). Returns the path."""
     from pipeline.distributed.parts_file import Kept, Shared, canonical_config, write_parts
+    from pipeline.distributed.prestress import rotation_masses
     from pipeline.solve.labels import label_frame
 
     check_partitionable(cfg)
@@ -113,7 +113,8 @@ def write_partitioned(cfg: Config, ranks: int, output: str | Path,
                     mesh_sha256=whole.mesh_sha256,
                     added_rigid=None if whole.added is None
                     else added_rigid_mass(space, whole.added),
-                    partition=kind, config=canonical_config(cfg))
+                    partition=kind, config=canonical_config(cfg),
+                    spin_masses=rotation_masses(cfg, space, whole.regions))
     written = cfg.materials or cfg.masses
     kept = Kept(node_points=space.node_points,
                 element_nodes=compact_nodes(space.element_nodes, n_nodes),
@@ -165,7 +166,8 @@ def from_parts(cfg: Config, shared, comm):
         kept = read_kept(cfg.mesh.parts)
         space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
                                  kept.node_points, kept.element_nodes, mesh, shared.ports,
-                                 label_frame=kept.label_frame)
+                                 label_frame=kept.label_frame,
+                                 rotation_masses=shared.spin_masses)
         regions, judge, fixed = kept.regions, kept.support, kept.support.fixed
         if kept.materials is not None:
             materials = kept.materials
@@ -174,5 +176,5 @@ def from_parts(cfg: Config, shared, comm):
         nb = mesh.space.element_nodes.shape[1]
         space = DistributedSpace(mesh.space.order, shared.n_nodes, shared.counts,
                                  np.zeros((0, 3)), np.zeros((0, nb), np.int64), mesh,
-                                 shared.ports)
+                                 shared.ports, rotation_masses=shared.spin_masses)
     return mesh, part, space, regions, materials, fixed, judge, None

@@ -9,8 +9,9 @@ Written and read here only; the layout (docs/distributed.md, "The parts file"):
   ``created_utc`` and the store's signature (``content_sha256`` over every dataset,
   ``attrs_sha256``: :func:`pipeline.store.h5file.sign`);
 * ``/shared``: the counts, the free-DOF count, the mesh file's path and SHA-256, the
-  added masses' (6, 6) rigid mass, the port matrices, the partition kind and the
-  canonical config (``config_json``) it was made with (:class:`Shared`);
+  added masses' (6, 6) rigid mass, the port matrices, the partition kind, the
+  canonical config (``config_json``) it was made with and a rotating body's added
+  masses (``spin_masses``) (:class:`Shared`);
 * ``/kept``: what rank 0 keeps of the whole mesh for the writer and for judging the
   supports (:class:`Kept`);
 * ``/ranks/<r>``: rank r's :class:`~pipeline.distributed.submesh.RankMesh` as arrays
@@ -57,7 +58,8 @@ class Shared:
     free DOFs, the port matrices (:class:`~pipeline.fe.ports.PortMatrices`, or None),
     the mesh file kept (its path, "" for none, and SHA-256), the added masses' (6, 6)
     rigid mass about the origin (kg, kg m, kg m^2; None without), the partition kind
-    (``graph`` or ``slab``) and the canonical config (:func:`canonical_config`)."""
+    (``graph`` or ``slab``), the canonical config (:func:`canonical_config`) and a
+    rotating body's added masses (``spin_masses``, stored as :func:`_spin_fields`)."""
 
     ranks: int
     n_nodes: int
@@ -70,6 +72,11 @@ class Shared:
     added_rigid: np.ndarray | None
     partition: str
     config: dict
+    #: a rotating body's added masses as rank 0 evaluates them on the whole mesh
+    #: (:func:`pipeline.distributed.prestress.rotation_masses`: the area masses' scalar
+    #: node mass, COO kg, or None, and each distributing point mass's (dofs, G, M6,
+    #: point)), or None
+    spin_masses: Any = None
 
 
 @dataclass(frozen=True)
@@ -250,6 +257,32 @@ def _rank_group(g, mesh, part) -> None:
     _seal(g)
 
 
+#: the four arrays of a distributing point mass in ``Shared.spin_masses``
+SPIN_POINT_FIELDS = ("dofs", "G", "M6", "point")
+
+
+def _spin_fields(spin) -> dict | None:
+    """``Shared.spin_masses`` as the stored groups: ``area`` (CSR) and ``points/<i>``
+    with :data:`SPIN_POINT_FIELDS`; None stays None."""
+    if spin is None:
+        return None
+    area, points = spin
+    return {"area": None if area is None else sp.csr_matrix(area),
+            "points": {str(i): dict(zip(SPIN_POINT_FIELDS, m)) for i, m in enumerate(points)}}
+
+
+def _spin_masses(fields: dict | None):
+    """The inverse of :func:`_spin_fields`: (area COO or None, ((dofs, G, M6, point),
+    ...) in their order), or None."""
+    if fields is None:
+        return None
+    area = fields.get("area")
+    points = fields.get("points") or {}
+    return (None if area is None else sp.coo_matrix(area),
+            tuple(tuple(np.asarray(points[i][k]) for k in SPIN_POINT_FIELDS)
+                  for i in sorted(points, key=int)))
+
+
 def write_parts(path: str | Path, shared: Shared, kept: Kept, ranks: Iterable) -> Path:
     """Write the parts file ``path`` atomically (:func:`pipeline._util.atomic.atomic_path`):
     ``shared``, ``kept`` and, from ``ranks`` (an iterable of (RankMesh, this rank's own
@@ -278,6 +311,8 @@ def write_parts(path: str | Path, shared: Shared, kept: Kept, ranks: Iterable) -
                 value = getattr(shared, f.name)
                 if f.name == "config":
                     value = json.dumps(value, sort_keys=False)
+                elif f.name == "spin_masses":
+                    value = _spin_fields(value)
                 _put(g, "config_json" if f.name == "config" else f.name, value)
             _seal(g)
             g = h5.create_group("kept")
@@ -378,7 +413,8 @@ def read_shared(path: str | Path, cfg, ranks: int) -> Shared:
     ports = fields.pop("ports", None)
     return Shared(config=config, counts=MeshCounts(**counts),
                   ports=None if ports is None else _record(PortMatrices, ports),
-                  added_rigid=fields.pop("added_rigid", None), **fields)
+                  added_rigid=fields.pop("added_rigid", None),
+                  spin_masses=_spin_masses(fields.pop("spin_masses", None)), **fields)
 
 
 def _materials(fields: dict):
