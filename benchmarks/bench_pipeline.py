@@ -345,6 +345,9 @@ def median_row(runs: list[dict]) -> dict:
             mid = len(values) // 2
             row[key] = (values[mid] if len(values) % 2 else
                         0.5 * (values[mid - 1] + values[mid]))
+    probes = [r["host_speed"] for r in good if r.get("host_speed")]
+    if probes:  # each figure's median over the runs
+        row["host_speed"] = [sorted(p[i] for p in probes)[len(probes) // 2] for i in (0, 1)]
     row["runs"] = len(good)
     return row
 
@@ -521,9 +524,11 @@ def breakdown(rows: list[dict]) -> str:
     left of the process's wall time: the bench's own checks of the result (the modes'
     residuals and backward errors from K and M, their M-orthonormality, the file's DC
     gain: they grow with N) and the interpreter's start and exit (a row of an earlier
-    JSON without ``checks_s`` keeps its checks in the last)."""
+    JSON without ``checks_s`` keeps its checks in the last); then the host's speed before
+    the case (:func:`host_speed`, medians over the case's runs)."""
     heads = [h for h, _ in BREAKDOWN] + ["modes, other", "reduce", "write",
-                                         "bench's checks", "start, exit", "process"]
+                                         "bench's checks", "start, exit", "process",
+                                         "host GB/s", "host GFlop/s"]
     lines = ["| stack | DOFs | " + " | ".join(heads) + " |", "|" + " --- |" * (len(heads) + 2)]
     for r in rows:
         sec = r.get("seconds")
@@ -538,11 +543,13 @@ def breakdown(rows: list[dict]) -> str:
         checks = r.get("checks_s")
         rest = (r["process_s"] - accounted - (checks or 0.0)
                 if r.get("process_s") is not None else None)
+        speed = r.get("host_speed") or (None, None)
         cells += [modes_other, sec.get("stage:reduce"), sec.get("stage:write"), checks, rest,
-                  r.get("process_s")]
+                  r.get("process_s"), speed[0], speed[1]]
         ordering = _fmt(cells[3]) if sec.get("analysis (beside the assembly)") is None else (
             f"({sec['analysis (beside the assembly)']:.2f} beside)")
-        text = [_fmt(c) for c in cells]
+        text = [_fmt(c) for c in cells[:-2]] + [_fmt(c, ".1f") for c in cells[-2:-1]] + [
+            _fmt(c, ".0f") for c in cells[-1:]]
         text[3] = ordering
         lines.append(f"| {r['kind']} | {r['n_dofs']:,} | " + " | ".join(text) + " |")
     return "\n".join(lines) if len(lines) > 2 else "breakdown: no pipeline case"
@@ -584,7 +591,7 @@ def report(rows: list[dict], meta: dict) -> str:
         f"Run {meta.get('date', '')}; load average (1 min) {meta['load_before']:.1f} before and "
         f"{meta['load_after']:.1f} after (the machine is shared); {meta['count']} modes per "
         "case; times in seconds, wall clock; peak MB is the case's ru_maxrss.",
-        _touch_line(meta.get("first_touch_s_per_gib")),
+        _touch_line(meta.get("first_touch_s_per_gib")), _speed_line(rows),
         table(rows), details(rows), accuracy_table(rows),
         "Where the time goes (s):\n\n" + breakdown(rows), peer_comparison(rows),
         time_to_accuracy(rows)])
@@ -613,6 +620,63 @@ def first_touch_seconds_per_gb(gib: float = 1.0) -> tuple[float, float] | None:
         return float(out[0]) / gib, float(out[1]) / gib
     except (subprocess.SubprocessError, OSError, ValueError, IndexError):
         return None
+
+
+#: the host-speed probe: a Gram product of two (n, 25) float64 blocks (memory-bound, the
+#: kind of product LOBPCG's dense work and the sparse products are made of) and a square
+#: dgemm (arithmetic-bound, the kind PARDISO's factorisation runs), on MKL where the
+#: pipeline uses it, in a child process that the pipeline's own command-line tuning runs in
+PROBE_ROWS, PROBE_COLUMNS, PROBE_SQUARE, PROBE_REPEAT = 2_000_000, 25, 2000, 5
+PROBE_CODE = f"""
+import sys, time
+sys.path.insert(0, {str(ROOT)!r})
+from pipeline.cli import tune_process
+tune_process()
+import numpy as np
+from pipeline.solve.blas import gram
+rng = np.random.default_rng(0)
+def median(fn, *args):
+    fn(*args)
+    times = []
+    for _ in range({PROBE_REPEAT}):
+        t = time.perf_counter(); fn(*args); times.append(time.perf_counter() - t)
+    return sorted(times)[len(times) // 2]
+A = rng.standard_normal(({PROBE_ROWS}, {PROBE_COLUMNS})); B = A + 1.0
+gbs = 2 * A.nbytes / median(gram, A, B) / 1e9
+del A, B
+C = rng.standard_normal(({PROBE_SQUARE}, {PROBE_SQUARE}))
+gflops = 2 * {PROBE_SQUARE} ** 3 / median(gram, C, C) / 1e9
+print(gbs, gflops)
+"""
+
+
+def host_speed() -> tuple[float, float] | None:
+    """(GB/s of a tall-skinny Gram product, GFlop/s of a square dgemm) right now, in a child
+    process (:data:`PROBE_CODE`; about 2 s), or None if it fails.
+
+    The shared VMs this bench runs on change speed by 25-35 % within the hour (the host's
+    other tenants), far more than most changes measured here. The probe before every case
+    puts each case's times beside the host's speed at the time, so that two bench runs of
+    different hours can be compared (a case's time divided by the probe's time is
+    steadier than either), and a reader sees which phase a figure comes from."""
+    try:
+        out = subprocess.run([sys.executable, "-c", PROBE_CODE], capture_output=True,
+                             text=True, timeout=120, check=True).stdout.split()
+        return float(out[0]), float(out[1])
+    except (subprocess.SubprocessError, OSError, ValueError, IndexError):
+        return None
+
+
+def _speed_line(rows: list[dict]) -> str:
+    probes = [r["host_speed"] for r in rows if r.get("host_speed")]
+    if not probes:
+        return "Host speed: not measured."
+    gbs, gflops = sorted(p[0] for p in probes), sorted(p[1] for p in probes)
+    return (f"Host speed (probed in a child process before every case; the VM's speed "
+            f"moves with its host's other tenants): a Gram product of two "
+            f"({PROBE_ROWS:,} x {PROBE_COLUMNS}) blocks {gbs[0]:.1f}-{gbs[-1]:.1f} GB/s, a "
+            f"{PROBE_SQUARE}^3 dgemm {gflops[0]:.0f}-{gflops[-1]:.0f} GFlop/s (each "
+            "case's median in the breakdown's last columns).")
 
 
 def machine() -> str:
@@ -678,6 +742,8 @@ def main(argv=None) -> int:
                     help="skip the straightforward stack")
     ap.add_argument("--count", type=int, default=COUNT, help="modes per case")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
+    ap.add_argument("--no-probe", dest="probe", action="store_false",
+                    help="skip the host-speed probe before every case (about 2 s each)")
     ap.add_argument("--write-doc", action="store_true", help="update docs/performance.md")
     ap.add_argument("--json", default=None, help="also write all rows to this file")
     ap.add_argument("--render", default=None, metavar="JSON",
@@ -736,11 +802,13 @@ def main(argv=None) -> int:
         for _ in range(rounds):  # interleaved: every job once per round
             for kind, variant in jobs:
                 print(f"running {kind} {variant or ''} {label} ...", flush=True)
+                speed = host_speed() if args.probe else None
                 if kind == "ngsolve":
                     one = _run_ngsolve(label, variant, args.count, args.timeout)
                 else:
                     one = _run_child(kind, label, args.count, args.timeout, variant or "auto",
                                      shapes_dir / f"{label}-{variant}.npy")
+                one["host_speed"] = speed
                 runs[(kind, variant)].append(one)
                 if args.json:  # every run as it finishes: a long bench keeps what it did
                     raw.append(one)

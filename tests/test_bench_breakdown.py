@@ -95,3 +95,23 @@ def test_same_work_is_the_median_over_runs(bench):
              "assembly": 0.0, "eigensolve": e} for t, e in ((5.0, 1.0), (4.0, 3.0), (6.0, 2.0))]
     assert bench.median_row(runs)["same_work"] == 2.0
     assert bench.same_work({"mesh": 1.0, "assembly": None, "eigensolve": 1.0}) is None
+
+
+def test_host_speed_is_each_figures_median_and_shown_per_case(bench):
+    runs = [dict(_row(bench, {}), host_speed=speed)
+            for speed in ((14.0, 90.0), (9.0, 120.0), (11.0, 100.0))]
+    row = bench.median_row(runs)
+    assert row["host_speed"] == [11.0, 100.0]  # per figure, not one run's pair
+    cells = _cells(bench.breakdown([row]))
+    assert (cells["host GB/s"], cells["host GFlop/s"]) == ("11.0", "100")
+    line = bench._speed_line(runs)
+    assert "9.0-14.0 GB/s" in line and "90-120 GFlop/s" in line
+    assert bench._speed_line([_row(bench, {})]) == "Host speed: not measured."
+    # a case without a probe (--no-probe) keeps its other columns
+    cells = _cells(bench.breakdown([_row(bench, {})]))
+    assert cells["host GB/s"] == "-" and cells["modes, other"] == "3.00"
+
+
+def test_host_speed_probe_runs(bench):
+    speed = bench.host_speed()
+    assert speed is not None and speed[0] > 0.1 and speed[1] > 0.1

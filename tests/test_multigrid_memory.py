@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import build_model, eigenvalue_rtol
+from conftest import build_model, cond_eps, eigenvalue_rtol
 from pipeline._util import resources
 from pipeline.fe.coarse import p1_prolongation
-from pipeline.solve import eigen, plan
+from pipeline.solve import eigen, multigrid, plan
 from pipeline.solve.eigen import solve_modes
 
 COUNT = 8
@@ -100,3 +100,40 @@ def test_batched_lobpcg_finds_the_modes_of_one_block(beam, monkeypatch):
     # M-orthonormal across the batches, as the Rayleigh-Ritz step leaves them
     G = mg.shapes.T @ (beam.M @ mg.shapes)
     assert np.abs(G - np.eye(COUNT)).max() < 1e-10
+
+
+def test_static_loads_ride_through_the_batches(beam, monkeypatch):
+    """Where memory holds LOBPCG only in batches, and the riding solve's blocks beside
+    the same batches, the static loads ride through all of them: one PCG iteration per
+    cycle of every batch (sweeps + 1 cycles each), finished before the reduce stage asks
+    (no iteration after), with the true residual of a PCG of its own
+    (tests/test_multigrid.py); with no room for the rider, the same batches and no
+    rider."""
+    P = p1_prolongation(beam.space, beam.free)
+    n = beam.K.shape[0]
+    F = np.random.default_rng(14).standard_normal((n, 1))
+    rider = multigrid.RIDER_BLOCKS * 8.0 * n
+    batches = 8.0 * n * (resources.LOBPCG_BLOCKS * (3 + 2) + 2 * (COUNT - 3))
+    monkeypatch.setattr(eigen, "_usable_bytes", lambda: batches + 1.5 * rider)
+    modes = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P, keep=True,
+                        loads=F)
+    try:
+        stats = modes.stats
+        assert stats["batches"] == 3 and stats["block"] == 5
+        assert stats["riding_columns"] == 1
+        tg = modes.factorization._solve.__self__  # the kept TwoGrid
+        run = tg._riding[1]
+        cycles = stats["sweeps"] + stats["batches"]
+        assert run.finished and run.iterations < cycles  # done within the batches' cycles
+        rode = run.iterations
+        X = modes.factorization.solve(F)
+        assert tg.iterations == rode  # nothing left for the reduce stage
+    finally:
+        modes.release_factorization()
+    residual = float(np.linalg.norm(F - beam.K @ X) / np.linalg.norm(F))
+    assert residual <= multigrid.PCG_RTOL + cond_eps(beam.K)
+    monkeypatch.setattr(eigen, "_usable_bytes", lambda: batches + 0.5 * rider)
+    tight = solve_modes(beam.K, beam.M, COUNT, method="multigrid", coarse=P, keep=True,
+                        loads=F)
+    tight.release_factorization()
+    assert tight.stats["riding_columns"] == 0 and tight.stats["batches"] == 3

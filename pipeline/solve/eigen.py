@@ -362,9 +362,10 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
     ``loads`` (n, k), kept solver only: the static solves K X = loads to come ride along
     in the sweeps' cycles (:meth:`~pipeline.solve.multigrid.TwoGrid.ride`; up to
     :data:`RIDING_COLUMNS` of them, which add a tenth to the sweeps' memory, and only
-    where LOBPCG keeps one batch with every guard column beside them): each
-    sweep makes one of their PCG iterations for the price of k more columns in one
-    cycle, about a tenth of what a PCG iteration of its own costs at 1M DOFs."""
+    where LOBPCG keeps its layout beside them: one batch with every guard column, or
+    the same batches, through all of which they ride): each sweep makes one of their
+    PCG iterations for the price of k more columns in one cycle, about a tenth of what
+    a PCG iteration of its own costs at 1M DOFs."""
     sigma, tolerance, budget = plan.shift, plan.tolerance, plan.multigrid_budget
     t1 = time.perf_counter()
     A = K - sigma * M if sigma != 0.0 else K
@@ -383,16 +384,16 @@ def _multigrid_modes(K, M, P, count, plan: EigenPlan, progress=None, loads=None)
         # the modes per LOBPCG batch and its guard columns: what fits beside K, M and the
         # preconditioner (all of them in one batch unless memory is short)
         usable, riding = _usable_bytes(), 0
+        batch, guard = lobpcg_layout(K.shape[0], count, width - count, usable)
         if (loads is not None and plan.keep_factor and sigma == 0.0
                 and 0 < np.shape(loads)[1] <= RIDING_COLUMNS):
-            # only where the rider leaves LOBPCG's layout (one batch, every guard) as is
+            # only where the rider leaves LOBPCG's layout as it is (one batch with every
+            # guard column, or the same batches): it rides through all of them
             rider = multigrid.RIDER_BLOCKS * 8.0 * K.shape[0] * np.shape(loads)[1]
-            whole = (count, width - count)
-            if lobpcg_layout(K.shape[0], count, width - count, usable - rider) == whole:
+            if lobpcg_layout(K.shape[0], count, width - count,
+                             usable - rider) == (batch, guard):
                 tg.ride(loads)
-                usable -= rider
                 riding = int(np.shape(loads)[1])
-        batch, guard = lobpcg_layout(K.shape[0], count, width - count, usable)
 
         def start(first: int, stop: int) -> np.ndarray:
             return sparse_times_dense(tg.P, np.ascontiguousarray(vc[:, first:stop]))
