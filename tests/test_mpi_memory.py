@@ -58,8 +58,9 @@ def test_a_factor_that_does_not_fit_is_refused_after_the_analysis(tmp_path):
     for line in lines:
         assert re.search(r"MUMPS' analysis of K \(\d+ rows\) on 2 ranks: the numeric "
                          r"factorisation needs [\d.]+ GB more on a rank, [\d.]+ GB with what "
-                         r"the 2 ranks of one node hold, but only [\d.]+ GB is available to "
-                         r"them; expected about \d+ nodes like it or a mesh.size about "
+                         r"the 2 ranks of one node hold, more than the [\d.]+ GB usable "
+                         r"\(90% of the [\d.]+ GB available to them\); expected about \d+ "
+                         r"nodes like it or a mesh.size about "
                          r"[\d.]+ times larger$", line), line
     assert "Traceback" not in proc.stderr
     assert not out.exists()

@@ -396,6 +396,19 @@ def _scale_to_fit(need: float, have: float, exponent: float = 4.0) -> float:
     return max(1.0, (need / (HEADROOM * have)) ** (1.0 / exponent)) * 1.05
 
 
+def beyond_usable(need: float, have: float, available: str = "available") -> str:
+    """The clause of a memory refusal: ``need`` bytes against the HEADROOM share of
+    ``have`` that a run may use, with both figures, so that a need between the usable
+    share and all of ``have`` does not read as fitting.
+
+    >>> beyond_usable(0.95e9, 1.0e9)
+    'more than the 0.90 GB usable (90% of the 1.00 GB available)'
+    """
+    digits = 1 if have >= 10e9 else 2  # two decimals below 10 GB: 0.28 is not 0.3
+    return (f"more than the {HEADROOM * have / 1e9:.{digits}f} GB usable ({HEADROOM:.0%} "
+            f"of the {have / 1e9:.{digits}f} GB {available})")
+
+
 def check_memory(space, n_modes: int, available: int | None = None,
                  method: str = "auto", solver: str = "auto") -> int:
     """Refuse a mesh whose estimate exceeds the available memory (ResourceError).
@@ -411,8 +424,8 @@ def check_memory(space, n_modes: int, available: int | None = None,
         h = typical_edge_length(space)
         factor = _scale_to_fit(need, have)
         raise ResourceError(
-            f"mesh with {space.n_dofs} DOFs needs about {need / 1e9:.1f} GB, but only "
-            f"{have / 1e9:.1f} GB is available; a mesh.size of about {h * factor:.3g} m "
+            f"mesh with {space.n_dofs} DOFs needs about {need / 1e9:.1f} GB, "
+            f"{beyond_usable(need, have)}; a mesh.size of about {h * factor:.3g} m "
             f"(now about {h:.3g} m, i.e. {factor:.2f} times larger) would fit")
     return need
 
@@ -425,7 +438,7 @@ def check_factor_memory(factor_bytes_exact: float, n_dofs: int,
         factor = _scale_to_fit(factor_bytes_exact, have)
         raise ResourceError(
             f"the sparse factorisation of the {n_dofs}-DOF stiffness matrix needs "
-            f"{factor_bytes_exact / 1e9:.1f} GB, but only {have / 1e9:.1f} GB is available; "
+            f"{factor_bytes_exact / 1e9:.1f} GB, {beyond_usable(factor_bytes_exact, have)}; "
             f"a mesh.size about {factor:.2f} times larger would fit")
 
 

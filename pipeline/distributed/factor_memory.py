@@ -195,8 +195,8 @@ def check_factor_estimate(comm, estimate: MumpsEstimate, what: str, n: int) -> N
     raise ResourceError(
         f"MUMPS' analysis of {what} ({n} rows) on {comm.size} ranks: the numeric "
         f"factorisation needs {estimate.max_bytes / 1e9:.2f} GB more on a rank, "
-        f"{need / 1e9:.2f} GB with what the {node_ranks} ranks of one node hold, but "
-        f"only {have / 1e9:.2f} GB is available to them; expected about {nodes} nodes "
+        f"{need / 1e9:.2f} GB with what the {node_ranks} ranks of one node hold, "
+        f"{res.beyond_usable(need, have, 'available to them')}; expected about {nodes} nodes "
         f"like it or a mesh.size about {larger:.2f} times larger")
 
 

@@ -161,7 +161,7 @@ def check_rank_memory(n_nodes: int, n_el: int, cfg: Config, comm, parts: bool = 
         raise ResourceError(
             f"mesh with {n_dofs} DOFs on {comm.size} ranks needs about "
             f"{top / 1e9:.1f} GB per rank, {need / 1e9:.1f} GB for the {node_ranks} "
-            f"ranks of one node, but only {have / 1e9:.1f} GB is available; expected more "
+            f"ranks of one node, {res.beyond_usable(need, have)}; expected more "
             "nodes (fewer ranks per node) or a larger mesh.size")
     return per_rank
 

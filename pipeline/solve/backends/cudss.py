@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline._util import progress
-from pipeline._util.resources import HEADROOM
+from pipeline._util.resources import HEADROOM, beyond_usable
 from pipeline.errors import ResourceError, SolverError
 from pipeline.solve.blas import upper_triangle_csr
 from pipeline.solve.factorization import Capabilities, Factorization, register_backend
@@ -104,8 +104,9 @@ def factor(A: sp.spmatrix, *, positive_definite: bool = True, single: bool = Fal
         free = _gpu_free_bytes(cupy)
         if need > HEADROOM * free:
             raise ResourceError(f"the cuDSS factorisation of the {n}-DOF system needs "
-                                f"{need / 1e9:.1f} GB of GPU memory; {free / 1e9:.1f} GB are "
-                                "free: use a coarser mesh.size, or modes.solver: auto (CPU)")
+                                f"{need / 1e9:.1f} GB of GPU memory, "
+                                f"{beyond_usable(need, free, 'free')}: use a coarser "
+                                "mesh.size, or modes.solver: auto (CPU)")
         with progress.stage("factorise (cuDSS)"):
             info = solver.factorize()
             cupy.cuda.Device().synchronize()
