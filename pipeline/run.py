@@ -176,9 +176,15 @@ def _run(cfg: Config, output: str | Path, mesh_dir: str | Path | None,
                                          args=(AFTER_MESH_MODULES,), name="pipeline-imports",
                                          daemon=True)
             importing.start()
-            fe = build_fe_model(cfg, mesh_dir, progress, stage=lambda name: _stage(name, times),
-                                on_stiffness_pattern=analyse_ahead)
-            importing.join()
+            try:
+                fe = build_fe_model(cfg, mesh_dir, progress,
+                                    stage=lambda name: _stage(name, times),
+                                    on_stiffness_pattern=analyse_ahead)
+            finally:
+                # also when the mesh is refused: a thread still importing C extensions
+                # (h5py, scikit-fem) while the interpreter exits can crash it, and the
+                # command then ends by SIGSEGV instead of the error's exit code
+                importing.join()
         with _stage("modes", times):
             # the factorisation and the eigensolver report their own progress (with
             # totals and expected durations) through pipeline._util.progress

@@ -58,5 +58,5 @@ def test_the_node_check_counts_what_a_cgroup_limit_leaves(tmp_path, rank_mb, ver
     said = sorted(re.findall(r"rank (\d) (refused|fits)", proc.stdout))
     assert said == [("0", verdict), ("1", verdict)], proc.stdout
     if verdict == "refused":  # what they hold + 0.31 GB left, not + 10 GB
-        have = [float(g) for g in re.findall(r"only ([\d.]+) GB", proc.stdout)]
+        have = [float(g) for g in re.findall(r"of the ([\d.]+) GB available", proc.stdout)]
         assert have and all(g < 1.0 for g in have), proc.stdout

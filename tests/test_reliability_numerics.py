@@ -354,3 +354,32 @@ def test_scaled_inf_norms_in_row_halves_are_the_one_pass_norms(monkeypatch):
     # the largest row sum in the second half only: a half that is left out is missed
     B = sp.csr_matrix((np.ones(3), ([n - 1] * 3, [0, 1, 2])), shape=(n, n)) + 1e-3 * A
     assert blas.scaled_inf_norms(B)[0] == pytest.approx(3.0, rel=0.1)
+
+
+def test_a_refused_mesh_waits_for_the_import_thread(monkeypatch, tmp_path):
+    """run_pipeline imports the later stages' modules on a thread beside gmsh; when the
+    mesh stage raises (a region, the memory), it still waits for that thread before the
+    error leaves. A thread still importing C extensions while the interpreter exits
+    crashed it: CI saw a region error end by SIGSEGV (exit -11) instead of exit 4."""
+    import threading
+    import time
+
+    from pipeline import run as run_module
+    from pipeline.errors import RegionError
+
+    finished = threading.Event()
+
+    def slow_imports(names):
+        time.sleep(0.5)
+        finished.set()
+
+    def refused(*args, **kwargs):
+        raise RegionError("config key 'supports[0].region': refused for this test")
+
+    monkeypatch.setattr(run_module, "preload_stage_modules", slow_imports)
+    monkeypatch.setattr(run_module, "build_fe_model", refused)
+    with pytest.raises(RegionError):
+        run_pipeline(load_config(CONFIG), tmp_path / "x.h5", mesh_dir=tmp_path)
+    assert finished.is_set()
+    assert not any(t.name == "pipeline-imports" for t in threading.enumerate())
+    assert not (tmp_path / "x.h5").exists()
