@@ -654,7 +654,7 @@ print(gbs, gflops)
 
 def host_speed() -> tuple[float, float] | None:
     """(GB/s of a tall-skinny Gram product, GFlop/s of a square dgemm) right now, in a child
-    process (:data:`PROBE_CODE`; about 2 s), or None if it fails.
+    process (:data:`PROBE_CODE`; about 3 s), or None if it fails.
 
     The shared VMs this bench runs on change speed by 25-35 % within the hour (the host's
     other tenants), far more than most changes measured here. The probe before every case
@@ -745,7 +745,7 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=COUNT, help="modes per case")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per case")
     ap.add_argument("--no-probe", dest="probe", action="store_false",
-                    help="skip the host-speed probe before every case (about 2 s each)")
+                    help="skip the host-speed probe before every case (about 3 s each)")
     ap.add_argument("--write-doc", action="store_true", help="update docs/performance.md")
     ap.add_argument("--json", default=None, help="also write all rows to this file")
     ap.add_argument("--render", default=None, metavar="JSON",
