@@ -115,3 +115,73 @@ def test_host_speed_is_each_figures_median_and_shown_per_case(bench):
 def test_host_speed_probe_runs(bench):
     speed = bench.host_speed()
     assert speed is not None and speed[0] > 0.1 and speed[1] > 0.1
+
+
+def test_accuracy_table_shows_ngsolve_measured_like_the_pipeline(bench):
+    rows = [{"kind": "pipeline", "n_dofs": 101_406, "method": "block-lanczos",
+             "true_residual": 3.7e-8, "backward_error": 5.0e-13},
+            {"kind": "ngsolve (pardiso_spd)", "n_dofs": 98_142,
+             "method": "arnoldi (30 vectors)", "true_residual": 4.0e-8,
+             "backward_error": 4.9e-14},
+            {"kind": "ngsolve (pardiso)", "n_dofs": 98_142, "error": "exit 1"}]
+    table = [line for line in bench.accuracy_table(rows).splitlines()
+             if line.startswith("| ngsolve")]
+    assert len(table) == 1  # the failed variant has no row
+    cells = [c.strip() for c in table[0].strip("|").split("|")]
+    assert cells[:5] == ["ngsolve (pardiso_spd)", "98,142", "arnoldi (30 vectors)",
+                         "4.0e-08", "4.9e-14"]
+
+
+class _Vec:  # the parts of NGSolve's vectors, matrices and spaces mode_accuracy reads
+    def __init__(self, x):
+        self.x = x
+
+    def FV(self):
+        return self
+
+    def NumPy(self):
+        return self.x
+
+
+class _Mat:
+    def __init__(self, A):
+        import scipy.sparse as sp
+
+        L = sp.tril(A).tocsr().astype(complex)  # NGSolve's symmetric storage, complex
+        self.csr = (L.data, L.indices, L.indptr)
+
+    def CSR(self):
+        return self.csr
+
+    @property
+    def mat(self):  # a bilinear form's matrix: the form stands in for itself
+        return self
+
+
+def test_ngsolve_accuracy_reads_its_lower_triangle_and_complex_vectors():
+    """bench_ngsolve.mode_accuracy on a small pencil stored as NGSolve stores it (lower
+    triangle, complex) with one Dirichlet DOF: exact eigenvectors times arbitrary phases
+    measure at round-off, a perturbed one at its perturbation."""
+    import numpy as np
+    import scipy.linalg as la
+    import scipy.sparse as sp
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_ngsolve", BENCH.parent / "bench_ngsolve.py")
+    ngs_bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ngs_bench)
+    n = 30
+    K = sp.diags([-np.ones(n - 1), 2.0 + np.linspace(0, 1, n), -np.ones(n - 1)],
+                 [-1, 0, 1]).tocsr()
+    M = sp.diags([np.full(n - 1, 0.1), np.full(n, 1.0), np.full(n - 1, 0.1)],
+                 [-1, 0, 1]).tocsr()
+    free = np.ones(n, dtype=bool)
+    free[0] = False  # a held DOF: rows and columns left out
+    fes = type("Fes", (), {"FreeDofs": lambda self: free})()
+    w, V = la.eigh(K[1:, 1:].toarray(), M[1:, 1:].toarray())
+    phases = np.exp(1j * np.random.default_rng(0).uniform(0, 2 * np.pi, 4))
+    vecs = [_Vec(np.concatenate([[0.0], V[:, k]]) * phases[k]) for k in range(4)]
+    exact = ngs_bench.mode_accuracy(_Mat(K), _Mat(M), fes, vecs, w[:4])
+    assert exact["true_residual"] < 1e-13 and exact["backward_error"] < 1e-14
+    vecs[2].x[5] += 1e-6 * phases[2]
+    assert ngs_bench.mode_accuracy(_Mat(K), _Mat(M), fes, vecs, w[:4])["true_residual"] > 1e-8
