@@ -344,6 +344,26 @@ def test_block_lanczos_images_follow_the_ritz_vectors():
     assert np.abs(Y @ Y.T - np.eye(6)).max() < 1e-12
 
 
+def test_block_lanczos_converges_only_the_leading_pairs_asked_for():
+    """``converge``: the leading pairs meet the tolerance in fewer steps; the rest of the
+    ``count`` come back as orthonormal Ritz vectors of the same basis (a start block's
+    guard columns), here short of the tolerance."""
+    d = np.concatenate([[5.0, 4.5, 4.0, 3.5], np.linspace(0.1, 3.0, 600)])
+
+    def op(Y):
+        return Y * d
+
+    tol = 1e-10
+    Y, theta, steps, _ = block_lanczos(op, d.size, 8, 2, tol, 60)
+    Y4, theta4, steps4, _ = block_lanczos(op, d.size, 8, 2, tol, 60, converge=4)
+    assert steps4 < steps
+    resid = np.linalg.norm(op(Y4) - theta4[:, None] * Y4, axis=1) / np.abs(theta4)
+    assert np.all(resid[:4] <= tol) and resid[4:].max() > tol
+    np.testing.assert_allclose(theta4[:4], [5.0, 4.5, 4.0, 3.5], rtol=tol)
+    assert np.abs(Y4 @ Y4.T - np.eye(8)).max() < 1e-12
+    np.testing.assert_allclose(theta, np.sort(d)[::-1][:8], rtol=tol)
+
+
 def test_orthonormal_block_cholesky_qr_and_svd_paths_agree_on_the_span():
     from pipeline.solve.lanczos import _orthonormal_block
 

@@ -91,7 +91,8 @@ def _orthogonalise(W: np.ndarray, basis: np.ndarray, H: np.ndarray, near: int, l
 
 
 def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
-                  seed: int = 12345, max_restarts: int = 50, with_images: bool = False):
+                  seed: int = 12345, max_restarts: int = 50, with_images: bool = False,
+                  converge: int | None = None):
     """The ``count`` largest eigenpairs of the symmetric operator ``op`` (n x n).
 
     ``op(Y)`` applies the operator to the rows of Y (k, n). Block Lanczos with full
@@ -104,6 +105,10 @@ def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
     ``with_images``: ``op`` returns (S Y, Z) where Z (k, n) is some linear image of the
     rows of Y (for the shift-invert operator: F^-T Y); the same combinations of the
     images as of the basis are returned as a fifth item (count, n).
+
+    ``converge``: how many of the leading pairs must meet ``tol`` (None: all ``count``);
+    the others are returned as the basis has them (a start block's guard columns, which
+    only need to point the right way).
     """
     rng = np.random.default_rng(seed)
     cap = max_basis + b
@@ -139,8 +144,9 @@ def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
         del W
         want = min(count, hi)
         resid = np.linalg.norm(B @ U[lo:hi, :want], axis=0)
+        need = count if converge is None else min(converge, count)
         converged = want == count and bool(
-            np.all(resid <= tol * np.abs(theta[:want])))
+            np.all(resid[:need] <= tol * np.abs(theta[:need])))
         if converged or hi >= n - b:
             if want < count:
                 raise SolverError(f"block Lanczos: the Krylov space of this {n}-DOF problem "
@@ -153,7 +159,7 @@ def block_lanczos(op, n: int, count: int, b: int, tol: float, max_basis: int,
         near = lo
         if hi + V.shape[0] > max_basis:
             if restarts >= max_restarts:
-                worst = float(np.max(resid / np.abs(theta[:want])))
+                worst = float(np.max(resid[:need] / np.abs(theta[:need])))
                 raise SolverError(f"block Lanczos did not converge for {count} modes in "
                                   f"{steps} steps (worst relative residual {worst:.1e}, "
                                   f"tolerance {tol:.1e}); try a smaller modes.count or a "
