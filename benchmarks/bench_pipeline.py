@@ -400,11 +400,25 @@ def peer_comparison(rows: list[dict], rel: float = 0.01) -> str:
         "mesh + assembly + eigensolve on both sides.")
 
 
-def short_error(text: str) -> str:
+def short_error(text: str, limit: int = 160) -> str:
     """A case's error as one short line: the exception's own message when there is one
-    (``...Error: message``), else the text, at most 160 characters."""
+    (``...Error: message``), else the text; past ``limit`` characters it ends at the last
+    clause that fits (``; `` or ``, ``), else the last word, and says it was cut.
+
+    >>> short_error("exit 1: x | ResourceError: needs 29 GB; a mesh.size 1.7 times "
+    ...             "larger would fit", limit=30)
+    'needs 29 GB (...)'
+    """
     tail = text.rsplit("Error: ", 1)[-1] if "Error: " in text else text
-    return " ".join(tail.split())[:160]
+    line = " ".join(tail.split())
+    if len(line) <= limit:
+        return line
+    cut = line[:limit - 6]
+    for mark in ("; ", ", ", " "):
+        if mark in cut:
+            cut = cut[:cut.rindex(mark)]
+            break
+    return cut + " (...)"
 
 
 def _fmt(value, spec: str = ".2f") -> str:

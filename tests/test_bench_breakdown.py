@@ -185,3 +185,13 @@ def test_ngsolve_accuracy_reads_its_lower_triangle_and_complex_vectors():
     assert exact["true_residual"] < 1e-13 and exact["backward_error"] < 1e-14
     vecs[2].x[5] += 1e-6 * phases[2]
     assert ngs_bench.mode_accuracy(_Mat(K), _Mat(M), fes, vecs, w[:4])["true_residual"] > 1e-8
+
+
+def test_short_error_ends_at_a_clause_and_says_it_was_cut(bench):
+    text = ("exit 1:     raise ResourceError( | pipeline.errors.ResourceError: the sparse "
+            "factorisation of the 2323056-DOF stiffness matrix needs 29.0 GB, more than the "
+            "4.11 GB usable (90% of the 4.57 GB available); a mesh.size about 1.71 times "
+            "larger would fit")
+    short = bench.short_error(text)
+    assert short.endswith("(90% of the 4.57 GB available) (...)") and len(short) <= 160
+    assert bench.short_error("exit 1: | ValueError: bad") == "bad"
