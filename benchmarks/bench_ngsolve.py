@@ -25,7 +25,8 @@ Prints one JSON line:
 free DOFs, stage times (s), total, peak memory (MB), the lowest ``--count`` frequencies
 (Hz) and their modes' accuracy from NGSolve's own K and M, measured after the timed part
 as the pipeline's rows are (:func:`mode_accuracy`: the largest true relative residual and
-backward error, so that "same accuracy" in the comparison is a figure, not a claim). NGSolve is optional: ``pip install -e '.[bench]'``.
+backward error, so that "same accuracy" in the comparison is a figure, not a claim).
+NGSolve is optional: ``pip install -e '.[bench]'``.
 """
 
 from __future__ import annotations

@@ -48,9 +48,10 @@ HUGE = ("6M",)
 # 1,224,567; 0.00209 -> 1,280,949; 0.00199 -> 1,313,007; 0.00158 -> 2,323,056 DOFs).
 # netgen's DOFs jump with the number of element layers across the 20 mm thickness, so no
 # maxh gives 1.0M: 1M is compared at 1.21M DOFs (the nearest above; 21.5 GB, just inside
-# the cap of run_watched on the 24 GB machine: on a busier host it is stopped), 3M at 2.32M (its factor alone needs 29 GB); 600k
-# (621k DOFs here) at 615k, the largest below that jump (8.9-9.3 GB); 100k (101,406 DOFs
-# here) at 98,142, the largest below the jump to 176k.
+# the cap of run_watched on the 24 GB machine: on a busier host it is stopped), 3M at
+# 2.32M (its factor alone needs 29 GB); 600k (621k DOFs here) at 615k, the largest below
+# that jump (8.9-9.3 GB); 100k (101,406 DOFs here) at 98,142, the largest below the jump
+# to 176k.
 NGSOLVE_MAXH = {"20k": 0.0079, "100k": 0.0045, "300k": 0.00339, "600k": 0.00224,
                 "1M": 0.00223, "3M": 0.00158}
 NGSOLVE_VARIANTS = ("pardiso_spd", "sparsecholesky", "pardiso")
