@@ -274,8 +274,9 @@ def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
 def _run_child(kind: str, label: str, count: int, timeout: float, variant: str = "auto",
                shapes: Path | None = None) -> dict:
     """One case in its own process; ``variant``: a modes.precision (auto, double, mixed)
-    or ``multigrid`` (modes.method); ``shapes``: where the child saves its mode shapes."""
-    precision, method = (("auto", "multigrid") if variant == "multigrid"
+    or a modes.method (``multigrid``, ``factor``); ``shapes``: where the child saves its
+    mode shapes."""
+    precision, method = (("auto", variant) if variant in ("multigrid", "factor")
                          else (variant, "auto"))
     with tempfile.TemporaryDirectory(prefix=f"bench_{label}_") as tmp:
         out = Path(tmp) / "result.json"
@@ -355,50 +356,61 @@ def median_row(runs: list[dict]) -> dict:
     return row
 
 
+#: the pipeline rows compared with NGSolve: the default path, and the factor path where
+#: ``--also-factor`` ran it beside a factor-free default (NGSolve's residual class)
+PEER_KINDS = ("pipeline", "pipeline (factor)")
+
+
 def peer_comparison(rows: list[dict], rel: float = 0.01) -> str:
-    """Per size: our pipeline against NGSolve's fastest variant whose first 5 frequencies
-    agree with ours to ``rel`` (the meshes differ, so agreement is to discretisation).
+    """Per size and pipeline row (:data:`PEER_KINDS`): the pipeline against NGSolve's
+    fastest variant whose first 5 frequencies agree with ours to ``rel`` (the meshes
+    differ, so agreement is to discretisation).
 
     Two ratios: NGSolve's total over the pipeline's (which also builds the reduced model
     and writes the file, work NGSolve does not do), and the ratio over the same work,
-    mesh + assembly + eigensolve on both sides (:func:`same_work`)."""
-    lines = ["| size | pipeline DOFs | pipeline s | pipeline MB | NGSolve best (correct) | "
-             "NGSolve DOFs | NGSolve s | NGSolve MB | NGSolve / pipeline time | "
-             "pipeline mesh + assembly + eigensolve s | same work: NGSolve / pipeline |",
-             "|" + " --- |" * 11]
+    mesh + assembly + eigensolve on both sides (:func:`same_work`); and both stacks' true
+    relative residuals (:func:`mode_accuracy`), the accuracy the ratio is at."""
+    lines = ["| size | pipeline | pipeline DOFs | pipeline s | pipeline MB | "
+             "NGSolve best (correct) | NGSolve DOFs | NGSolve s | NGSolve MB | "
+             "NGSolve / pipeline time | pipeline mesh + assembly + eigensolve s | "
+             "same work: NGSolve / pipeline | true rel. residual: pipeline, NGSolve |",
+             "|" + " --- |" * 13]
     for label in dict.fromkeys(r["label"] for r in rows):
-        ours = next((r for r in rows if r["label"] == label and r["kind"] == "pipeline"
-                     and "error" not in r), None)
         peers = [r for r in rows if r["label"] == label and r["kind"].startswith("ngsolve")
                  and "error" not in r]
         failed = [r for r in rows if r["label"] == label and r["kind"].startswith("ngsolve")
                   and "error" in r]
-        if ours is not None and not peers and failed:
-            lines.append(f"| {label} | {ours['n_dofs']:,} | {ours['total']:.1f} | "
-                         f"{ours['peak_mb']:,.0f} | {failed[0]['kind']}: did not run "
-                         f"({short_error(failed[0]['error'])}) |" + " |" * 6)
-            continue
-        if ours is None or not peers:
-            continue
-        ok = [r for r in peers if max(abs(f / g - 1) for f, g in
-                                      zip(r["frequencies"][:5], ours["frequencies"][:5])) <= rel]
-        if not ok:
-            lines.append(f"| {label} | {ours['n_dofs']:,} | {ours['total']:.1f} | "
-                         f"{ours['peak_mb']:,.0f} | no variant agrees to {rel:.0%} |" + " |" * 6)
-            continue
-        best = min(ok, key=lambda r: r["total"])
-        mine, theirs = same_work(ours), same_work(best)
-        ratio = "-" if not (mine and theirs) else f"{theirs / mine:.2f}x"
-        lines.append(f"| {label} | {ours['n_dofs']:,} | {ours['total']:.1f} | "
-                     f"{ours['peak_mb']:,.0f} | {best['kind']} | {best['n_dofs']:,} | "
-                     f"{best['total']:.1f} | {best['peak_mb']:,.0f} | "
-                     f"{best['total'] / ours['total']:.2f}x | {_fmt(mine, '.1f')} | {ratio} |")
+        for ours in (r for r in rows if r["label"] == label and r["kind"] in PEER_KINDS
+                     and "error" not in r):
+            head = (f"| {label} | {ours.get('method') or ours['kind']} | {ours['n_dofs']:,} | "
+                    f"{ours['total']:.1f} | {ours['peak_mb']:,.0f} |")
+            if not peers and failed:
+                lines.append(f"{head} {failed[0]['kind']}: did not run "
+                             f"({short_error(failed[0]['error'])}) |" + " |" * 7)
+                continue
+            if not peers:
+                continue
+            ok = [r for r in peers if max(abs(f / g - 1) for f, g in zip(
+                r["frequencies"][:5], ours["frequencies"][:5])) <= rel]
+            if not ok:
+                lines.append(f"{head} no variant agrees to {rel:.0%} |" + " |" * 7)
+                continue
+            best = min(ok, key=lambda r: r["total"])
+            mine, theirs = same_work(ours), same_work(best)
+            ratio = "-" if not (mine and theirs) else f"{theirs / mine:.2f}x"
+            lines.append(f"{head} {best['kind']} | {best['n_dofs']:,} | "
+                         f"{best['total']:.1f} | {best['peak_mb']:,.0f} | "
+                         f"{best['total'] / ours['total']:.2f}x | {_fmt(mine, '.1f')} | "
+                         f"{ratio} | {_fmt(ours.get('true_residual'), '.1e')}, "
+                         f"{_fmt(best.get('true_residual'), '.1e')} |")
     if len(lines) <= 2:
         return "NGSolve: not run (pip install -e '.[bench]')"
     return "\n".join(lines) + (
         "\n\nNGSolve / pipeline time: the whole runs (the pipeline's also builds the reduced "
         "model and writes the HDF5 file, NGSolve's ends with its eigenpairs); same work: "
-        "mesh + assembly + eigensolve on both sides.")
+        "mesh + assembly + eigensolve on both sides. The pipeline column names its "
+        "eigensolver: where it is the factor-free multigrid-lobpcg (from about 500k DOFs), "
+        "`--also-factor` adds the factor path's row, at NGSolve's residual.")
 
 
 def short_error(text: str, limit: int = 160) -> str:
@@ -520,8 +532,9 @@ def accuracy_table(rows: list[dict]) -> str:
             "the smallest relative change of K and M that makes the pairs exact "
             "(pipeline.solve.accuracy). The residual weighs an error component of "
             "eigenvalue lambda by lambda / w^2: LOBPCG stops on the energy-norm residual, "
-            "so its modes show 1e-3 here while agreeing with the factor's to the angle "
-            "and frequency difference shown. NGSolve's rows: its own K and M on its free "
+            "so its modes show 1e-3 here while agreeing with the factor path's to the "
+            "angle and frequency difference in its row (where a factor path ran at the "
+            "same size: --also-factor). NGSolve's rows: its own K and M on its free "
             "DOFs, each complex Arnoldi vector made real by the phase of its largest "
             "entry.\n\n" + "\n".join(lines))
 
@@ -751,6 +764,9 @@ def main(argv=None) -> int:
                     help="modes.method of the pipeline rows (default auto)")
     ap.add_argument("--also-multigrid", action="store_true",
                     help="also run the factor-free solver (modes.method: multigrid)")
+    ap.add_argument("--also-factor", action="store_true",
+                    help="also run the factor path (modes.method: factor) at the sizes of "
+                         "--large, where auto takes the factor-free one")
     ap.add_argument("--also-mixed", action="store_true",
                     help="also run the pipeline with modes.precision=mixed")
     ap.add_argument("--ngsolve", choices=["auto", "yes", "no"], default="auto",
@@ -815,6 +831,8 @@ def main(argv=None) -> int:
             jobs.append(("pipeline", "mixed"))
         if args.also_multigrid and args.method != "multigrid":
             jobs.append(("pipeline", "multigrid"))
+        if args.also_factor and args.method != "factor" and label in LARGE:
+            jobs.append(("pipeline", "factor"))
         if ngsolve and label in NGSOLVE_MAXH:  # from 600k: the first variant only
             variants = args.ngsolve_variants.split(",")
             jobs += [("ngsolve", inverse) for inverse in

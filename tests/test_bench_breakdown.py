@@ -87,7 +87,29 @@ def test_peer_comparison_prints_both_ratios(bench):
     assert cells["NGSolve / pipeline time"] == "2.40x"  # 12 / 5: whole runs
     assert cells["pipeline mesh + assembly + eigensolve s"] == "4.0"
     assert cells["same work: NGSolve / pipeline"] == "3.00x"  # 12 / (0.25 + 0.5 + 3.25)
+    assert cells["true rel. residual: pipeline, NGSolve"] == "-, -"  # not measured here
     assert "same work: mesh + assembly + eigensolve" in text
+
+
+def test_peer_comparison_has_a_line_for_the_factor_path_beside_the_factor_free_one(bench):
+    """At the sizes where the default path is factor-free, ``--also-factor``'s row is
+    compared with NGSolve too, each line with the residuals it is at."""
+    ours, peer = _peer_rows(bench)
+    ours.update(method="multigrid-lobpcg", true_residual=6.1e-3)
+    peer.update(true_residual=3.5e-8)
+    factor = bench.median_row([dict(ours, kind="pipeline (factor)", method="block-lanczos",
+                                    total=8.0, eigensolve=6.25, true_residual=9.0e-8,
+                                    same_work=None)])
+    mixed = dict(ours, kind="pipeline (mixed)", total=1.0)  # not a compared kind
+    lines = bench.peer_comparison([ours, factor, mixed, peer]).splitlines()
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    rows = [dict(zip(head, [c.strip() for c in line.strip("|").split("|")]))
+            for line in lines[2:] if line.startswith("| 100k")]
+    assert [r["pipeline"] for r in rows] == ["multigrid-lobpcg", "block-lanczos"]
+    assert rows[1]["NGSolve / pipeline time"] == "1.50x"  # 12 / 8
+    assert rows[1]["same work: NGSolve / pipeline"] == "1.71x"  # 12 / (0.25 + 0.5 + 6.25)
+    assert rows[0]["true rel. residual: pipeline, NGSolve"] == "6.1e-03, 3.5e-08"
+    assert rows[1]["true rel. residual: pipeline, NGSolve"] == "9.0e-08, 3.5e-08"
 
 
 def test_same_work_is_the_median_over_runs(bench):
