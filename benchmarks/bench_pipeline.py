@@ -278,6 +278,8 @@ def _run_child(kind: str, label: str, count: int, timeout: float, variant: str =
     mode shapes."""
     precision, method = (("auto", variant) if variant in ("multigrid", "factor")
                          else (variant, "auto"))
+    # the child's own name for the row (run_pipeline_case), also on a refused case's row
+    name = kind if kind != "pipeline" or variant == "auto" else f"pipeline ({variant})"
     with tempfile.TemporaryDirectory(prefix=f"bench_{label}_") as tmp:
         out = Path(tmp) / "result.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", kind,
@@ -289,10 +291,10 @@ def _run_child(kind: str, label: str, count: int, timeout: float, variant: str =
         proc = run_watched(cmd, timeout)
         wall = time.perf_counter() - t0
         if proc.error:
-            return {"kind": kind, "label": label, "error": proc.error}
+            return {"kind": name, "label": label, "error": proc.error}
         if proc.returncode != 0 or not out.exists():
             tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-            return {"kind": kind, "label": label,
+            return {"kind": name, "label": label,
                     "error": f"exit {proc.returncode}: {' | '.join(tail)}"}
         row = json.loads(out.read_text())
         row.update(label=label, process_s=wall)

@@ -219,3 +219,21 @@ def test_short_error_ends_at_a_clause_and_says_it_was_cut(bench):
     short = bench.short_error(text)
     assert short.endswith("(90% of the 4.57 GB available) (...)") and len(short) <= 160
     assert bench.short_error("exit 1: | ValueError: bad") == "bad"
+
+
+def test_a_refused_case_keeps_its_variant_in_the_row_name(bench, monkeypatch):
+    """A child that exits with an error (the factor path refused at 3M by the memory
+    estimate) is named as its finished rows are: ``pipeline (factor)``, not the default
+    path's ``pipeline``."""
+    import types
+
+    refused = types.SimpleNamespace(error=None, returncode=1, stdout="",
+                                    stderr="error: needs about 31.1 GB")
+    monkeypatch.setattr(bench, "run_watched", lambda cmd, timeout: refused)
+    rows = {variant: bench._run_child("pipeline", "3M", 20, 1.0, variant)
+            for variant in ("auto", "factor", "mixed")}
+    assert [r["kind"] for r in rows.values()] == ["pipeline", "pipeline (factor)",
+                                                  "pipeline (mixed)"]
+    assert rows["factor"]["error"] == "exit 1: error: needs about 31.1 GB"
+    straightforward = bench._run_child("straightforward", "3M", 20, 1.0)
+    assert straightforward["kind"] == "straightforward"

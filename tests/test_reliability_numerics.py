@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 import subprocess
 import sys
 
@@ -253,10 +254,43 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
     with pytest.raises(ResourceError, match=r"mesh with \d+ DOFs needs about [\d.]+ GB, more "
                                             r"than the 0.19 GB usable \(90% of the 0.21 GB "
                                             r"available\); a mesh.size of about "
-                                            r"[\d.]+ m \(now about [\d.]+ m, i.e. [\d.]+ times "
-                                            r"larger\) would fit"):
+                                            r"[\d.]+ m \(now 0.02 m, i.e. [\d.]+ times "
+                                            r"larger\) would fit") as refused:
         run_pipeline(cfg, tmp_path / "big.h5", mesh_dir=tmp_path)
     assert not (tmp_path / "big.h5").exists()
+    # the value offered is the configured mesh.size times the factor (gmsh's edges are
+    # longer than mesh.size: offering a multiple of them overshot by a quarter at 3M DOFs)
+    size, factor = re.search(r"about ([\d.]+) m \(now 0.02 m, i.e. ([\d.]+) times",
+                             str(refused.value)).groups()
+    assert float(size) == pytest.approx(0.02 * float(factor), rel=2e-3)
+
+
+def test_memory_refusal_of_a_mesh_file_asks_for_a_coarser_mesh(tmp_path, monkeypatch):
+    """A mesh read from a file (geometry.kind mesh) keeps its own elements: the refusal
+    says how much coarser the mesh must be, not a mesh.size that would change nothing."""
+    import pipeline._util.resources as resources
+    from pipeline.fe.mesh import mesh_body
+    from pipeline.fe.space import build_space
+
+    cfg = load_config(CONFIG, ["mesh.size=0.02"])
+    body, path, _ = mesh_body(cfg.geometry, cfg.mesh, tmp_path, "bar")
+    assert body.element_size == 0.02  # gmsh made it with this mesh.size
+    read = dataclasses.replace(body, element_size=None)  # as a mesh file is read
+    assert mesh_body(dataclasses.replace(cfg.geometry, kind="mesh", path=str(path)),
+                     cfg.mesh, None, "bar")[0].element_size is None
+    script = tmp_path / "meshed.geo"  # a gmsh script that meshes itself: its own elements
+    script.write_text('SetFactory("OpenCASCADE");\nBox(1) = {0, 0, 0, 0.2, 0.02, 0.02};\n'
+                      "Mesh.MeshSizeMax = 0.01;\nMesh 3;\n")
+    geo = dataclasses.replace(cfg.geometry, kind="geo", path=str(script))
+    assert mesh_body(geo, cfg.mesh, None, "bar")[0].element_size is None
+    script.write_text(script.read_text().replace("Mesh 3;\n", ""))  # now mesh.size meshes it
+    assert mesh_body(geo, cfg.mesh, None, "bar")[0].element_size == 0.02
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: 200 * 2**20)
+    with pytest.raises(ResourceError, match=r"; a mesh about [\d.]+ times coarser would fit "
+                                            r"\(its elements' typical edge is now [\d.]+ m; "
+                                            r"mesh.size does not change") as refused:
+        resources.check_memory(build_space(read, 2), 20)
+    assert "a mesh.size of" not in str(refused.value)
 
 
 def test_cli_reports_a_mesh_too_big_with_exit_code_6(tmp_path):

@@ -4,6 +4,7 @@ faces (physical groups ``root``, ``tip``, ``bottom``, ``top``, ``back``, ``front
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -86,7 +87,7 @@ def mesh_box(geometry: Geometry, spec: MeshSpec, out_path: Path) -> tuple[BodyMe
     shape = BodyShape.box(geometry.length, geometry.height, geometry.depth)
     check_mesh_fits(shape, spec, "the box")  # before gmsh
     path = generate_mesh(geometry, spec, out_path)
-    return read_mesh(path), path
+    return dataclasses.replace(read_mesh(path), element_size=spec.size), path
 
 
 SOURCES["box"] = mesh_box

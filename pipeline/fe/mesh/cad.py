@@ -14,6 +14,7 @@ with the CAD volume (a warning beyond 1%).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -94,7 +95,7 @@ def _mesh_step(geometry: Geometry, spec: MeshSpec, out_path: Path) -> BodyMesh:
         log.info("'%s': %d solid(s), CAD volume %.6g m^3, %d tetrahedra", path.name, len(vols),
                  volume, n)
         write_gmsh(gmsh, out_path)
-    body = read_mesh(out_path)
+    body = dataclasses.replace(read_mesh(out_path), element_size=spec.size)
     _compare_volume(body, volume, path)
     return body
 

@@ -82,6 +82,9 @@ class BodyMesh:
         node a set holds (files of quadratic cells only).
     element_sets: name -> sorted indices of the tetrahedra of the file's named volume
         groups / element sets (:mod:`pipeline.fe.element_sets`).
+    element_size: the ``mesh.size`` (m) gmsh meshed it with; None where the elements
+        are the file's own (a mesh file, a gmsh script that meshes itself), which
+        ``mesh.size`` does not change.
     """
 
     vertices: np.ndarray
@@ -92,6 +95,7 @@ class BodyMesh:
     node_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
     node_set_edges: Mapping[str, np.ndarray] = field(default_factory=dict)
     element_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
+    element_size: float | None = None
 
     @property
     def n_vertices(self) -> int:

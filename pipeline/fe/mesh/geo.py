@@ -7,6 +7,7 @@ element size. A script that meshes itself (``Mesh 3;``) keeps its own mesh.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -22,7 +23,9 @@ from pipeline.fe.mesh.registry import SOURCES
 log = logging.getLogger(__name__)
 
 
-def _mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> Path:
+def _mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> bool:
+    """Write the script's mesh to ``out_path``; True where ``mesh.size`` set its
+    element size (False: the script meshes itself)."""
     path = Path(geometry.path)
     if path.suffix.lower() != ".geo":
         raise ConfigError(f"config key 'geometry.path': got '{path}' for kind 'geo'; expected a "
@@ -67,12 +70,14 @@ def _mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> Path:
             raise MeshError(f"gmsh made no tetrahedra for '{path}'; expected a tetrahedral "
                             "volume mesh")
         write_gmsh(gmsh, out_path)
-    return out_path
+    return not premeshed
 
 
 def mesh_geo(geometry: Geometry, spec: MeshSpec, out_path: Path) -> tuple[BodyMesh, Path]:
     """The ``geo`` source: (mesh, its file ``out_path``)."""
-    return read_mesh(_mesh_geo(geometry, spec, out_path)), out_path
+    sized = _mesh_geo(geometry, spec, out_path)
+    return (dataclasses.replace(read_mesh(out_path), element_size=spec.size if sized else None),
+            out_path)
 
 
 SOURCES["geo"] = mesh_geo
