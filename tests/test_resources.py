@@ -3,6 +3,7 @@ does not fit is refused with both figures and a mesh size that would fit."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import subprocess
@@ -25,7 +26,8 @@ def space(tmp_path_factory):
     path = tmp_path_factory.mktemp("res") / "box.msh"
     generate_mesh(Geometry("box", 0.1, 0.02, 0.03), MeshSpec(order=2, size=0.01,
                                                              algorithm="delaunay"), path)
-    return build_space(read_mesh(path), 2)
+    # gmsh made it with mesh.size 0.01, as mesh_box records it
+    return build_space(dataclasses.replace(read_mesh(path), element_size=0.01), 2)
 
 
 def test_estimate_is_monotone_in_mesh_size_and_modes():
@@ -68,9 +70,9 @@ def test_check_memory_refuses_with_both_figures_and_a_size_that_fits(space):
     assert f"{need / 1e9:.1f} GB" in msg
     assert (f"{resources.HEADROOM * have / 1e9:.2f} GB usable (90% of the "
             f"{have / 1e9:.2f} GB available)") in msg
-    sizes = [float(x) for x in re.findall(r"about ([0-9.e-]+) m", msg)]
-    suggested, current = sizes
-    assert suggested > current
+    suggested = float(re.search(r"a mesh.size of about ([0-9.e-]+) m", msg).group(1))
+    current = float(re.search(r"\(now ([0-9.e-]+) m", msg).group(1))
+    assert current == 0.01 and suggested > current  # the mesh.size it was made with
     # memory scales like size^-4: the suggested size brings the estimate under the limit
     assert need * (current / suggested) ** 4 < resources.HEADROOM * have
 
@@ -80,6 +82,11 @@ def test_factor_check_refuses_before_factorising():
                                             r"\(90% of the 1\.00 GB available\)"):
         resources.check_factor_memory(5.0e9, 1_000_000, available=int(1.0e9))
     resources.check_factor_memory(0.5e9, 1_000_000, available=int(1.0e9))
+    # the factor does not know where the mesh came from: coarser, mesh.size where it applies
+    with pytest.raises(ResourceError, match=r"; a mesh about 1\.57 times coarser would fit "
+                                            r"\(mesh.size 1\.57 times larger where gmsh "
+                                            r"makes the mesh\)$"):
+        resources.check_factor_memory(4.5e9, 1_000_000, available=int(1.0e9))
 
 
 def test_a_need_between_the_usable_share_and_all_of_it_reads_as_too_much():

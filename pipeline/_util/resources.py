@@ -438,6 +438,16 @@ def check_memory(space, n_modes: int, available: int | None = None,
     return need
 
 
+def coarser_mesh(factor: float) -> str:
+    """What makes a mesh ``factor`` times coarser, for a refusal that does not know where
+    the mesh came from.
+
+    >>> coarser_mesh(1.5)
+    'mesh.size 1.50 times larger where gmsh makes the mesh'
+    """
+    return f"mesh.size {factor:.2f} times larger where gmsh makes the mesh"
+
+
 def check_factor_memory(factor_bytes_exact: float, n_dofs: int,
                         available: int | None = None) -> None:
     """Refuse to factorise when the factor (known after the analysis) will not fit."""
@@ -447,7 +457,7 @@ def check_factor_memory(factor_bytes_exact: float, n_dofs: int,
         raise ResourceError(
             f"the sparse factorisation of the {n_dofs}-DOF stiffness matrix needs "
             f"{factor_bytes_exact / 1e9:.1f} GB, {beyond_usable(factor_bytes_exact, have)}; "
-            f"a mesh.size about {factor:.2f} times larger would fit")
+            f"a mesh about {factor:.2f} times coarser would fit ({coarser_mesh(factor)})")
 
 
 @contextlib.contextmanager

@@ -197,7 +197,7 @@ def check_factor_estimate(comm, estimate: MumpsEstimate, what: str, n: int) -> N
         f"factorisation needs {estimate.max_bytes / 1e9:.2f} GB more on a rank, "
         f"{need / 1e9:.2f} GB with what the {node_ranks} ranks of one node hold, "
         f"{res.beyond_usable(need, have, 'available to them')}; expected about {nodes} nodes "
-        f"like it or a mesh.size about {larger:.2f} times larger")
+        f"like it or a mesh about {larger:.2f} times coarser ({res.coarser_mesh(larger)})")
 
 
 def _on_fullest(comm, need: float, have: float, worst: float) -> tuple[float, float]:
