@@ -425,7 +425,7 @@ def check_memory(space, n_modes: int, available: int | None = None,
     log.info("memory estimate %.2f GB of %.2f GB available", need / 1e9, have / 1e9)
     if need > HEADROOM * have:
         factor = _scale_to_fit(need, have)
-        size = getattr(space.body, "element_size", None)
+        size = space.body.element_size
         if size:
             fit = (f"a mesh.size of about {size * factor:.3g} m (now {size:g} m, i.e. "
                    f"{factor:.2f} times larger) would fit")
