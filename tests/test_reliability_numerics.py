@@ -265,6 +265,38 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
     assert float(size) == pytest.approx(0.02 * float(factor), rel=2e-3)
 
 
+def test_a_run_whose_eigensolver_does_not_fit_is_refused_before_gmsh(tmp_path, monkeypatch):
+    """The mesh sources check the default run's memory; a run that asks for the factor
+    path (or more modes) is checked for that run before gmsh starts (the bench's
+    ``modes.method: factor`` at 2.8M DOFs meshed first and was refused after, at 31.1 GB),
+    and a default run of the same mesh is not refused by it."""
+    import pipeline.fe.mesh.box as box
+    import pipeline._util.resources as resources
+    from pipeline.fe.mesh.estimate import MARGIN, BodyShape, estimate_mesh
+    from pipeline.fe.model import check_run_fits
+
+    cfg = load_config(CONFIG, ["mesh.size=0.0025", "modes.method=factor"])
+    g = cfg.geometry
+    shape = BodyShape.box(g.length, g.height, g.depth)
+    have = 4.0e9  # 621k DOFs: the default (factor-free) run fits, no factor path does
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: int(have))
+    factor = estimate_mesh(shape, 0.0025, 2, 20, "factor").peak_bytes  # of what fits best
+    default = estimate_mesh(shape, 0.0025, 2, 20).peak_bytes
+    limit = MARGIN * resources.HEADROOM * have  # the check's margin before meshing
+    assert default <= limit < factor, (default, limit, factor)
+
+    def no_gmsh(*args, **kwargs):
+        raise AssertionError("gmsh started although the run does not fit")
+
+    monkeypatch.setattr(box, "generate_mesh", no_gmsh)
+    with pytest.raises(ResourceError, match=r"config key 'mesh.size': got 0.0025 m, .* GB "
+                                            r"with modes.method factor; .* expected "
+                                            r"mesh.size >= "):
+        run_pipeline(cfg, tmp_path / "f.h5", mesh_dir=tmp_path)
+    assert not (tmp_path / "f.h5").exists()
+    check_run_fits(load_config(CONFIG, ["mesh.size=0.0025"]))  # the default run fits
+
+
 def test_memory_refusal_of_a_mesh_file_asks_for_a_coarser_mesh(tmp_path, monkeypatch):
     """A mesh read from a file (geometry.kind mesh) keeps its own elements: the refusal
     says how much coarser the mesh must be, not a mesh.size that would change nothing."""

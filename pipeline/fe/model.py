@@ -31,7 +31,8 @@ from pipeline.fe.added_mass import added_mass_matrix, rigid_couplings
 from pipeline.fe.body import (BodyProperties, body_properties, properties_from_rigid_mass,
                               rigid_body_modes)
 from pipeline.fe.materials import ElementMaterials, config_materials
-from pipeline.fe.mesh import mesh_body
+from pipeline.fe.mesh import body_shape, mesh_body
+from pipeline.fe.mesh.estimate import DEFAULT_MODES, check_mesh_fits
 from pipeline.fe.regions import check_region_uses, fixed_dofs, free_dofs, resolve_regions
 from pipeline.fe.supports import (SOFT_SUPPORT, RigidFreedoms, SupportStiffness,
                                   rigid_freedoms, support_stiffness)
@@ -142,6 +143,22 @@ def mesh_config(cfg: Config, mesh_dir: str | Path | None = None,
                         support_stiffness(space, regions, cfg.supports))
 
 
+def check_run_fits(cfg: Config) -> None:
+    """Before gmsh meshes a box or a STEP body: refuse a run whose estimated memory
+    would not fit, for the eigensolver its ``modes`` ask for. The mesh sources check the
+    default run (``modes.method`` and ``modes.solver`` auto, 20 modes): ``method:
+    factor`` on the cantilever at 2.8M DOFs passed that check, meshed, and was refused
+    by :func:`~pipeline._util.resources.check_memory` after gmsh (31.1 GB). A geo script
+    may mesh itself and a mesh file is read, so ``mesh.size`` says nothing there."""
+    modes = cfg.modes
+    if cfg.geometry.kind not in ("box", "step") or (
+            (modes.method, modes.solver, modes.count) == ("auto", "auto", DEFAULT_MODES)):
+        return
+    what = "the box" if cfg.geometry.kind == "box" else f"the body in '{cfg.geometry.path}'"
+    check_mesh_fits(body_shape(cfg.geometry), cfg.mesh, what, modes.count,
+                    method=modes.method, solver=modes.solver)
+
+
 def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
                    progress: ProgressFactory | None = None,
                    stage: StageTimer | None = None, on_stiffness_pattern=None) -> FEModel:
@@ -157,6 +174,7 @@ def build_fe_model(cfg: Config, mesh_dir: str | Path | None = None,
     progress = progress or _no_progress
     stage = stage or _untimed
     with stage("mesh"):
+        check_run_fits(cfg)
         meshed = mesh_config(cfg, mesh_dir)
         space, regions, materials = meshed.space, meshed.regions, meshed.materials
         added, extra, n_tetrahedra = meshed.added, meshed.supports, meshed.n_tetrahedra

@@ -81,9 +81,11 @@ class MeshEstimate:
 
 
 def estimate_mesh(shape: BodyShape, size: float, order: int,
-                  n_modes: int = DEFAULT_MODES) -> MeshEstimate:
+                  n_modes: int = DEFAULT_MODES, method: str = "auto",
+                  solver: str = "auto") -> MeshEstimate:
     """The estimate of the module doc for ``shape`` meshed at ``size`` m, elements of
-    ``order`` 1 or 2."""
+    ``order`` 1 or 2; the run's peak for ``modes.method`` and ``modes.solver``
+    (:func:`pipeline._util.resources.eigensolve_bytes`)."""
     through = min(size, shape.thickness_m)
     bulk = shape.volume_m3 / (size * size * through)
     skin = shape.area_m2 / (size * size)
@@ -95,17 +97,18 @@ def estimate_mesh(shape: BodyShape, size: float, order: int,
     # estimate_memory_bytes works in integers; clip astronomically large requests
     cap = 1e15
     peak = float(resources.estimate_memory_bytes(int(min(n_nodes, cap)), int(min(n_tets, cap)),
-                                                 order, n_modes))
+                                                 order, n_modes, method, solver=solver))
     return MeshEstimate(n_tets, n_nodes, peak)
 
 
 def smallest_size(shape: BodyShape, order: int, limit: float, what: str = "peak_bytes",
-                  start: float | None = None, n_modes: int = DEFAULT_MODES) -> float:
+                  start: float | None = None, n_modes: int = DEFAULT_MODES,
+                  method: str = "auto", solver: str = "auto") -> float:
     """The smallest mesh.size (m) whose estimated ``what`` (a field of
     :class:`MeshEstimate`) stays within ``limit``; found by bisection (the estimate
     decreases with the size) from ``start`` (a size that exceeds it)."""
     def over(h: float) -> bool:
-        return getattr(estimate_mesh(shape, h, order, n_modes), what) > limit
+        return getattr(estimate_mesh(shape, h, order, n_modes, method, solver), what) > limit
 
     lo = hi = start if start is not None else shape.thickness_m
     while over(hi) and hi < 1e6:
@@ -122,21 +125,28 @@ def smallest_size(shape: BodyShape, order: int, limit: float, what: str = "peak_
 
 
 def check_mesh_fits(shape: BodyShape, spec: MeshSpec, what: str,
-                    n_modes: int = DEFAULT_MODES, available: int | None = None) -> MeshEstimate:
+                    n_modes: int = DEFAULT_MODES, available: int | None = None,
+                    method: str = "auto", solver: str = "auto") -> MeshEstimate:
     """Refuse (ResourceError naming mesh.size) a mesh whose estimated run would not fit in
-    the usable memory (HEADROOM of what is available), with the smallest size that fits."""
-    est = estimate_mesh(shape, spec.size, spec.order, n_modes)
+    the usable memory (HEADROOM of what is available), with the smallest size that fits;
+    the run with ``modes.method`` ``method`` and ``modes.solver`` ``solver`` (the mesh
+    sources check the default run; :func:`pipeline.fe.model.build_fe_model` checks a
+    run that asks for another before gmsh starts)."""
+    est = estimate_mesh(shape, spec.size, spec.order, n_modes, method, solver)
     have = resources.available_memory_bytes() if available is None else available
     usable = resources.HEADROOM * have
-    floor = estimate_mesh(shape, float("inf"), spec.order, n_modes).peak_bytes
+    floor = estimate_mesh(shape, float("inf"), spec.order, n_modes, method, solver).peak_bytes
     if est.peak_bytes <= MARGIN * usable or floor >= usable:
         # fits (or borderline: the exact check after meshing decides), or not even an
         # empty mesh fits (no mesh.size helps: that check reports the memory)
         return est
-    fits = smallest_size(shape, spec.order, usable, start=spec.size, n_modes=n_modes)
+    fits = smallest_size(shape, spec.order, usable, start=spec.size, n_modes=n_modes,
+                         method=method, solver=solver)
+    run = "" if (method, solver) == ("auto", "auto") else (
+        f" with modes.method {method}" + ("" if solver == "auto" else f", modes.solver {solver}"))
     raise ResourceError(
         f"config key 'mesh.size': got {spec.size:g} m, which would make about "
         f"{est.n_tetrahedra:.2g} tetrahedra ({3 * est.n_nodes:.2g} DOFs with order "
-        f"{spec.order}) for {what}, needing about {est.peak_bytes / 1e9:.3g} GB; "
+        f"{spec.order}) for {what}, needing about {est.peak_bytes / 1e9:.3g} GB{run}; "
         f"{usable / 1e9:.3g} GB are usable here: expected mesh.size >= {fits:.3g} m",
         key="mesh.size", value=spec.size, expected=f">= {fits:.3g} m")
