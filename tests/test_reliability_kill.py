@@ -466,10 +466,10 @@ def test_interrupt_run_quick(tmp_path):
     """SIGINT in the modes stage, SIGTERM in the write stage (on main: SIGTERM killed the
     run with no message, and no cleanup: its temporary file stayed).
 
-    Each stage of this small run lasts 0.03-0.1 s, so on a loaded machine a run can
-    finish before its signal arrives (checked whole, but nothing interrupted: both did
-    once in a CI run with the suite on both cores); such a round is tried again, up to
-    three rounds, each on fresh inputs."""
+    Each stage of this small run lasts 0.03-0.1 s, so on a loaded machine (the suite on
+    both cores) a run can finish before its signal arrives: it is checked whole, but
+    nothing was interrupted, so such a round is tried again, up to three rounds, each on
+    fresh inputs."""
     outcomes: Counter = Counter()
     for round_ in range(3):
         folder = tmp_path / f"round{round_}"

@@ -258,8 +258,8 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
                                             r"larger\) would fit") as refused:
         run_pipeline(cfg, tmp_path / "big.h5", mesh_dir=tmp_path)
     assert not (tmp_path / "big.h5").exists()
-    # the value offered is the configured mesh.size times the factor (gmsh's edges are
-    # longer than mesh.size: offering a multiple of them overshot by a quarter at 3M DOFs)
+    # the value offered is the configured mesh.size times the factor, not a multiple of
+    # gmsh's typical edge, which is longer than mesh.size (1.27 times on the cantilever)
     size, factor = re.search(r"about ([\d.]+) m \(now 0.02 m, i.e. ([\d.]+) times",
                              str(refused.value)).groups()
     assert float(size) == pytest.approx(0.02 * float(factor), rel=2e-3)
@@ -267,9 +267,8 @@ def test_mesh_too_big_for_memory_is_refused_before_assembly(tmp_path, monkeypatc
 
 def test_a_run_whose_eigensolver_does_not_fit_is_refused_before_gmsh(tmp_path, monkeypatch):
     """The mesh sources check the default run's memory; a run that asks for the factor
-    path (or more modes) is checked for that run before gmsh starts (the bench's
-    ``modes.method: factor`` at 2.8M DOFs meshed first and was refused after, at 31.1 GB),
-    and a default run of the same mesh is not refused by it."""
+    path (or more modes) is checked for that run before gmsh starts, and a default run
+    of the same mesh is not refused by it."""
     import pipeline.fe.mesh.box as box
     import pipeline._util.resources as resources
     from pipeline.fe.mesh.estimate import MARGIN, BodyShape, estimate_mesh

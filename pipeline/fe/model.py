@@ -146,10 +146,10 @@ def mesh_config(cfg: Config, mesh_dir: str | Path | None = None,
 def check_run_fits(cfg: Config) -> None:
     """Before gmsh meshes a box or a STEP body: refuse a run whose estimated memory
     would not fit, for the eigensolver its ``modes`` ask for. The mesh sources check the
-    default run (``modes.method`` and ``modes.solver`` auto, 20 modes): ``method:
-    factor`` on the cantilever at 2.8M DOFs passed that check, meshed, and was refused
-    by :func:`~pipeline._util.resources.check_memory` after gmsh (31.1 GB). A geo script
-    may mesh itself and a mesh file is read, so ``mesh.size`` says nothing there."""
+    default run (``modes.method`` and ``modes.solver`` auto, 20 modes), which can need
+    half of what another asks for: the cantilever at 2.8M DOFs about 16 GB factor-free,
+    about 30 GB with ``method: factor``. A geo script may mesh itself and a mesh file is
+    read, so ``mesh.size`` says nothing there."""
     modes = cfg.modes
     if cfg.geometry.kind not in ("box", "step") or (
             (modes.method, modes.solver, modes.count) == ("auto", "auto", DEFAULT_MODES)):
