@@ -14,8 +14,8 @@ CONFIG ?= configs/cantilever.yaml
 TEST_WORKERS ?= 2
 XDIST := $(if $(filter 1,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
-.PHONY: modes test test-all test-reliability bench batch env clean api mpi-env mpi-modes \
-        mpi-parts mpi-test
+.PHONY: modes test test-all test-reliability bench bench-baseline batch env clean api \
+        mpi-env mpi-modes mpi-parts mpi-test
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -55,6 +55,12 @@ bench: $(STAMP)
 	if [ -x $(MPI_PY) ]; then $(MPI_PY) benchmarks/bench_mpi.py && \
 	$(MPI_PY) benchmarks/bench_mpi.py --method multigrid --no-cuts; \
 	else echo "distributed section skipped: make mpi-env"; fi
+
+# this tree against an earlier revision, run by run in one window (the speed-up of a
+# change as a ratio the host's speed changes cannot move): make bench-baseline REV=6f9150d
+REV ?=
+bench-baseline: $(STAMP)
+	$(PY) benchmarks/bench_baseline.py --baseline "$(REV)" $(BASELINE_ARGS)
 
 # The distributed path (docs/distributed.md): PETSc, SLEPc and OpenMPI from Debian's
 # packages under the system Python, in its own venv (tools/mpi_env.sh says why)

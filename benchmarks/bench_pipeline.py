@@ -243,13 +243,14 @@ def _rss_bytes(pid: int) -> int:
 
 
 def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
-                poll_s: float = 0.25) -> Finished:
-    """Run ``cmd`` (cwd: the repository) and stop it, with a one-line reason, when it
-    runs past ``timeout`` seconds or its resident memory passes ``limit_bytes``
-    (default: :data:`MEMORY_FRACTION` of the memory available now)."""
+                poll_s: float = 0.25, cwd: Path = ROOT, env: dict | None = None) -> Finished:
+    """Run ``cmd`` (in ``cwd``, default the repository; ``env``: its environment, default
+    this process's) and stop it, with a one-line reason, when it runs past ``timeout``
+    seconds or its resident memory passes ``limit_bytes`` (default:
+    :data:`MEMORY_FRACTION` of the memory available now)."""
     limit = limit_bytes or int(MEMORY_FRACTION * _available_bytes())
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=err, text=True)
+        proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=err, text=True)
         t0, peak, error = time.perf_counter(), 0, None
         try:
             while proc.poll() is None:

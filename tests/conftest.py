@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,27 @@ from pipeline.fe.regions import fixed_dofs, free_dofs, resolve_regions
 
 ROOT = Path(__file__).resolve().parents[1]
 ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
+
+
+@contextlib.contextmanager
+def bench_module(name: str):
+    """The script ``benchmarks/<name>.py`` as a module, while in the ``with`` block:
+    registered in ``sys.modules`` (where its dataclasses look their module up), its
+    folder first on the path (the scripts import each other)."""
+    import importlib.util
+    import sys
+
+    folder = str(ROOT / "benchmarks")
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    sys.path.insert(0, folder)
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+        sys.path.remove(folder)
 
 
 @dataclass

@@ -3,25 +3,15 @@
 Synthetic rows only (the bench itself runs the pipeline); the sums are exact, so the
 checks are equalities to round-off."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_pipeline.py"
+from conftest import bench_module
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_pipeline", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
+    with bench_module("bench_pipeline") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def _row(bench, stats: dict) -> dict:
@@ -180,7 +170,13 @@ class _Mat:
         return self
 
 
-def test_ngsolve_accuracy_reads_its_lower_triangle_and_complex_vectors():
+@pytest.fixture()
+def ngs_bench():
+    with bench_module("bench_ngsolve") as module:
+        yield module
+
+
+def test_ngsolve_accuracy_reads_its_lower_triangle_and_complex_vectors(ngs_bench):
     """bench_ngsolve.mode_accuracy on a small pencil stored as NGSolve stores it (lower
     triangle, complex) with one Dirichlet DOF: exact eigenvectors times arbitrary phases
     measure at round-off, a perturbed one at its perturbation."""
@@ -188,10 +184,6 @@ def test_ngsolve_accuracy_reads_its_lower_triangle_and_complex_vectors():
     import scipy.linalg as la
     import scipy.sparse as sp
 
-    spec = importlib.util.spec_from_file_location(
-        "bench_ngsolve", BENCH.parent / "bench_ngsolve.py")
-    ngs_bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ngs_bench)
     n = 30
     K = sp.diags([-np.ones(n - 1), 2.0 + np.linspace(0, 1, n), -np.ones(n - 1)],
                  [-1, 0, 1]).tocsr()

@@ -6,13 +6,10 @@ the whole mesh rank 0 keeps, which the worker counts) and rank 0's mesh phase
 c + m0 + (m + mp / P) N / N0: the fit must give them back. The model is linear in what it fits, so
 the checks are equalities to round-off (1e-9 MB)."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_mpi.py"
+from conftest import bench_module
+
 N0, N1 = 100_000, 20_000
 C, R0, R, W0, W = 128.0, 17.0, 30.0, 18.0, 1.6
 M0, M, MP = 20.0, 45.0, 60.0  # rank 0's mesh phase: the whole mesh and its graph share
@@ -20,14 +17,8 @@ M0, M, MP = 20.0, 45.0, 60.0  # rank 0's mesh phase: the whole mesh and its grap
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_mpi", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    try:
-        spec.loader.exec_module(module)
+    with bench_module("bench_mpi") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def _divided(n: int) -> float:
