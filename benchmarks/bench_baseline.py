@@ -38,6 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import (COUNT, ROOT, SIZES, host_speed, machine,  # noqa: E402
                             run_watched)
 
+from pipeline._util.interrupts import handle_signals  # noqa: E402
+
 CONFIG = "configs/cantilever.yaml"
 _MODE_LINE = re.compile(r"^\s+(\d+)\s+(\d+\.\d+)\s+\S+\s*$")
 _DOFS_LINE = re.compile(r"^\S+: (\d+) DOFs")
@@ -209,6 +211,7 @@ def main(argv=None) -> int:
         ap.error(f"--sizes: unknown size(s) {unknown}; expected some of {list(SIZES)}")
     if args.repeat < 1:
         ap.error(f"--repeat {args.repeat}: expected at least 1")
+    handle_signals()  # SIGTERM and SIGHUP too: the running case and the worktree go
     try:
         commit = resolve_revision(args.baseline)
         with worktree(commit) as base:
@@ -230,6 +233,10 @@ def main(argv=None) -> int:
     except BenchError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print(f"interrupted ({exc or 'SIGINT'}): the running case stopped, the baseline's "
+              "worktree removed", file=sys.stderr)
+        return 130
     print()
     print(f"Machine: {machine()}.")
     print(table(rows, args.baseline, commit[:12]))
