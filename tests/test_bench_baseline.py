@@ -5,6 +5,7 @@ Synthetic rounds only (the bench itself runs the pipeline twice per round)."""
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -82,3 +83,43 @@ def test_an_unknown_revision_is_refused_in_one_line_before_any_run():
     assert proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "'no-such-revision-x'" in lines[0] and "expected" in lines[0]
+
+
+@pytest.mark.skipif(not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_an_interrupted_comparison_leaves_no_case_and_no_worktree():
+    import os
+    import signal
+
+    def worktrees() -> set[str]:
+        out = subprocess.run(["git", "worktree", "list", "--porcelain"], cwd=ROOT,
+                             capture_output=True, text=True, check=True).stdout
+        return {line.split(" ", 1)[1] for line in out.splitlines()
+                if line.startswith("worktree ")}
+
+    before = worktrees()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST")}
+    proc = subprocess.Popen([sys.executable, str(BENCH), "--baseline", "HEAD", "--sizes", "20k",
+                             "--repeat", "1", "--no-probe"], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()  # printed as the baseline's case starts
+        assert first.startswith("round 1/1, 20k:"), first
+        during = worktrees() - before
+        assert len(during) == 1  # the baseline's tree exists while it runs
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    assert err.strip().splitlines() == [
+        "interrupted (SIGTERM): the running case stopped, the baseline's worktree removed"]
+    assert worktrees() == before
+    assert not any(Path(p).exists() for p in during)
+    # no case left running in the removed tree (the cases run with it as their folder)
+    for cwd in Path("/proc").glob("[0-9]*/cwd"):
+        try:
+            where = os.readlink(cwd)
+        except OSError:  # gone meanwhile, or not ours to read
+            continue
+        assert not any(where.startswith(p) for p in during), (cwd, where)
