@@ -36,7 +36,7 @@ from typing import Iterator
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import (COUNT, ROOT, SIZES, host_speed, machine,  # noqa: E402
-                            run_watched)
+                            run_watched, write_whole)
 
 from pipeline._util.interrupts import handle_signals  # noqa: E402
 
@@ -241,8 +241,8 @@ def main(argv=None) -> int:
     print(f"Machine: {machine()}.")
     print(table(rows, args.baseline, commit[:12]))
     if args.json:
-        Path(args.json).write_text(json.dumps({"baseline": args.baseline, "commit": commit,
-                                               "rows": rows, "rounds": all_rounds}, indent=1))
+        write_whole(args.json, json.dumps({"baseline": args.baseline, "commit": commit,
+                                           "rows": rows, "rounds": all_rounds}, indent=1))
     return 0 if all("speedup" in r for r in rows) else 1
 
 

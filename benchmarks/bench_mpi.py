@@ -73,6 +73,9 @@ import time
 from itertools import islice
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_pipeline import write_whole  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "cantilever.yaml"
 NODE_GB = 24.0
@@ -626,7 +629,7 @@ def mesh_phase_main(args) -> int:
                              args.method], args.timeout)
                 for size in args.mesh_phase.split(",") for p in ranks]
         if args.json:
-            Path(args.json).write_text(json.dumps(rows, indent=1))
+            write_whole(args.json, json.dumps(rows, indent=1))
     print(f"rank 0's mesh phase, cantilever mesh.size {args.mesh_phase} m")
     for line in mesh_phase_table(rows):
         print(line)
@@ -720,7 +723,7 @@ def main(argv=None) -> int:
         if rows is None:
             return 1 if shutil.which("mpiexec") is None else 0
         if args.json:  # before the tables: a fit that fails keeps the runs
-            Path(args.json).write_text(json.dumps(rows, indent=1))
+            write_whole(args.json, json.dumps(rows, indent=1))
     print(f"distributed path (SLEPc, {args.method}), cantilever mesh.size {args.size} m")
     print(f"{'ranks':>5} {'free DOFs':>10} {'assemble s':>10} {'modes s':>8} {'total s':>8} "
           f"{'peak MB per rank':>20} {'MUMPS entries':>13} {'MUMPS MB all/max':>16}")

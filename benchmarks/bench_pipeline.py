@@ -741,6 +741,16 @@ def machine() -> str:
             f"{numpy.__version__}, scipy {scipy.__version__}, MKL {mkl}")
 
 
+def write_whole(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: through the package's atomic writer
+    (a temporary name renamed over ``path``), so an interrupted bench leaves no partial
+    JSON or page."""
+    from pipeline._util.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+
+
 def write_doc(text: str) -> None:
     marker_start, marker_end = "<!-- bench:start -->", "<!-- bench:end -->"
     block = f"{marker_start}\n{text}\n{marker_end}"
@@ -748,9 +758,9 @@ def write_doc(text: str) -> None:
         doc = DOC.read_text()
         head, rest = doc.split(marker_start, 1)
         tail = rest.split(marker_end, 1)[1] if marker_end in rest else ""
-        DOC.write_text(head + block + tail)
+        write_whole(DOC, head + block + tail)
     else:
-        DOC.write_text("# Performance\n\n" + block + "\n")
+        write_whole(DOC, "# Performance\n\n" + block + "\n")
 
 
 def main(argv=None) -> int:
@@ -802,7 +812,7 @@ def main(argv=None) -> int:
                                         args.method, Path(args.shapes) if args.shapes else None)
             else:
                 row = run_reference_case(args.size, args.count, Path(tmp))
-        Path(args.result).write_text(json.dumps(row))
+        write_whole(args.result, json.dumps(row))
         return 0
 
     if args.render:
@@ -855,7 +865,7 @@ def main(argv=None) -> int:
                 runs[(kind, variant)].append(one)
                 if args.json:  # every run as it finishes: a long bench keeps what it did
                     raw.append(one)
-                    Path(args.json).with_suffix(".runs.json").write_text(json.dumps(raw))
+                    write_whole(Path(args.json).with_suffix(".runs.json"), json.dumps(raw))
         label_rows = []
         for job in jobs:
             row = median_row(runs[job])
@@ -876,7 +886,7 @@ def main(argv=None) -> int:
     print()
     print(text)
     if args.json:
-        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        write_whole(args.json, json.dumps({"meta": meta, "rows": rows}, indent=1))
     if args.write_doc:
         write_doc(text)
         print(f"\nwrote {DOC.relative_to(ROOT)}")

@@ -52,7 +52,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import ROOT, SIZES, machine, run_watched, short_error  # noqa: E402
+from bench_pipeline import (ROOT, SIZES, machine, run_watched, short_error,  # noqa: E402
+                            write_whole)
 
 # problem -> (config, overrides, volume m^3): mesh.size for a target DOF count from the
 # cantilever's measured 101k DOFs at 0.005 m (DOFs ~ volume / size^3)
@@ -400,7 +401,7 @@ def main(argv=None) -> int:
         row = (prepare(args.problem, args.size, folder) if args.child == "prepare"
                else run_case(args.case, folder, args.count))
         row["peak_mb"] = _peak_mb()
-        Path(args.result).write_text(json.dumps(row))
+        write_whole(args.result, json.dumps(row))
         return 0
 
     labels, problems = args.sizes.split(","), args.problems.split(",")
@@ -440,7 +441,7 @@ def main(argv=None) -> int:
                     row.setdefault("n", prep["n"])
                     rows.append(row)
                     if args.json:
-                        Path(args.json).write_text(json.dumps(rows, indent=1))
+                        write_whole(args.json, json.dumps(rows, indent=1))
     text = "\n\n".join([
         "## Solvers: ours against scipy's LOBPCG and PyAMG",
         f"Machine: {machine()}; load average (1 min) {load_before:.1f} before and "
