@@ -113,7 +113,7 @@ def run_pipeline_case(size: float, count: int, workdir: Path, precision: str = "
     accuracy = {key: captured.pop(key) for key in ("true_residual", "backward_error")}
     accuracy["dc_gain"] = stored_dc_gain(workdir / "out.hdf5")
     if shapes is not None:
-        np.save(shapes, Phi)
+        write_whole(shapes, lambda fh: np.save(fh, Phi))
     ortho = float(np.abs(Phi.T @ sparse_times_dense(captured.pop("M"), Phi)
                          - np.eye(Phi.shape[1])).max())
     del Phi
@@ -741,14 +741,18 @@ def machine() -> str:
             f"{numpy.__version__}, scipy {scipy.__version__}, MKL {mkl}")
 
 
-def write_whole(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` whole or not at all: through the package's atomic writer
-    (a temporary name renamed over ``path``), so an interrupted bench leaves no partial
-    JSON or page."""
+def write_whole(path: str | Path, content) -> None:
+    """Write ``path`` whole or not at all, through the package's atomic writer (a
+    temporary name renamed over ``path``), so that an interrupted bench leaves no partial
+    JSON, page or array for a later case to read. ``content``: a text, or a function
+    that writes the file to the binary file object it is given (``np.save``)."""
     from pipeline._util.atomic import atomic_path
 
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(text)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        if callable(content):
+            content(fh)
+        else:
+            fh.write(content.encode())
 
 
 def write_doc(text: str) -> None:

@@ -117,9 +117,10 @@ def prepare(problem: str, size: float, folder: Path) -> dict:
     fe = build_fe_model(cfg, folder)
     P = p1_prolongation(fe.space, fe.free)
     for name, A in (("K", fe.K), ("M", fe.M), ("P", P)):
-        sp.save_npz(folder / f"{name}.npz", sp.csr_matrix(A), compressed=False)
-    np.save(folder / "free.npy", fe.free)
-    np.save(folder / "points.npy", fe.space.node_points)
+        write_whole(folder / f"{name}.npz",
+                    lambda fh, A=A: sp.save_npz(fh, sp.csr_matrix(A), compressed=False))
+    write_whole(folder / "free.npy", lambda fh: np.save(fh, fe.free))
+    write_whole(folder / "points.npy", lambda fh: np.save(fh, fe.space.node_points))
     return {"n": int(fe.free.size), "n_full": int(fe.space.n_dofs)}
 
 
@@ -253,7 +254,8 @@ def run_case(case: str, folder: Path, count: int) -> dict:
                    solve_s=total - (setup or 0.0), converged=True, method=st.get("method"))
         row.update(_accuracy(K, M, X, w, folder))
         if case == "factor":
-            np.savez(folder / "reference.npz", X=X, f=row["frequencies"])
+            write_whole(folder / "reference.npz",
+                        lambda fh: np.savez(fh, X=X, f=row["frequencies"]))
         return row
     solver, precond = case.split("+")
     apply, info, owner = _preconditioner(precond, K, P, free, points)
