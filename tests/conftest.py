@@ -32,6 +32,19 @@ ROOT = Path(__file__).resolve().parents[1]
 ALUMINIUM = Material(E=69.0e9, nu=0.33, rho=2700.0)
 
 
+def rank_error_lines(stderr: str) -> list[str]:
+    """Each rank's one-line error ("error on rank R of N: ...") in the combined stderr of
+    an ``mpiexec`` run. mpiexec forwards the ranks' streams as they come, so two ranks'
+    lines may share one line, and its abort banner (a rule of dashes) or OpenMPI's own
+    log lines ("[host:pid] ... ORTE_ERROR_LOG ...") may follow a rank's line without a
+    newline between them: each is cut where the next begins."""
+    import re
+
+    parts = re.split(r"error on rank", stderr)[1:]
+    return [re.split(r"-{20,}|\[[\w.-]+:\d+\]", ("error on rank" + part).splitlines()[0])[0]
+            for part in parts]
+
+
 @contextlib.contextmanager
 def bench_module(name: str):
     """The script ``benchmarks/<name>.py`` as a module, while in the ``with`` block:

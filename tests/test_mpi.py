@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from conftest import ALUMINIUM, ROOT, build_model
+from conftest import ALUMINIUM, ROOT, build_model, rank_error_lines
 from pipeline.distributed.assemble import local_node_mass, local_rows, owned_rows
 from pipeline.distributed.partition import slab_partition
 from pipeline.distributed.submesh import split_mesh
@@ -254,11 +254,7 @@ def test_a_failing_rank_stops_all_in_one_line_and_writes_nothing(tmp_path):
                            "modes.solver=slepc", "--set", "mesh.size=0.03", "-o", str(out)],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 5, proc.stderr[-2000:]
-    # mpiexec forwards the ranks' streams as they come: two ranks' lines may share one
-    # line of the combined stderr, so split at each rank's own "error on rank"
-    lines = ["error on rank" + part for part in
-             re.split(r"error on rank", proc.stderr)[1:]]
-    lines = [part.splitlines()[0] for part in lines]
+    lines = rank_error_lines(proc.stderr)
     assert lines and all("nosuchsolver" in line and len(line) < 600 for line in lines), lines
     assert not out.exists()
 

@@ -21,7 +21,7 @@ import subprocess
 
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, rank_error_lines
 from test_mpi import MPI_PYTHON, _mpiexec
 
 _FAKED = """
@@ -50,10 +50,7 @@ def test_a_factor_that_does_not_fit_is_refused_after_the_analysis(tmp_path):
     assert "MUMPS' analysis of K" in proc.stderr  # the analysis ran ...
     assert "MUMPS' factor of" not in proc.stderr  # ... the numeric factorisation did not
     # every rank raises it; the first MPI_Abort may stop the other before it prints
-    lines = ["error on rank" + part for part in re.split(r"error on rank", proc.stderr)[1:]]
-    # mpiexec's abort banner (a rule of dashes) shares stderr and may follow a rank's line
-    # without a newline between them: it is not part of that line
-    lines = [re.split(r"-{20,}", part.splitlines()[0])[0] for part in lines]
+    lines = rank_error_lines(proc.stderr)
     assert 1 <= len(lines) <= 2, proc.stderr[-2000:]
     for line in lines:
         assert re.search(r"MUMPS' analysis of K \(\d+ rows\) on 2 ranks: the numeric "
@@ -107,3 +104,17 @@ def test_mumps_estimate_bounds_the_factor_it_makes(tmp_path):
     factor_mb = 8 * entries / 1e6
     assert factor_mb <= used_sum <= est_sum <= 3 * (1 + m) * factor_mb, \
         (factor_mb, used_sum, est_sum)
+
+
+def test_rank_error_lines_are_cut_where_mpiexecs_own_output_begins():
+    """The rank lines the MPI tests read, from stderr as mpiexec interleaves it (seen in
+    CI: OpenMPI's log line glued to a rank's error without a newline)."""
+    stderr = ("12:00:01 INFO memory estimate ...\n"
+              "error on rank 0 of 2: the factor needs 0.31 GB[vm:13632] [[22974,0],0] "
+              "ORTE_ERROR_LOG: Data unpack would read past end of buffer\n"
+              "error on rank 1 of 2: SIGTERM----------------------------------------\n"
+              "mpiexec noticed ...\n")
+    assert rank_error_lines(stderr) == ["error on rank 0 of 2: the factor needs 0.31 GB",
+                                        "error on rank 1 of 2: SIGTERM"]
+    assert rank_error_lines("error on rank 0 of 2: a (b) error on rank 1 of 2: c\n") == \
+        ["error on rank 0 of 2: a (b) ", "error on rank 1 of 2: c"]

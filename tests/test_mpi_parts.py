@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, rank_error_lines
 from test_mpi import (MPI_PYTHON, _mpiexec, _run, _run_here, _same_file,
                       _serial_and_two_ranks)
 
@@ -155,8 +155,7 @@ def test_a_parts_file_that_does_not_fit_is_refused_in_one_line(small_parts, kind
     assert proc.returncode == code, proc.stderr[-2000:]
     # the rank that refuses says why; a rank stopped meanwhile says SIGTERM (the
     # abort of tests/test_mpi.py's failing rank); nothing assembled, nothing written
-    lines = [("error on rank" + part).splitlines()[0]
-             for part in re.split(r"error on rank", proc.stderr)[1:]]
+    lines = rank_error_lines(proc.stderr)
     why = [line for line in lines if text in line]
     assert len(why) == 1 and all(line in why or line.endswith("SIGTERM") for line in lines), \
         proc.stderr[-2000:]
