@@ -29,7 +29,6 @@ import re
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Iterator
@@ -38,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_pipeline import (COUNT, ROOT, SIZES, host_speed, machine,  # noqa: E402
                             run_watched, write_whole)
 
+from pipeline._util.atomic import private_folder, signals_held  # noqa: E402
 from pipeline._util.interrupts import handle_signals  # noqa: E402
 
 CONFIG = "configs/cantilever.yaml"
@@ -145,19 +145,23 @@ def resolve_revision(rev: str) -> str:
 
 @contextlib.contextmanager
 def worktree(commit: str) -> Iterator[Path]:
-    """A detached git worktree of ``commit`` in a temporary folder, removed on exit."""
-    with tempfile.TemporaryDirectory(prefix="bench_baseline_") as tmp:
-        path = Path(tmp) / "tree"
-        proc = subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(path),
-                               commit], cwd=ROOT, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise BenchError(f"git worktree add {commit[:12]}: "
-                             f"{(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
+    """A detached git worktree of ``commit`` in a private temporary folder, removed on
+    exit (an interrupt included: the folder goes, and git forgets the tree)."""
+    with private_folder("bench_baseline_") as tmp:
+        path = tmp / "tree"
         try:
+            proc = subprocess.run(["git", "worktree", "add", "--detach", "--quiet",
+                                   str(path), commit], cwd=ROOT, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise BenchError(f"git worktree add {commit[:12]}: "
+                                 f"{(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
             yield path
         finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(path)], cwd=ROOT,
-                           capture_output=True)
+            with signals_held():
+                removed = subprocess.run(["git", "worktree", "remove", "--force", str(path)],
+                                         cwd=ROOT, capture_output=True)
+                if removed.returncode != 0:  # an add cut short: git's entry outlives the tree
+                    subprocess.run(["git", "worktree", "prune"], cwd=ROOT, capture_output=True)
 
 
 def _env(tree: Path) -> dict:
@@ -180,9 +184,9 @@ def check_tree(tree: Path) -> None:
 def run_cli(tree: Path, size: float, count: int, timeout: float) -> dict:
     """One cold run of the pipeline's command line in ``tree``: seconds, peak resident
     bytes, the printed frequencies and DOF count, or ``error``."""
-    with tempfile.TemporaryDirectory(prefix="bench_baseline_run_") as tmp:
+    with private_folder("bench_baseline_run_") as tmp:
         cmd = [sys.executable, "-m", "pipeline", "run", CONFIG, "--set", f"mesh.size={size}",
-               "--set", f"modes.count={count}", "-o", str(Path(tmp) / "out.h5")]
+               "--set", f"modes.count={count}", "-o", str(tmp / "out.h5")]
         t0 = time.perf_counter()
         proc = run_watched(cmd, timeout, cwd=tree, env=_env(tree))
         seconds = time.perf_counter() - t0

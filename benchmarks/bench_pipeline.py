@@ -24,6 +24,7 @@ import json
 import os
 import platform
 import resource
+import signal
 import subprocess
 import sys
 import tempfile
@@ -242,17 +243,53 @@ def _rss_bytes(pid: int) -> int:
     return 0
 
 
+#: seconds an interrupted bench gives its running case to clean up after SIGTERM (the
+#: pipeline removes its temporary files on SIGTERM) before SIGKILL
+STOP_GRACE_S = 10.0
+
+
+def _signal_group(pgid: int, sig: int) -> None:
+    try:
+        os.killpg(pgid, sig)
+    except (ProcessLookupError, PermissionError):  # the group is gone already
+        pass
+
+
+def stop_case(proc: subprocess.Popen, grace_s: float) -> None:
+    """Leave no process of a case started in its own session (``start_new_session``):
+    a case still running gets SIGTERM for its whole process group and ``grace_s``
+    seconds to end, then the group gets SIGKILL, whatever is left of it (a case that
+    ended may leave children of its own)."""
+    try:
+        if proc.poll() is None and grace_s > 0:
+            _signal_group(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                pass
+    finally:
+        _signal_group(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
 def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
                 poll_s: float = 0.25, cwd: Path = ROOT, env: dict | None = None) -> Finished:
     """Run ``cmd`` (in ``cwd``, default the repository; ``env``: its environment, default
     this process's) and stop it, with a one-line reason, when it runs past ``timeout``
     seconds or its resident memory passes ``limit_bytes`` (default:
-    :data:`MEMORY_FRACTION` of the memory available now)."""
+    :data:`MEMORY_FRACTION` of the memory available now). The case runs in its own
+    session; stopped, it gets SIGKILL at once, and when the bench itself is interrupted
+    it gets SIGTERM first (:func:`stop_case`): no process of it is left either way."""
+    from pipeline._util.interrupts import held
+
     limit = limit_bytes or int(MEMORY_FRACTION * _available_bytes())
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=err, text=True)
-        t0, peak, error = time.perf_counter(), 0, None
+        proc, peak, error, interrupted = None, 0, None, True
         try:
+            with held():  # an interrupt during the start waits until proc is known
+                proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=out, stderr=err,
+                                        text=True, start_new_session=True)
+                t0 = time.perf_counter()
             while proc.poll() is None:
                 peak = max(peak, _rss_bytes(proc.pid))
                 if peak > limit:
@@ -263,10 +300,10 @@ def run_watched(cmd: list[str], timeout: float, limit_bytes: int | None = None,
                 if error:
                     break
                 time.sleep(poll_s)
-        finally:  # stopped, or the bench itself interrupted: no case left running
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+            interrupted = False
+        finally:  # ended, stopped, or the bench itself interrupted: no case left running
+            if proc is not None:
+                stop_case(proc, STOP_GRACE_S if interrupted else 0.0)
         out.seek(0)
         err.seek(0)
         return Finished(proc.returncode, out.read(), err.read(), error, peak)
@@ -808,6 +845,9 @@ def main(argv=None) -> int:
     ap.add_argument("--result", help=argparse.SUPPRESS)
     ap.add_argument("--shapes", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    from pipeline._util.interrupts import handle_signals
+
+    handle_signals()  # SIGTERM and SIGHUP stop the running case too (run_watched)
 
     if args.child:
         with tempfile.TemporaryDirectory(prefix="bench_case_") as tmp:

@@ -397,6 +397,9 @@ def main(argv=None) -> int:
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    from pipeline._util.interrupts import handle_signals
+
+    handle_signals()  # SIGTERM and SIGHUP stop the running case too (run_watched)
 
     if args.child:
         folder = Path(args.folder)
