@@ -17,6 +17,10 @@ worktree of the revision in a temporary folder, removed at the end. The table gi
 medians of both, the median and range of the round-by-round ratios (baseline / current),
 and the largest relative difference of the frequencies the two runs print (4 decimals:
 a check that both solved the same problem, to about 1e-6 at the first mode).
+
+An unknown revision is refused in one line (exit 2) before any run. SIGINT, SIGTERM
+and SIGHUP stop the running case (SIGTERM to its process group, then SIGKILL:
+``bench_pipeline.run_watched``) and remove the worktree (exit 130).
 """
 
 from __future__ import annotations
