@@ -157,8 +157,9 @@ def worktree(commit: str) -> Iterator[Path]:
             proc = subprocess.run(["git", "worktree", "add", "--detach", "--quiet",
                                    str(path), commit], cwd=ROOT, capture_output=True, text=True)
             if proc.returncode != 0:
-                raise BenchError(f"git worktree add {commit[:12]}: "
-                                 f"{(proc.stderr or proc.stdout).strip().splitlines()[-1:]}")
+                why = " | ".join((proc.stderr or proc.stdout).strip().splitlines()[-1:])
+                raise BenchError(f"git worktree add {commit[:12]}: {why or 'failed'}; expected "
+                                 "a worktree of the revision in a temporary folder")
             yield path
         finally:
             with signals_held():
