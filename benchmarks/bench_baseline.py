@@ -38,8 +38,8 @@ from pathlib import Path
 from typing import Iterator
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import (COUNT, ROOT, SIZES, host_speed, machine,  # noqa: E402
-                            run_watched, write_whole)
+from bench_pipeline import (COUNT, ROOT, SIZES, check_json_option, host_speed,  # noqa: E402
+                            machine, run_watched, write_whole)
 
 from pipeline._util.atomic import private_folder, signals_held  # noqa: E402
 from pipeline._util.interrupts import handle_signals  # noqa: E402
@@ -214,6 +214,7 @@ def main(argv=None) -> int:
                     help="skip the host-speed probe before every round (about 3 s each)")
     ap.add_argument("--json", default=None, help="also write the rounds to this file")
     args = ap.parse_args(argv)
+    check_json_option(ap, args.json)
     labels = [x for x in args.sizes.split(",") if x]
     unknown = [x for x in labels if x not in SIZES]
     if unknown or not labels:

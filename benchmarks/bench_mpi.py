@@ -74,7 +74,7 @@ from itertools import islice
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import write_whole  # noqa: E402
+from bench_pipeline import check_json_option, write_whole  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "cantilever.yaml"
@@ -705,6 +705,7 @@ def main(argv=None) -> int:
     ap.add_argument("--case", default="cantilever", help=argparse.SUPPRESS)
     ap.add_argument("--output", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    check_json_option(ap, args.json)
     if args.worker:
         worker(args.size, args.output, args.method, args.fe_only, args.parts or None)
         return 0

@@ -778,6 +778,15 @@ def machine() -> str:
             f"{numpy.__version__}, scipy {scipy.__version__}, MKL {mkl}")
 
 
+def check_json_option(ap: argparse.ArgumentParser, path: str | None) -> None:
+    """Refuse, before any case runs, a ``--json`` path that does not end in ``.json``:
+    the bench writes its rows there, and a config, a script or a page given by mistake
+    would be replaced."""
+    if path and Path(path).suffix.lower() != ".json":
+        ap.error(f"--json {path}: expected a file name ending in .json (the bench writes "
+                 "its rows there)")
+
+
 def write_whole(path: str | Path, content) -> None:
     """Write ``path`` whole or not at all, through the package's atomic writer (a
     temporary name renamed over ``path``), so that an interrupted bench leaves no partial
@@ -845,6 +854,7 @@ def main(argv=None) -> int:
     ap.add_argument("--result", help=argparse.SUPPRESS)
     ap.add_argument("--shapes", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    check_json_option(ap, args.json)
     from pipeline._util.interrupts import handle_signals
 
     handle_signals()  # SIGTERM and SIGHUP stop the running case too (run_watched)

@@ -52,8 +52,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pipeline import (ROOT, SIZES, machine, run_watched, short_error,  # noqa: E402
-                            write_whole)
+from bench_pipeline import (ROOT, SIZES, check_json_option, machine, run_watched,  # noqa: E402
+                            short_error, write_whole)
 
 # problem -> (config, overrides, volume m^3): mesh.size for a target DOF count from the
 # cantilever's measured 101k DOFs at 0.005 m (DOFs ~ volume / size^3)
@@ -397,6 +397,7 @@ def main(argv=None) -> int:
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--result", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    check_json_option(ap, args.json)
     from pipeline._util.interrupts import handle_signals
 
     handle_signals()  # SIGTERM and SIGHUP stop the running case too (run_watched)

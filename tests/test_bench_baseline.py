@@ -125,3 +125,20 @@ def test_an_interrupted_comparison_leaves_no_case_and_no_worktree():
         if any(where.startswith(p) for p in during):
             command = (cwd.parent / "cmdline").read_bytes().replace(b"\0", b" ")
             pytest.fail(f"a process left in the removed tree {where}: {command!r}")
+
+
+@pytest.mark.parametrize("script, extra", [("bench_pipeline.py", []), ("bench_solvers.py", []),
+                                           ("bench_mpi.py", []),
+                                           ("bench_baseline.py", ["--baseline", "HEAD"])])
+def test_a_json_destination_that_is_not_json_is_refused_before_any_case(tmp_path, script,
+                                                                        extra):
+    """--json names where the bench writes its rows: a config given there by mistake is
+    refused (exit 2, the option and value named) and left as it was."""
+    config = tmp_path / "cantilever.yaml"
+    config.write_text("name: cantilever\n")
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *extra,
+                           "--json", str(config)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2
+    assert f"--json {config}: expected a file name ending in .json" in proc.stderr
+    assert config.read_text() == "name: cantilever\n"
